@@ -1,0 +1,30 @@
+"""clcgraph: extrinsic calibration of rigs of rotating LIDARs and cameras.
+
+The public API lives in ``clcgraph.api``; its names are re-exported here lazily so
+that ``import clcgraph`` stays cheap (no gtsam/open3d until used).
+"""
+
+import logging
+
+__version__ = "0.1.0"
+
+logging.getLogger(__name__).addHandler(logging.NullHandler())
+
+_API = {
+    "calibrate",
+    "calibrate_bags",
+    "calibrate_targetless",
+    "read_problem",
+    "segment",
+    "detect",
+    "simulate",
+    "load_result",
+}
+
+
+def __getattr__(name):
+    if name in _API:
+        from . import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'clcgraph' has no attribute '{name}'")

@@ -1,0 +1,88 @@
+"""The only mrcal wrapper: camera models on disk, projection with gradients.
+
+SYNOPSIS
+    cam = load_camera("/topic/image", "left.cameramodel")   # -> Sensor
+    q, dq_dp, dq_di = project(p_cam, cam.lensmodel, cam.intrinsics, get_gradients=True)
+    write_cameramodel("out.cameramodel", cam, rt_cam_ref=rt)
+
+Shapes: p (...,3) in the camera frame (right-down-forward); q (...,2) pixels;
+dq_dp (...,2,3); dq_di (...,2,Nintrinsics).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .errors import DataError, DependencyError, InputError
+from .types import Sensor
+
+
+def _mrcal():
+    try:
+        import mrcal
+    except ImportError as e:  # pragma: no cover - depends on the machine
+        raise DependencyError(
+            f"mrcal is not importable ({e}); install Debian's python3-mrcal and use a venv "
+            "made with --system-site-packages (./dev.sh setup does both)"
+        ) from None
+    return mrcal
+
+
+def load_camera(topic: str, path: str | Path) -> Sensor:
+    """Read a .cameramodel file into a camera Sensor (intrinsics only; extrinsics are solved)."""
+    mrcal = _mrcal()
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: camera model file not found (given for camera topic {topic})")
+    try:
+        model = mrcal.cameramodel(str(path))
+    except Exception as e:
+        raise DataError(f"{path}: not a readable mrcal .cameramodel: {str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
+    lensmodel, intrinsics = model.intrinsics()
+    w, h = model.imagersize()
+    return Sensor(
+        topic=topic,
+        kind="camera",
+        lensmodel=lensmodel,
+        intrinsics=np.array(intrinsics, dtype=float),
+        imagersize=(int(w), int(h)),
+    )
+
+
+def write_cameramodel(path: str | Path, camera: Sensor, *, rt_cam_ref: np.ndarray) -> None:
+    """Write ``camera`` with extrinsics rt_cam_ref (ref -> camera) as a .cameramodel."""
+    mrcal = _mrcal()
+    model = mrcal.cameramodel(
+        intrinsics=(camera.lensmodel, np.asarray(camera.intrinsics, dtype=float)),
+        imagersize=np.array(camera.imagersize),
+        rt_cam_ref=np.asarray(rt_cam_ref, dtype=float),
+    )
+    model.write(str(path))
+
+
+def project(p: np.ndarray, lensmodel: str, intrinsics: np.ndarray, *, get_gradients: bool = False):
+    """Project camera-frame points to pixels. With gradients: (q, dq_dp, dq_dintrinsics)."""
+    mrcal = _mrcal()
+    p = np.ascontiguousarray(p, dtype=float)
+    intrinsics = np.ascontiguousarray(intrinsics, dtype=float)
+    if get_gradients:
+        return mrcal.project(p, lensmodel, intrinsics, get_gradients=True)
+    return mrcal.project(p, lensmodel, intrinsics)
+
+
+def unproject(q: np.ndarray, lensmodel: str, intrinsics: np.ndarray, *, normalize: bool = True) -> np.ndarray:
+    """Pixels (...,2) -> observation vectors (...,3) in the camera frame."""
+    mrcal = _mrcal()
+    return mrcal.unproject(
+        np.ascontiguousarray(q, dtype=float), lensmodel, np.ascontiguousarray(intrinsics, dtype=float), normalize=normalize
+    )
+
+
+def lensmodel_metadata(lensmodel: str) -> dict:
+    return _mrcal().lensmodel_metadata_and_config(lensmodel)
+
+
+def num_intrinsics(lensmodel: str) -> int:
+    return _mrcal().lensmodel_num_params(lensmodel)

@@ -1,0 +1,162 @@
+"""Rigid transforms: rt (mrcal's Rodrigues + translation 6-vector), Rt (4x3), 4x4, gtsam.Pose3.
+
+The only place conversions live. ``T_a_b`` / ``rt_a_b`` map points in frame b into frame a:
+``x_a = R x_b + t``. Functions broadcast over leading dimensions where it is cheap.
+gtsam is imported lazily so that the frontend can use this module without it.
+
+SYNOPSIS
+    >>> rt_a_c = compose_rt(rt_a_b, rt_b_c)
+    >>> p_a = transform(rt_a_b, p_b)
+    >>> pose = pose3_from_rt(rt_a_b); rt = rt_from_pose3(pose)
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_SMALL = 1e-7
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    z = np.zeros(v.shape[:-1])
+    return np.stack(
+        [
+            np.stack([z, -v[..., 2], v[..., 1]], -1),
+            np.stack([v[..., 2], z, -v[..., 0]], -1),
+            np.stack([-v[..., 1], v[..., 0], z], -1),
+        ],
+        -2,
+    )
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """(...,3) -> (...,3,3) cross-product matrix: skew(a) @ b == cross(a, b)."""
+    return _skew(np.asarray(v, dtype=float))
+
+
+def R_from_r(r: np.ndarray) -> np.ndarray:
+    """Rodrigues vector(s) (...,3) -> rotation matrices (...,3,3)."""
+    r = np.asarray(r, dtype=float)
+    th2 = np.sum(r * r, axis=-1)[..., None, None]
+    th = np.sqrt(th2)
+    K = _skew(r)
+    small = th2 < _SMALL**2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / np.where(small, 1, th))
+        b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / np.where(small, 1, th2))
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def r_from_R(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices (...,3,3) -> Rodrigues vectors (...,3), angle in [0, pi]."""
+    R = np.asarray(R, dtype=float)
+    w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    s = 0.5 * np.linalg.norm(w, axis=-1)  # sin(th)
+    c = np.clip(0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0), -1.0, 1.0)  # cos(th)
+    th = np.arctan2(s, c)
+    out = np.empty(R.shape[:-2] + (3,))
+    small = s < 1e-6
+    near_pi = small & (c < 0)
+    regular = ~small
+    with np.errstate(invalid="ignore", divide="ignore"):
+        f = np.where(regular, th / np.where(regular, 2 * s, 1), 0.5 + th * th / 12.0)
+    out[...] = f[..., None] * w
+    if np.any(near_pi):
+        # th ~ pi: R ~ 2 a a^T - I; take the axis from the largest diagonal entry.
+        Rp = R[near_pi]
+        B = 0.5 * (Rp + np.eye(3))
+        k = np.argmax(np.diagonal(B, axis1=-2, axis2=-1), axis=-1)
+        a = B[np.arange(len(k)), :, k]
+        a /= np.linalg.norm(a, axis=-1, keepdims=True)
+        # choose the sign consistent with the (tiny) antisymmetric part
+        sgn = np.where(np.sum(a * w[near_pi], axis=-1) < 0, -1.0, 1.0)
+        out[near_pi] = a * (sgn * th[near_pi])[..., None]
+    return out
+
+
+def Rt_from_rt(rt: np.ndarray) -> np.ndarray:
+    """(...,6) -> (...,4,3): rotation rows stacked over the translation row (mrcal's Rt)."""
+    rt = np.asarray(rt, dtype=float)
+    return np.concatenate([R_from_r(rt[..., :3]), rt[..., None, 3:]], axis=-2)
+
+
+def rt_from_Rt(Rt: np.ndarray) -> np.ndarray:
+    Rt = np.asarray(Rt, dtype=float)
+    return np.concatenate([r_from_R(Rt[..., :3, :]), Rt[..., 3, :]], axis=-1)
+
+
+def T_from_rt(rt: np.ndarray) -> np.ndarray:
+    """(...,6) -> (...,4,4) homogeneous matrix."""
+    rt = np.asarray(rt, dtype=float)
+    T = np.zeros(rt.shape[:-1] + (4, 4))
+    T[..., :3, :3] = R_from_r(rt[..., :3])
+    T[..., :3, 3] = rt[..., 3:]
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def rt_from_T(T: np.ndarray) -> np.ndarray:
+    T = np.asarray(T, dtype=float)
+    return np.concatenate([r_from_R(T[..., :3, :3]), T[..., :3, 3]], axis=-1)
+
+
+def rt_from_R_t(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    return np.concatenate([r_from_R(R), np.asarray(t, dtype=float)], axis=-1)
+
+
+def compose_rt(*rts: np.ndarray) -> np.ndarray:
+    """compose_rt(rt_a_b, rt_b_c, ...) -> rt_a_c."""
+    T = T_from_rt(rts[0])
+    for rt in rts[1:]:
+        T = T @ T_from_rt(rt)
+    return rt_from_T(T)
+
+
+def invert_rt(rt: np.ndarray) -> np.ndarray:
+    """rt_a_b -> rt_b_a."""
+    rt = np.asarray(rt, dtype=float)
+    R = R_from_r(rt[..., :3])
+    t = -np.einsum("...ji,...j->...i", R, rt[..., 3:])
+    return np.concatenate([-rt[..., :3], t], axis=-1)
+
+
+def transform(rt_a_b: np.ndarray, p_b: np.ndarray) -> np.ndarray:
+    """Points (N,3) in frame b -> frame a, for one rt_a_b (6,)."""
+    rt_a_b = np.asarray(rt_a_b, dtype=float)
+    return np.asarray(p_b, dtype=float) @ R_from_r(rt_a_b[:3]).T + rt_a_b[3:]
+
+
+def pose3_from_rt(rt: np.ndarray):
+    """(6,) rt -> gtsam.Pose3."""
+    import gtsam
+
+    T = T_from_rt(rt)
+    return gtsam.Pose3(gtsam.Rot3(T[:3, :3]), T[:3, 3])
+
+
+def rt_from_pose3(pose) -> np.ndarray:
+    """gtsam.Pose3 -> (6,) rt."""
+    return rt_from_T(pose.matrix())
+
+
+def so3_right_jacobian_inverse(r: np.ndarray) -> np.ndarray:
+    """Jr^{-1}(r): d Log(Exp(r) Exp(w)) / dw at w = 0, (3,3)."""
+    r = np.asarray(r, dtype=float)
+    th = np.linalg.norm(r)
+    K = _skew(r)
+    if th < 1e-6:
+        return np.eye(3) + 0.5 * K + (K @ K) / 12.0
+    c = 1.0 / th**2 - (1.0 + np.cos(th)) / (2.0 * th * np.sin(th))
+    return np.eye(3) + 0.5 * K + c * (K @ K)
+
+
+def drt_dxi(rt: np.ndarray) -> np.ndarray:
+    """(6,6) Jacobian of rt(T Exp(xi)) at xi = 0, xi = [omega, v] (GTSAM's Pose3 tangent).
+
+    Maps a GTSAM Pose3 covariance into rt coordinates: Var_rt = J Var_xi J^T.
+    """
+    rt = np.asarray(rt, dtype=float)
+    J = np.zeros((6, 6))
+    J[:3, :3] = so3_right_jacobian_inverse(rt[:3])
+    J[3:, 3:] = R_from_r(rt[:3])
+    return J

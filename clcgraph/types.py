@@ -1,0 +1,227 @@
+"""The data model: frozen dataclasses passed between the stages.
+
+Conventions (see DESIGN.md): ``rt_a_b`` maps points in frame b to frame a, as mrcal's
+6-vector (Rodrigues r, then t). Sensor indices refer to ``Problem.sensors``; snapshot
+indices to ``Problem.snapshot_stamps_ns``. Arrays are float64 unless stated otherwise.
+This module imports nothing of clcgraph.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal, Mapping
+
+import numpy as np
+
+SensorKind = Literal["lidar", "camera"]
+
+
+@dataclass(frozen=True, eq=False)
+class Sensor:
+    """One sensor of the rig, named by its topic.
+
+    Cameras carry their (fixed, pre-calibrated) mrcal intrinsics.
+    """
+
+    topic: str
+    kind: SensorKind
+    lensmodel: str | None = None  # mrcal lens model name, cameras only
+    intrinsics: np.ndarray | None = None  # (Nintrinsics,)
+    imagersize: tuple[int, int] | None = None  # (width, height)
+
+    @property
+    def is_lidar(self) -> bool:
+        return self.kind == "lidar"
+
+    @property
+    def is_camera(self) -> bool:
+        return self.kind == "camera"
+
+
+@dataclass(frozen=True, eq=False)
+class LidarScan:
+    """One decoded PointCloud2 in the sensor frame.
+
+    Rows are kept as decoded (organised clouds keep their (height, width) order);
+    invalid returns (NaN, inf, (0,0,0)) are flagged in ``valid``, not dropped.
+    """
+
+    topic: str
+    stamp_ns: int
+    points: np.ndarray  # (N,3)
+    valid: np.ndarray  # (N,) bool
+    intensity: np.ndarray | None = None  # (N,) float32
+    ring: np.ndarray | None = None  # (N,) int; None if the cloud has no ring field
+    time_s: np.ndarray | None = None  # (N,) per-point time relative to stamp_ns
+    shape: tuple[int, int] | None = None  # (height, width) of an organised cloud
+
+
+@dataclass(frozen=True, eq=False)
+class Image:
+    """One decoded image: (H,W) mono8/mono16, or (H,W,3) uint8 in BGR order."""
+
+    topic: str
+    stamp_ns: int
+    pixels: np.ndarray
+    encoding: str  # the encoding it was decoded from
+
+
+@dataclass(frozen=True, eq=False)
+class Snapshot:
+    """Synchronized observations of one stationary board pose."""
+
+    index: int
+    stamp_ns: int
+    source: str  # bag path, plus the period for decimated continuous bags
+    scans: Mapping[str, LidarScan] = field(default_factory=dict)
+    images: Mapping[str, Image] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class BoardGeometry:
+    """A chessboard: ``corners_x`` by ``corners_y`` inner corners, ``spacing_m`` apart.
+
+    Board frame: corner (row i, column j) at (j*spacing, i*spacing, 0), row-major
+    like mrgingham and mrcal; the board is the plane z = 0 and extends ``margin_m``
+    beyond the outer corners.
+    """
+
+    corners_x: int = 10
+    corners_y: int = 10
+    spacing_m: float = 0.1
+    margin_m: float = 0.1
+
+    def corners(self) -> np.ndarray:
+        """(corners_y*corners_x, 3) corner positions in the board frame."""
+        i, j = np.mgrid[0 : self.corners_y, 0 : self.corners_x]
+        xyz = np.zeros((self.corners_y, self.corners_x, 3))
+        xyz[..., 0] = j * self.spacing_m
+        xyz[..., 1] = i * self.spacing_m
+        return xyz.reshape(-1, 3)
+
+    def extent(self) -> tuple[float, float, float, float]:
+        """(xmin, xmax, ymin, ymax) of the physical board in the board frame."""
+        m = self.margin_m
+        return (
+            -m,
+            (self.corners_x - 1) * self.spacing_m + m,
+            -m,
+            (self.corners_y - 1) * self.spacing_m + m,
+        )
+
+    @property
+    def size_m(self) -> tuple[float, float]:
+        xmin, xmax, ymin, ymax = self.extent()
+        return (xmax - xmin, ymax - ymin)
+
+
+@dataclass(frozen=True, eq=False)
+class LidarBoardObservation:
+    """The board's points as seen by one LIDAR in one snapshot (sensor frame)."""
+
+    sensor: int
+    snapshot: int
+    points: np.ndarray  # (K,3)
+    plane: np.ndarray  # (4,) unit normal n and offset d: n . x = d, n pointing at the sensor
+    rms_m: float  # plane-fit RMS
+    indices: np.ndarray | None = None  # (K,) indices into the LidarScan's rows
+
+
+@dataclass(frozen=True, eq=False)
+class CameraBoardObservation:
+    """All chessboard corners detected by one camera in one snapshot, in board-corner order."""
+
+    sensor: int
+    snapshot: int
+    corners_px: np.ndarray  # (corners_y*corners_x, 2)
+
+
+@dataclass(frozen=True)
+class Rejected:
+    """Something that was not used, and why. Counted in reports, never raised mid-batch."""
+
+    reason: str
+    stage: str  # "snapshot", "segmentation", "detection", "seed", "outlier", ...
+    sensor: int | None = None
+    snapshot: int | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class PosePrior:
+    """A nominal pose of a sensor (CAD, tf_static) with 1-sigma in rt coordinates."""
+
+    sensor: int
+    rt_lidar0_sensor: np.ndarray  # (6,)
+    sigma_rt: np.ndarray  # (6,) rad, rad, rad, m, m, m
+
+
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """Everything the solver needs; independent of bags. Dumped/replayed as a unit."""
+
+    sensors: tuple[Sensor, ...]
+    board: BoardGeometry
+    lidar_observations: tuple[LidarBoardObservation, ...]
+    camera_observations: tuple[CameraBoardObservation, ...]
+    snapshot_stamps_ns: np.ndarray  # (Nsnapshots,) int64
+    rejected: tuple[Rejected, ...] = ()
+    priors: tuple[PosePrior, ...] = ()
+    # sensor index -> (K,3) sample of far points in that LIDAR's frame (sector visibility)
+    lidar_visibility_points: Mapping[int, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def reference(self) -> int:
+        """Index of lidar0, the first LIDAR: the frame everything is expressed in."""
+        for i, s in enumerate(self.sensors):
+            if s.is_lidar:
+                return i
+        raise ValueError("a problem needs at least one LIDAR")
+
+    @property
+    def n_snapshots(self) -> int:
+        return len(self.snapshot_stamps_ns)
+
+    def sensor_name(self, i: int) -> str:
+        return f"{self.sensors[i].kind} {self.sensors[i].topic}"
+
+
+@dataclass(frozen=True, eq=False)
+class SectorReport:
+    """The seed's sector feedback around the vehicle (see backend/sectors.py)."""
+
+    n_sectors: int
+    observations_per_sector: np.ndarray  # (Nsectors,) int
+    isvisible_per_sensor_per_sector: np.ndarray  # (Nsensors, Nsectors) bool
+    stdev_worst_per_sector: np.ndarray  # (Nsectors,) m
+    isensors_pair_stdev_worst: np.ndarray  # (Nsectors, 2) int
+    isector_of_last_snapshot: int
+
+
+@dataclass(frozen=True, eq=False)
+class Result:
+    """The solve's answer with its uncertainty and diagnostics."""
+
+    problem: Problem
+    rt_lidar0_sensor: np.ndarray  # (Nsensors,6); the reference row is zero
+    covariance_rt: np.ndarray  # (6(N-1),6(N-1)) over non-reference sensors, in sensor order
+    rt_lidar0_board: np.ndarray  # (Nsnapshots,6); NaN rows for unused snapshots
+    noise: Mapping[str, float]  # re-estimated sigmas: lidar_m, camera_px
+    rms: Mapping[str, float]  # normalized, lidar_m, camera_px
+    rejected: tuple[Rejected, ...]  # frontend and solver rejections
+    sectors: SectorReport | None = None
+    stats: Mapping[str, object] = field(default_factory=dict)  # iterations, timings, ...
+    residuals: Mapping[str, object] = field(default_factory=dict)  # for plots
+
+    def variable_sensors(self) -> list[int]:
+        """Sensor indices that have a block in covariance_rt, in block order."""
+        return [i for i in range(len(self.problem.sensors)) if i != self.problem.reference]
+
+    def covariance_block(self, i: int) -> np.ndarray:
+        """(6,6) marginal covariance of rt_lidar0_sensor[i]; zeros for the reference."""
+        if i == self.problem.reference:
+            return np.zeros((6, 6))
+        k = self.variable_sensors().index(i)
+        return self.covariance_rt[6 * k : 6 * k + 6, 6 * k : 6 * k + 6]
+
+    def stdev_rt(self, i: int) -> np.ndarray:
+        return np.sqrt(np.diag(self.covariance_block(i)))
