@@ -1,0 +1,371 @@
+"""Read ROS1 and ROS2 (sqlite3, mcap) bags without ROS: messages, tf_static, summaries.
+
+SYNOPSIS
+    from clcgraph.frontend import bag
+    info = bag.bag_info("session.bag")                   # topics, types, counts, spans
+    for m in bag.read_messages(["a.bag", "b.bag"], ["/lidar/points", "/cam/image"]):
+        m.bag, m.topic, m.index, m.stamp_ns, m.data      # data: LidarScan | Image
+    first = bag.first_messages("a.bag", ["/lidar/points"])   # {topic: LidarScan | Image}
+    tf = bag.read_tf_static(["a.bag"])
+    T_base_lidar = tf.lookup("base_link", "lidar0")      # (4,4) T_target_source
+    bag.frame_id("a.bag", "/lidar/points")               # header.frame_id
+
+A bag path is a ROS1 ``.bag`` file, or a ROS2 bag directory (its ``.db3`` / ``.mcap``
+file is accepted too and means its directory). Bags are read with rosbags' AnyReader
+and a default typestore (Noetic for ROS1, Humble for ROS2) for bags that do not
+carry their message definitions. Time is header.stamp; log time only for messages
+without a header. Supported message types: sensor_msgs/PointCloud2 -> LidarScan,
+sensor_msgs/Image and CompressedImage -> Image, tf2_msgs/TFMessage on /tf_static.
+
+Every problem becomes an InputError (missing file, absent topic) or DataError
+(unreadable/truncated/empty bag, wrong message type, undecodable message) with one
+line naming the bag, the topic and the message index. No rosbags traceback escapes.
+"""
+
+from __future__ import annotations
+
+import heapq
+import logging
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Iterator, Sequence
+
+import numpy as np
+
+from ..errors import DataError, InputError
+from ..types import Image, LidarScan
+from .images import decode_image
+from .pointcloud import decode_pointcloud2, stamp_ns_of
+
+logger = logging.getLogger(__name__)
+
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+TFMESSAGE = "tf2_msgs/msg/TFMessage"
+DECODABLE = (POINTCLOUD2, IMAGE, COMPRESSED_IMAGE)
+
+# header stamps may lag the log time; the reader's time window is widened by this much
+_LOG_TIME_SLACK_NS = 5_000_000_000
+
+
+@dataclass(frozen=True)
+class TopicInfo:
+    """One topic of a bag. Stamps are log times in ns (None when the topic is empty)."""
+
+    topic: str
+    msgtype: str  # e.g. "sensor_msgs/msg/PointCloud2"
+    count: int
+    first_ns: int | None
+    last_ns: int | None
+
+
+@dataclass(frozen=True)
+class BagInfo:
+    """Summary of one bag: its topics, and the log-time span of all its messages."""
+
+    path: Path
+    topics: tuple[TopicInfo, ...]
+    start_ns: int | None
+    end_ns: int | None
+
+    @property
+    def duration_s(self) -> float:
+        if self.start_ns is None or self.end_ns is None:
+            return 0.0
+        return (self.end_ns - self.start_ns) * 1e-9
+
+    @property
+    def message_count(self) -> int:
+        return sum(t.count for t in self.topics)
+
+    def topic(self, name: str) -> TopicInfo:
+        for t in self.topics:
+            if t.topic == name:
+                return t
+        raise InputError(
+            f"{self.path}: topic {name} not in bag (available: {', '.join(t.topic for t in self.topics) or 'none'})"
+        )
+
+
+@dataclass(frozen=True)
+class Message:
+    """One decoded message. ``index`` counts the messages of ``topic`` in ``bag`` from 0."""
+
+    bag: Path
+    topic: str
+    index: int
+    stamp_ns: int  # header.stamp (log time for header-less messages)
+    data: LidarScan | Image
+
+
+class TfTree:
+    """Static transforms from /tf_static; ``lookup`` chains through parents either way.
+
+    ``edges`` maps (parent, child) -> T_parent_child (4,4).
+    """
+
+    def __init__(self, edges: dict[tuple[str, str], np.ndarray] | None = None):
+        self.edges: dict[tuple[str, str], np.ndarray] = dict(edges or {})
+
+    @property
+    def frames(self) -> set[str]:
+        return {f for e in self.edges for f in e}
+
+    def add(self, parent: str, child: str, T_parent_child: np.ndarray) -> None:
+        self.edges[(parent, child)] = np.asarray(T_parent_child, dtype=np.float64)
+
+    def lookup(self, target_frame: str, source_frame: str) -> np.ndarray:
+        """(4,4) T_target_source mapping points in source_frame into target_frame."""
+        if target_frame == source_frame:
+            return np.eye(4)
+        nbrs: dict[str, list[tuple[str, np.ndarray]]] = {}
+        for (p, c), T in self.edges.items():
+            nbrs.setdefault(p, []).append((c, T))
+            nbrs.setdefault(c, []).append((p, _invert_T(T)))
+        for f in (target_frame, source_frame):
+            if f not in nbrs:
+                raise DataError(
+                    f"tf_static: frame {f!r} unknown (frames: {', '.join(sorted(nbrs)) or 'none'})"
+                )
+        # breadth-first from the target, accumulating T_target_frame
+        found = {target_frame: np.eye(4)}
+        todo = deque([target_frame])
+        while todo:
+            a = todo.popleft()
+            for b, T_a_b in nbrs[a]:
+                if b not in found:
+                    found[b] = found[a] @ T_a_b
+                    if b == source_frame:
+                        return found[b]
+                    todo.append(b)
+        raise DataError(f"tf_static: no chain of transforms from {source_frame!r} to {target_frame!r}")
+
+
+def _invert_T(T: np.ndarray) -> np.ndarray:
+    Ti = np.eye(4)
+    Ti[:3, :3] = T[:3, :3].T
+    Ti[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return Ti
+
+
+def _T_from_transform(tr) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    q = tr.rotation
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+    T[:3, 3] = [tr.translation.x, tr.translation.y, tr.translation.z]
+    return T
+
+
+# --------------------------------------------------------------------------- opening
+
+def _one_line(e: BaseException) -> str:
+    s = str(e).strip().splitlines()
+    return f"{type(e).__name__}: {s[0]}" if s else type(e).__name__
+
+
+def _bag_root(path) -> Path:
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"{p}: no such bag file or directory")
+    if p.is_file() and p.suffix in (".db3", ".mcap"):
+        return p.parent
+    return p
+
+
+class _Bag:
+    """An open AnyReader over one bag, with errors turned into one-line DataErrors."""
+
+    def __init__(self, path):
+        self.path = _bag_root(path)
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+
+        ros1 = self.path.is_file()
+        store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+        try:
+            self.reader = AnyReader([self.path], default_typestore=store)
+            self.reader.open()
+        except Exception as e:  # rosbags raises many kinds on broken files
+            raise DataError(f"{self.path}: cannot read bag ({_one_line(e)}); is it truncated or not a bag?") from None
+        if not self.reader.connections or sum(c.msgcount for c in self.reader.connections) == 0:
+            self.reader.close()
+            raise DataError(f"{self.path}: bag is empty (no messages)")
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        try:
+            self.reader.close()
+        except Exception:  # closing a broken bag must not mask the real error
+            pass
+
+    def topics(self) -> dict[str, str]:
+        return {c.topic: c.msgtype for c in self.reader.connections}
+
+    def connections(self, topics: Iterable[str], *, msgtypes: Sequence[str] = DECODABLE):
+        have = self.topics()
+        conns = []
+        for t in topics:
+            if t not in have:
+                raise InputError(
+                    f"{self.path}: topic {t} not in bag (available: {', '.join(sorted(have))})"
+                )
+            if have[t] not in msgtypes:
+                raise DataError(
+                    f"{self.path}: topic {t} has type {have[t]}, expected one of {', '.join(msgtypes)}"
+                )
+            conns += [c for c in self.reader.connections if c.topic == t]
+        return conns
+
+    def raw(self, conns, start_ns=None, stop_ns=None):
+        """Yield (connection, index in topic, logtime, deserialized message)."""
+        counters: dict[str, int] = {}
+        it = self.reader.messages(connections=conns, start=start_ns, stop=stop_ns)
+        while True:
+            try:
+                conn, logtime, rawdata = next(it)
+            except StopIteration:
+                return
+            except Exception as e:
+                raise DataError(f"{self.path}: cannot read messages ({_one_line(e)}); is the bag truncated?") from None
+            i = counters.get(conn.topic, 0)
+            counters[conn.topic] = i + 1
+            try:
+                msg = self.reader.deserialize(rawdata, conn.msgtype)
+            except Exception as e:
+                raise DataError(
+                    f"{self.path}: topic {conn.topic} message {i}: cannot deserialize ({_one_line(e)})"
+                ) from None
+            yield conn, i, logtime, msg
+
+    def decode(self, conn, i, msg):
+        try:
+            if conn.msgtype == POINTCLOUD2:
+                return decode_pointcloud2(msg, topic=conn.topic)
+            return decode_image(msg, topic=conn.topic)
+        except DataError as e:
+            raise DataError(f"{self.path}: topic {conn.topic} message {i}: {e}") from None
+        except Exception as e:
+            raise DataError(
+                f"{self.path}: topic {conn.topic} message {i}: cannot decode ({_one_line(e)})"
+            ) from None
+
+
+# ---------------------------------------------------------------------------- API
+
+def bag_info(path) -> BagInfo:
+    """Summary of one bag: topics with msgtype, message count and first/last log time."""
+    with _Bag(path) as b:
+        r = b.reader
+        topics = []
+        for topic in sorted({c.topic for c in r.connections}):
+            conns = [c for c in r.connections if c.topic == topic]
+            topics.append(TopicInfo(topic, conns[0].msgtype, sum(c.msgcount for c in conns), None, None))
+        # per-topic spans need a pass over the index (no deserialization)
+        first: dict[str, int] = {}
+        last: dict[str, int] = {}
+        try:
+            for conn, t, _ in r.messages():
+                first.setdefault(conn.topic, t)
+                last[conn.topic] = t
+        except Exception as e:
+            raise DataError(f"{b.path}: cannot read messages ({_one_line(e)}); is the bag truncated?") from None
+        topics = tuple(
+            TopicInfo(ti.topic, ti.msgtype, ti.count, first.get(ti.topic), last.get(ti.topic))
+            for ti in topics
+        )
+        return BagInfo(b.path, topics, min(first.values(), default=None), max(last.values(), default=None))
+
+
+def _stamp(msg, logtime: int) -> int:
+    header = getattr(msg, "header", None)
+    return stamp_ns_of(header) if header is not None else int(logtime)
+
+
+def _iter_bag(path, topics, start_ns, stop_ns) -> Iterator[Message]:
+    with _Bag(path) as b:
+        conns = b.connections(topics)
+        lo = None if start_ns is None else max(0, start_ns - _LOG_TIME_SLACK_NS)
+        hi = None if stop_ns is None else stop_ns + _LOG_TIME_SLACK_NS
+        for conn, i, logtime, msg in b.raw(conns, lo, hi):
+            stamp = _stamp(msg, logtime)
+            if (start_ns is not None and stamp < start_ns) or (stop_ns is not None and stamp >= stop_ns):
+                continue
+            yield Message(b.path, conn.topic, i, stamp, b.decode(conn, i, msg))
+
+
+def read_messages(paths, topics: Sequence[str], *, start_ns: int | None = None,
+                  stop_ns: int | None = None) -> Iterator[Message]:
+    """Decoded messages of ``topics`` from all ``paths``, merged in header-stamp order.
+
+    paths: one path or a sequence. Only messages with start_ns <= stamp < stop_ns are
+    yielded (either bound None = open). Each bag streams in its own log-time order
+    (equal to header-stamp order for bags recorded by clcgraph's writer).
+    ``index`` is counted over all of the topic's messages in that bag, so it names the
+    message in errors even with a time window. Every bag is opened (and checked for
+    the topics) before the first message is yielded.
+    """
+    if isinstance(paths, (str, Path)):
+        paths = [paths]
+    topics = list(topics)
+    for p in paths:  # fail early, before any message is produced
+        with _Bag(p) as b:
+            b.connections(topics)
+    streams = [_iter_bag(p, topics, start_ns, stop_ns) for p in paths]
+    yield from heapq.merge(*streams, key=lambda m: m.stamp_ns)
+
+
+def first_messages(path, topics: Sequence[str]) -> dict[str, LidarScan | Image]:
+    """{topic: decoded first message of that topic in this bag} (one snapshot per bag)."""
+    out: dict[str, LidarScan | Image] = {}
+    with _Bag(path) as b:
+        conns = b.connections(topics)
+        for conn in conns:
+            if conn.topic in out:
+                continue
+            for c, i, logtime, msg in b.raw([c for c in conns if c.topic == conn.topic]):
+                out[c.topic] = b.decode(c, i, msg)
+                break
+    return {t: out[t] for t in topics if t in out}
+
+
+def first_raw_message(path, topic: str):
+    """The first rosbags-deserialized message of ``topic`` (e.g. to show a cloud's fields)."""
+    with _Bag(path) as b:
+        conns = b.connections([topic], msgtypes=tuple(b.topics().values()))
+        for _, _, _, msg in b.raw(conns):
+            return msg
+    raise DataError(f"{path}: topic {topic} has no messages")
+
+
+def frame_id(path, topic: str) -> str:
+    """header.frame_id of the first message of ``topic`` in the bag at ``path``."""
+    msg = first_raw_message(path, topic)
+    header = getattr(msg, "header", None)
+    if header is None:
+        raise DataError(f"{path}: topic {topic} messages have no header")
+    return str(header.frame_id)
+
+
+def read_tf_static(paths) -> TfTree:
+    """All /tf_static transforms of ``paths`` (later bags override earlier ones)."""
+    if isinstance(paths, (str, Path)):
+        paths = [paths]
+    tree = TfTree()
+    for p in paths:
+        with _Bag(p) as b:
+            conns = [c for c in b.reader.connections if c.topic == "/tf_static"]
+            if not conns:
+                logger.debug("%s: no /tf_static", b.path)
+                continue
+            for conn, i, _, msg in b.raw(conns):
+                if conn.msgtype != TFMESSAGE:
+                    raise DataError(f"{b.path}: /tf_static has type {conn.msgtype}, expected {TFMESSAGE}")
+                for ts in msg.transforms:
+                    tree.add(str(ts.header.frame_id), str(ts.child_frame_id), _T_from_transform(ts.transform))
+    return tree
