@@ -114,8 +114,9 @@ class BagWriter:
     # helpers ------------------------------------------------------------------------
     def _conn(self, topic: str, msgtype: str):
         if topic not in self._connections:
+            extra = {"latching": 1} if self._ros1 and topic == "/tf_static" else {}  # as tf2 does
             self._connections[topic] = self._writer.add_connection(
-                topic, msgtype, typestore=self.typestore
+                topic, msgtype, typestore=self.typestore, **extra
             )
         conn = self._connections[topic]
         if conn.msgtype != msgtype:

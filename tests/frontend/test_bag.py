@@ -1,0 +1,220 @@
+"""Bag round trips (writer -> reader) for ROS1 / ROS2-sqlite3 / ROS2-mcap, tf_static, bad bags."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from clcgraph.errors import DataError, InputError
+from clcgraph.frontend import bag
+from clcgraph.geometry import T_from_rt
+from clcgraph.sim.bag_writer import BagWriter
+from clcgraph.types import Image, LidarScan
+
+FORMATS = {"ros1": "x.bag", "ros2-sqlite3": "x_sqlite", "ros2-mcap": "x_mcap"}
+RINGS, COLS = 8, 64
+T0 = 1_700_000_000_123_456_789
+
+
+def _scan(rng, stamp_ns, topic):
+    """An (8 x 64) scan on a sphere of 2-20 m radius with a few invalid returns."""
+    elev = np.linspace(-0.3, 0.3, RINGS)[:, None]
+    az = np.linspace(-np.pi, np.pi, COLS, endpoint=False)[None, :]
+    r = rng.uniform(2, 20, (RINGS, COLS))
+    pts = np.stack([r * np.cos(elev) * np.cos(az), r * np.cos(elev) * np.sin(az),
+                    r * np.sin(elev) * np.ones_like(az)], axis=-1).reshape(-1, 3)
+    pts = pts.astype(np.float32).astype(np.float64)  # exactly representable in float32
+    valid = rng.uniform(size=len(pts)) > 0.1
+    pts[~valid] = np.nan
+    return LidarScan(
+        topic=topic, stamp_ns=stamp_ns, points=pts, valid=valid,
+        intensity=rng.integers(0, 255, len(pts)).astype(np.float32),
+        ring=np.repeat(np.arange(RINGS), COLS),
+        time_s=np.tile(np.linspace(0, 0.099, COLS), RINGS),
+        shape=(RINGS, COLS),
+    )
+
+
+@pytest.fixture(scope="module")
+def written(tmp_path_factory):
+    """Every format x endianness: two snapshots of two LIDARs (both layouts) and four cameras."""
+    rng = np.random.default_rng(42)
+    root = tmp_path_factory.mktemp("bags")
+    stamps = [T0, T0 + 1_500_000_000]
+    scans = {s: {"/velo": _scan(rng, s + 1000, "/velo"), "/os": _scan(rng, s + 2000, "/os")} for s in stamps}
+    y, x = np.mgrid[0:48, 0:64]
+    colour = np.stack([x * 4, y * 5, 255 - x * 3], axis=-1).astype(np.uint8)
+    images = {s: {"/cam/raw": Image("/cam/raw", s + 3000, rng.integers(0, 255, (48, 64, 3), dtype=np.uint8), "bgr8"),
+                  "/cam/mono16": Image("/cam/mono16", s + 4000, rng.integers(0, 65535, (48, 64), dtype=np.uint16), "mono16"),
+                  "/cam/png": Image("/cam/png", s + 5000, rng.integers(0, 255, (48, 64), dtype=np.uint8), "mono8"),
+                  "/cam/jpeg": Image("/cam/jpeg", s + 6000, colour, "bgr8")} for s in stamps}
+    tf = [("base_link", "lidar0", T_from_rt(np.array([0.1, -0.2, 0.3, 1.0, 2.0, 3.0]))),
+          ("lidar0", "cam0", T_from_rt(np.array([-1.2, 0.1, 0.05, 0.1, -0.3, 0.2]))),
+          ("base_link", "lidar1", T_from_rt(np.array([0.0, 0.0, 3.0, -1.0, 0.5, 0.0])))]
+    paths = {}
+    for fmt, name in FORMATS.items():
+        for big in (False, True):
+            p = root / (("be_" if big else "le_") + name)
+            with BagWriter(p, format=fmt, compress=True) as w:
+                w.write_tf_static(tf, stamp_ns=T0 - 10)
+                for s in stamps:
+                    w.write_pointcloud("/velo", scans[s]["/velo"], frame_id="lidar0", layout="velodyne", big_endian=big)
+                    w.write_pointcloud("/os", scans[s]["/os"], frame_id="lidar1", layout="ouster", big_endian=big)
+                    w.write_image("/cam/raw", images[s]["/cam/raw"], frame_id="cam0")
+                    w.write_image("/cam/mono16", images[s]["/cam/mono16"], frame_id="cam0")
+                    w.write_image("/cam/png", images[s]["/cam/png"], frame_id="cam1", compressed="png")
+                    w.write_image("/cam/jpeg", images[s]["/cam/jpeg"], frame_id="cam2", compressed="jpeg")
+            paths[(fmt, big)] = p
+    return paths, stamps, scans, images, tf
+
+
+TOPICS = ["/velo", "/os", "/cam/raw", "/cam/mono16", "/cam/png", "/cam/jpeg"]
+
+
+def _check_scan(got, want, layout):
+    assert got.stamp_ns == want.stamp_ns and got.topic == want.topic
+    np.testing.assert_array_equal(got.valid, want.valid)
+    np.testing.assert_array_equal(got.points[got.valid], want.points[want.valid])
+    np.testing.assert_array_equal(got.ring, want.ring)
+    if layout == "ouster":
+        assert got.shape == (RINGS, COLS)
+        assert (got.points[~got.valid] == 0).all()  # the driver's invalid marker
+        np.testing.assert_allclose(got.time_s, want.time_s, rtol=0, atol=0.5e-9)  # uint32 ns
+    else:
+        assert got.shape is None
+        assert np.isnan(got.points[~got.valid]).all()
+        np.testing.assert_allclose(got.time_s, want.time_s, rtol=0, atol=1e-8)  # float32 s
+    np.testing.assert_array_equal(got.intensity, want.intensity)
+
+
+@pytest.mark.parametrize("big", [False, True], ids=["le", "be"])
+@pytest.mark.parametrize("fmt", list(FORMATS))
+def test_round_trip_exact(written, fmt, big):
+    paths, stamps, scans, images, _ = written
+    p = paths[(fmt, big)]
+    msgs = list(bag.read_messages([p], TOPICS))
+    assert len(msgs) == 2 * len(TOPICS)
+    assert [m.stamp_ns for m in msgs] == sorted(m.stamp_ns for m in msgs)
+    for m in msgs:
+        s = [s for s in stamps if 0 <= m.stamp_ns - s < 10_000][0]
+        assert m.bag == p and m.index == stamps.index(s)
+        if m.topic == "/velo":
+            _check_scan(m.data, scans[s]["/velo"], "velodyne")
+        elif m.topic == "/os":
+            _check_scan(m.data, scans[s]["/os"], "ouster")
+        else:
+            want = images[s][m.topic]
+            assert m.data.stamp_ns == want.stamp_ns == m.stamp_ns
+            assert m.data.pixels.shape == want.pixels.shape and m.data.pixels.dtype == want.pixels.dtype
+            err = np.abs(m.data.pixels.astype(int) - want.pixels.astype(int))
+            if m.topic == "/cam/jpeg":
+                assert err.mean() < 2 and err.max() < 25, (err.mean(), err.max())
+            else:
+                assert err.max() == 0, m.topic
+
+
+def test_info_first_frame_window_and_merge(written):
+    paths, stamps, scans, _, _ = written
+    p = paths[("ros1", False)]
+    info = bag.bag_info(p)
+    assert {t.topic for t in info.topics} == set(TOPICS) | {"/tf_static"}
+    velo = info.topic("/velo")
+    assert velo.msgtype == "sensor_msgs/msg/PointCloud2" and velo.count == 2
+    assert (velo.first_ns, velo.last_ns) == (stamps[0] + 1000, stamps[1] + 1000)
+    assert info.start_ns == T0 - 10 and info.end_ns == stamps[1] + 6000
+    first = bag.first_messages(p, ["/os", "/cam/png"])
+    _check_scan(first["/os"], scans[stamps[0]]["/os"], "ouster")
+    assert first["/cam/png"].stamp_ns == stamps[0] + 5000
+    assert bag.frame_id(p, "/os") == "lidar1" and bag.frame_id(paths[("ros2-mcap", True)], "/cam/jpeg") == "cam2"
+    # time window keeps the second snapshot only; indices still count from the bag start
+    late = list(bag.read_messages(p, ["/velo"], start_ns=stamps[0] + 2000))
+    assert [(m.index, m.stamp_ns) for m in late] == [(1, stamps[1] + 1000)]
+    # two bags merged in stamp order
+    both = list(bag.read_messages([paths[("ros1", False)], paths[("ros2-mcap", False)]], ["/velo"]))
+    assert [m.stamp_ns for m in both] == sorted([stamps[0] + 1000] * 2 + [stamps[1] + 1000] * 2)
+    assert {m.bag for m in both} == {paths[("ros1", False)], paths[("ros2-mcap", False)]}
+
+
+@pytest.mark.parametrize("fmt", list(FORMATS))
+def test_tf_static_chain(written, fmt):
+    paths, _, _, _, tf = written
+    T = {(a, b): M for a, b, M in tf}
+    tree = bag.read_tf_static([paths[(fmt, False)]])
+    want = np.linalg.inv(T[("base_link", "lidar1")]) @ T[("base_link", "lidar0")] @ T[("lidar0", "cam0")]
+    np.testing.assert_allclose(tree.lookup("lidar1", "cam0"), want, atol=1e-12)
+    np.testing.assert_allclose(tree.lookup("cam0", "lidar1"), np.linalg.inv(want), atol=1e-12)
+    np.testing.assert_allclose(tree.lookup("base_link", "lidar0"), T[("base_link", "lidar0")], atol=1e-12)
+    with pytest.raises(DataError, match="'nowhere' unknown"):
+        tree.lookup("nowhere", "cam0")
+
+
+def _assert_one_line(e, *names):
+    s = str(e.value)
+    assert "\n" not in s, s
+    for n in names:
+        assert str(n) in s, (n, s)
+
+
+@pytest.mark.parametrize("fmt", list(FORMATS))
+def test_truncated_bag(written, tmp_path, fmt):
+    src = written[0][(fmt, False)]
+    if src.is_file():
+        dst = tmp_path / src.name
+        dst.write_bytes(src.read_bytes()[: src.stat().st_size // 2])
+    else:  # a ROS2 directory: cut its storage file in half, keep metadata.yaml
+        dst = tmp_path / src.name
+        dst.mkdir()
+        for f in src.iterdir():
+            b = f.read_bytes()
+            (dst / f.name).write_bytes(b if f.name == "metadata.yaml" else b[: len(b) // 2])
+    with pytest.raises(DataError) as e:
+        list(bag.read_messages([dst], TOPICS))
+    _assert_one_line(e, dst)
+
+
+def test_empty_bag(tmp_path):
+    p = tmp_path / "empty.bag"
+    with BagWriter(p, format="ros1"):
+        pass
+    with pytest.raises(DataError) as e:
+        bag.bag_info(p)
+    _assert_one_line(e, p, "empty")
+    p2 = tmp_path / "empty_mcap"
+    with BagWriter(p2, format="ros2-mcap"):
+        pass
+    with pytest.raises(DataError) as e:
+        list(bag.read_messages(p2, ["/x"]))
+    _assert_one_line(e, p2, "empty")
+
+
+def test_missing_file_topic_and_wrong_type(written, tmp_path):
+    p = written[0][("ros2-sqlite3", False)]
+    with pytest.raises(InputError) as e:
+        bag.first_messages(tmp_path / "nope.bag", ["/velo"])
+    _assert_one_line(e, tmp_path / "nope.bag")
+    with pytest.raises(InputError) as e:
+        list(bag.read_messages([p], ["/velo", "/lidar/missing"]))
+    _assert_one_line(e, p, "/lidar/missing", "/velo", "/cam/raw")  # lists what is available
+    with pytest.raises(DataError) as e:
+        list(bag.read_messages([p], ["/tf_static"]))
+    _assert_one_line(e, p, "/tf_static", "tf2_msgs/msg/TFMessage")
+
+
+def test_undecodable_message_names_bag_topic_index(tmp_path):
+    rng = np.random.default_rng(0)
+    p = tmp_path / "bad.bag"
+    with BagWriter(p, format="ros1") as w:
+        w.write_image("/cam", Image("/cam", T0, np.zeros((4, 4), np.uint8), "mono8"), frame_id="c")
+        # second message in an encoding nobody decodes
+        bad = Image("/cam", T0 + 1, np.zeros((4, 4), np.uint8), "mono8")
+        w.write_image("/cam", bad, frame_id="c")
+        w.write_pointcloud("/l", _scan(rng, T0, "/l"), frame_id="l")
+    # rewrite the encoding by patching bytes: "mono8" of the 2nd message -> "xxxx8"
+    raw = p.read_bytes()
+    i = raw.find(b"mono8", raw.find(b"mono8") + 5)
+    p.write_bytes(raw[:i] + b"yuv48" + raw[i + 5:])
+    it = bag.read_messages([p], ["/cam"])
+    assert next(it).index == 0
+    with pytest.raises(DataError) as e:
+        next(it)
+    _assert_one_line(e, p, "/cam", "message 1", "yuv48")
