@@ -28,6 +28,45 @@ def _command(add):
     return add
 
 
+# (subcommands using @_command must come after its definition)
+@_command
+def _add_show_bag(sub):
+    p = sub.add_parser("show-bag", help="topics, types, counts, time spans and PointCloud2 layouts of bags")
+    p.add_argument("bags", nargs="+", metavar="BAG", help="ROS1 .bag files or ROS2 bag directories")
+
+    def run(args):
+        from .frontend.bag import POINTCLOUD2, bag_info, first_raw_message
+
+        _DT = {1: "int8", 2: "uint8", 3: "int16", 4: "uint16", 5: "int32", 6: "uint32", 7: "float32", 8: "float64"}
+        for path in args.bags:
+            info = bag_info(path)
+            print(f"{info.path}: {info.message_count} messages, {info.duration_s:.3f} s")
+            rows = [("topic", "type", "count", "first [s]", "last [s]", "span [s]")]
+            for t in info.topics:
+                f = "-" if t.first_ns is None else f"{t.first_ns * 1e-9:.3f}"
+                l = "-" if t.last_ns is None else f"{t.last_ns * 1e-9:.3f}"
+                span = "-" if t.first_ns is None else f"{(t.last_ns - t.first_ns) * 1e-9:.3f}"
+                rows.append((t.topic, t.msgtype, str(t.count), f, l, span))
+            widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+            for r in rows:
+                print("  " + "  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip())
+            for t in info.topics:
+                if t.msgtype != POINTCLOUD2 or t.count == 0:
+                    continue
+                m = first_raw_message(path, t.topic)
+                print(
+                    f"  {t.topic}: PointCloud2 {m.height} x {m.width}, point_step {m.point_step}, "
+                    f"row_step {m.row_step}, {'big' if m.is_bigendian else 'little'} endian, frame {m.header.frame_id}"
+                )
+                for fld in m.fields:
+                    dt = _DT.get(int(fld.datatype), f"datatype {fld.datatype}")
+                    print(f"      {fld.name:<14} offset {fld.offset:>3}  {dt}" + (f" x{fld.count}" if fld.count != 1 else ""))
+            print()
+        return 0
+
+    p.set_defaults(func=run)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="clcgraph",

@@ -218,3 +218,18 @@ def test_undecodable_message_names_bag_topic_index(tmp_path):
     with pytest.raises(DataError) as e:
         next(it)
     _assert_one_line(e, p, "/cam", "message 1", "yuv48")
+
+
+def test_show_bag_cli(written, capsys, tmp_path):
+    from clcgraph.cli import main
+
+    p = written[0][("ros2-mcap", True)]
+    assert main(["show-bag", str(p)]) == 0
+    out = capsys.readouterr().out
+    assert "/velo" in out and "sensor_msgs/msg/PointCloud2" in out and "tf2_msgs/msg/TFMessage" in out
+    assert "/os: PointCloud2 8 x 64, point_step 48" in out and "big endian" in out
+    assert "/velo: PointCloud2 1 x 512, point_step 32" in out
+    assert "range          offset  32  uint32" in out
+    assert main(["show-bag", str(tmp_path / "missing.bag")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "missing.bag" in err
