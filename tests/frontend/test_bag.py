@@ -233,3 +233,14 @@ def test_show_bag_cli(written, capsys, tmp_path):
     assert main(["show-bag", str(tmp_path / "missing.bag")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "missing.bag" in err
+
+
+def test_not_a_bag(tmp_path):
+    p = tmp_path / "notes.bag"
+    p.write_text("hello, not a bag\n")
+    d = tmp_path / "not_a_ros2_bag"
+    d.mkdir()
+    for path in (p, d):
+        with pytest.raises(DataError) as e:
+            bag.bag_info(path)
+        _assert_one_line(e, path, "cannot read bag")
