@@ -11,7 +11,8 @@ No ROS installation is needed: messages are built from rosbags' typestores
 (ROS1 Noetic / ROS2 Humble) and serialized by rosbags. The log time of every message
 is its header stamp. Field layouts mimic the real drivers:
 
-- ``layout="velodyne"``: unorganised (height 1), velodyne_pointcloud's PointXYZIRT:
+- ``layout="velodyne"``: unorganised (height 1), velodyne_pointcloud's PointXYZIRT
+  (invalid points as NaN):
   x y z @0,4,8 (float32), 4 bytes pad, intensity @16 (float32), ring @20 (uint16),
   time @24 (float32, s relative to the stamp), point_step 32.
 - ``layout="ouster"``: organised (height = rings, width = columns), ouster_ros' point:
@@ -149,8 +150,9 @@ class BagWriter:
 
         layout "velodyne": unorganised; "ouster": organised, needs ``scan.shape`` =
         (rings, columns) with points row-major. Invalid points (``~scan.valid``) keep
-        their coordinates in the velodyne layout (NaN stays NaN) and become (0,0,0)
-        in the ouster layout. Missing ring / time / intensity are written as zeros.
+        NaN in the velodyne layout and (0,0,0) in the ouster layout, so the reader's valid
+        mask equals ``scan.valid``. Coordinates and times are stored as float32 (ouster
+        time as uint32 ns). Missing ring / time / intensity are written as zeros.
         """
         if layout not in _LAYOUTS:
             raise InputError(f"pointcloud layout {layout!r} unknown; use velodyne or ouster")
@@ -183,6 +185,7 @@ class BagWriter:
             arr["range"] = np.where(valid, rng_mm, 0).astype(np.uint32)
             arr["reflectivity"] = np.clip(np.asarray(intensity), 0, 65535).astype(np.uint16)
         else:
+            pts = np.where(valid[:, None], pts, np.nan)  # the driver's invalid marker
             arr["time"] = time_s
         arr["x"], arr["y"], arr["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
         arr["intensity"] = intensity

@@ -25,7 +25,7 @@ def _scan(rng, stamp_ns, topic):
                     r * np.sin(elev) * np.ones_like(az)], axis=-1).reshape(-1, 3)
     pts = pts.astype(np.float32).astype(np.float64)  # exactly representable in float32
     valid = rng.uniform(size=len(pts)) > 0.1
-    pts[~valid] = np.nan
+    # invalid points keep finite coordinates: the writer must mark them as the drivers do
     return LidarScan(
         topic=topic, stamp_ns=stamp_ns, points=pts, valid=valid,
         intensity=rng.integers(0, 255, len(pts)).astype(np.float32),
