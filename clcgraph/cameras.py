@@ -57,7 +57,7 @@ def write_cameramodel(path: str | Path, camera: Sensor, *, rt_cam_ref: np.ndarra
     model = mrcal.cameramodel(
         intrinsics=(camera.lensmodel, np.asarray(camera.intrinsics, dtype=float)),
         imagersize=np.array(camera.imagersize),
-        rt_cam_ref=np.asarray(rt_cam_ref, dtype=float),
+        extrinsics_rt_fromref=np.asarray(rt_cam_ref, dtype=float),  # mrcal 2.2 keyword
     )
     model.write(str(path))
 
