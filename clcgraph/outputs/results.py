@@ -1,0 +1,266 @@
+"""Result files: calibration.yaml, one .cameramodel per sensor, config.resolved.yaml, the dump.
+
+Everything is written into a temporary directory next to ``out_dir`` and renamed into
+place at the end, so a failure leaves no half-written output.
+
+SYNOPSIS
+    paths = write_results(result, "out/", config=config, problem_dump=save_problem)
+    cal = load_result("out/")          # dict, schema-checked
+    cal["sensors"][1]["T_lidar0_sensor"]   # (4,4) nested lists
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import yaml
+
+from .. import __version__
+from ..errors import DataError, InputError
+from ..geometry import T_from_rt, invert_rt
+from ..types import Result, Sensor
+
+log = logging.getLogger(__name__)
+
+CALIBRATION_FILE = "calibration.yaml"
+CONFIG_FILE = "config.resolved.yaml"
+TOP_KEYS = ("reference", "sensors", "covariance_rt_lidar0_sensor", "rms", "noise", "snapshots", "sectors")
+SENSOR_KEYS = ("topic", "kind", "rt_lidar0_sensor", "T_lidar0_sensor", "stdev_rt")
+
+# The placeholder lens a LIDAR's .cameramodel carries (clc does the same): only its
+# extrinsics mean anything.
+LIDAR_PLACEHOLDER_LENS = ("LENSMODEL_PINHOLE", np.array([1.0, 1.0, 0.0, 0.0]))
+LIDAR_PLACEHOLDER_IMAGERSIZE = (1, 1)
+
+
+def _floats(a) -> list:
+    """numpy -> nested lists of python floats (YAML-safe)."""
+    return np.asarray(a, dtype=float).tolist()
+
+
+def _scalar(v):
+    if v is None:
+        return None
+    v = float(v)
+    return None if not np.isfinite(v) else v
+
+
+def calibration_dict(result: Result) -> dict:
+    """The calibration.yaml content as a plain dict (see write_results for the shape)."""
+    problem = result.problem
+    ref = problem.reference
+    sensors = []
+    for i, s in enumerate(problem.sensors):
+        rt = np.asarray(result.rt_lidar0_sensor[i], dtype=float)
+        sd = result.stdev_rt(i)
+        sensors.append(
+            {
+                "topic": s.topic,
+                "kind": s.kind,
+                "rt_lidar0_sensor": _floats(rt),
+                "T_lidar0_sensor": _floats(T_from_rt(rt)),
+                "stdev_rt": _floats(sd),
+                # for humans: 1-sigma position (mm) and orientation (deg) of the sensor
+                "stdev_position_mm": _floats(sd[3:] * 1e3),
+                "stdev_orientation_deg": _floats(np.degrees(sd[:3])),
+            }
+        )
+    rejected = [
+        {
+            "index": None if r.snapshot is None else int(r.snapshot),
+            "sensor": None if r.sensor is None else problem.sensors[r.sensor].topic,
+            "stage": r.stage,
+            "reason": r.reason,
+        }
+        for r in result.rejected
+    ]
+    used = np.flatnonzero(np.all(np.isfinite(np.asarray(result.rt_lidar0_board, float).reshape(-1, 6)), axis=1))
+    return {
+        "clcgraph_version": __version__,
+        "reference": problem.sensors[ref].topic,
+        "sensors": sensors,
+        "covariance_rt_lidar0_sensor": _floats(np.asarray(result.covariance_rt, dtype=float)),
+        "rms": {k: _scalar(result.rms.get(k)) for k in ("normalized", "lidar_m", "camera_px")},
+        "noise": {k: _scalar(result.noise.get(k)) for k in ("lidar_m", "camera_px")},
+        "snapshots": {"used": int(len(used)), "used_indices": [int(k) for k in used],
+                      "total": int(problem.n_snapshots), "rejected": rejected},
+        "sectors": sectors_dict(result),
+    }
+
+
+def sectors_dict(result: Result) -> dict:
+    """The sector feedback as YAML-safe lists ({} when the result has none)."""
+    s = result.sectors
+    if s is None:
+        return {}
+    return {
+        "n_sectors": int(s.n_sectors),
+        "observations_per_sector": [int(x) for x in np.asarray(s.observations_per_sector)],
+        "isvisible_per_sensor_per_sector": np.asarray(s.isvisible_per_sensor_per_sector, bool).tolist(),
+        "stdev_worst_per_sector_m": _floats(s.stdev_worst_per_sector),
+        "isensors_pair_stdev_worst": np.asarray(s.isensors_pair_stdev_worst, int).tolist(),
+        "isector_of_last_snapshot": int(s.isector_of_last_snapshot),
+    }
+
+
+def write_cameramodels(result: Result, directory: str | Path) -> list[Path]:
+    """One ``sensor{i}-mounted.cameramodel`` per sensor; extrinsics rt_sensor_lidar0.
+
+    Cameras carry their intrinsics; LIDARs a placeholder pinhole lens (as clc does), so
+    that mrcal tools (mrcal-show-geometry, ...) can show the whole rig.
+    """
+    from ..cameras import write_cameramodel
+
+    directory = Path(directory)
+    out = []
+    for i, s in enumerate(result.problem.sensors):
+        path = directory / f"sensor{i}-mounted.cameramodel"
+        rt_sensor_lidar0 = invert_rt(np.asarray(result.rt_lidar0_sensor[i], dtype=float))
+        if not s.is_camera:
+            s = Sensor(topic=s.topic, kind=s.kind, lensmodel=LIDAR_PLACEHOLDER_LENS[0],
+                       intrinsics=LIDAR_PLACEHOLDER_LENS[1].copy(), imagersize=LIDAR_PLACEHOLDER_IMAGERSIZE)
+        write_cameramodel(path, s, rt_cam_ref=rt_sensor_lidar0)
+        out.append(path)
+    return out
+
+
+def write_results(
+    result: Result,
+    out_dir: str | Path,
+    *,
+    config=None,
+    problem_dump: Callable[[object, Path], None] | None = None,
+    extra_files: dict | None = None,
+) -> dict[str, Path]:
+    """Write all result files into ``out_dir`` atomically; returns {name: final path}.
+
+    ``problem_dump(problem, path)`` writes the replayable dump (to ``problem.npz``);
+    ``extra_files`` maps file names to str/bytes contents or to a callable(path) that
+    writes the file (the report uses this). An existing ``out_dir`` is replaced as a whole.
+    Raises InputError naming ``out_dir`` if it cannot be written.
+    """
+    out_dir = Path(out_dir).absolute()
+    parent = out_dir.parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=parent))
+    except OSError as e:
+        raise InputError(f"{out_dir}: cannot write the output directory ({e.strerror}); choose another --out") from None
+    names: dict[str, Path] = {}
+    try:
+        (tmp / CALIBRATION_FILE).write_text(
+            "# clcgraph calibration: rt_a_b maps points in frame b into frame a (mrcal rt: Rodrigues r, then t)\n"
+            + yaml.safe_dump(calibration_dict(result), sort_keys=False, default_flow_style=None, width=200)
+        )
+        names[CALIBRATION_FILE] = out_dir / CALIBRATION_FILE
+        if config is not None:
+            (tmp / CONFIG_FILE).write_text(config.to_yaml())
+            names[CONFIG_FILE] = out_dir / CONFIG_FILE
+        for p in write_cameramodels(result, tmp):
+            names[p.name] = out_dir / p.name
+        if problem_dump is not None:
+            problem_dump(result.problem, tmp / "problem.npz")
+            names["problem.npz"] = out_dir / "problem.npz"
+        for name, content in (extra_files or {}).items():
+            path = tmp / name
+            path.parent.mkdir(parents=True, exist_ok=True)
+            if callable(content):
+                content(path)
+            elif isinstance(content, bytes):
+                path.write_bytes(content)
+            else:
+                path.write_text(str(content))
+            names[name] = out_dir / name
+        os.chmod(tmp, 0o755)
+        _replace_dir(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    log.info("wrote %d result files into %s", len(names), out_dir)
+    return names
+
+
+def _replace_dir(tmp: Path, out_dir: Path) -> None:
+    """Move tmp to out_dir; an existing out_dir is moved aside first, then removed."""
+    old = None
+    try:
+        if out_dir.exists() or out_dir.is_symlink():
+            if not out_dir.is_dir():
+                raise InputError(f"{out_dir}: exists and is not a directory; choose another --out")
+            old = out_dir.with_name(f".{out_dir.name}.old-{os.getpid()}")
+            os.rename(out_dir, old)
+        os.rename(tmp, out_dir)
+    except OSError as e:
+        if old is not None and not out_dir.exists():
+            os.rename(old, out_dir)  # put the previous results back
+        raise InputError(f"{out_dir}: cannot write the output directory ({e.strerror}); choose another --out") from None
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _fail(path, msg):
+    raise DataError(f"{path}: not a clcgraph calibration: {msg}")
+
+
+def load_result(out_dir: str | Path) -> dict:
+    """Read ``out_dir/calibration.yaml`` (or that file itself) back, checking its schema.
+
+    Returns the dict with, per sensor, ``rt_lidar0_sensor`` as a (6,) array and
+    ``T_lidar0_sensor`` as a (4,4) array; the covariance as a (6(N-1),6(N-1)) array.
+    """
+    path = Path(out_dir)
+    if path.is_dir():
+        path = path / CALIBRATION_FILE
+    try:
+        d = yaml.safe_load(path.read_text())
+    except OSError as e:
+        raise InputError(f"{path}: cannot read the calibration ({e.strerror}); pass the --out directory of clcgraph solve") from None
+    except yaml.YAMLError as e:
+        _fail(path, f"invalid YAML ({str(e).splitlines()[0]})")
+    if not isinstance(d, dict):
+        _fail(path, "not a mapping")
+    missing = [k for k in TOP_KEYS if k not in d]
+    if missing:
+        _fail(path, f"missing keys {missing}")
+    if not isinstance(d["sensors"], list) or not d["sensors"]:
+        _fail(path, "'sensors' must be a non-empty list")
+    topics = []
+    for k, s in enumerate(d["sensors"]):
+        if not isinstance(s, dict) or any(key not in s for key in SENSOR_KEYS):
+            _fail(path, f"sensors[{k}] needs keys {list(SENSOR_KEYS)}")
+        if s["kind"] not in ("lidar", "camera"):
+            _fail(path, f"sensors[{k}].kind must be lidar or camera")
+        try:
+            s["rt_lidar0_sensor"] = np.array(s["rt_lidar0_sensor"], dtype=float).reshape(6)
+            s["T_lidar0_sensor"] = np.array(s["T_lidar0_sensor"], dtype=float).reshape(4, 4)
+            s["stdev_rt"] = np.array(s["stdev_rt"], dtype=float).reshape(6)
+        except (ValueError, TypeError):
+            _fail(path, f"sensors[{k}] has arrays of the wrong shape")
+        if not np.allclose(s["T_lidar0_sensor"], T_from_rt(s["rt_lidar0_sensor"]), atol=1e-6):
+            _fail(path, f"sensors[{k}] T_lidar0_sensor disagrees with rt_lidar0_sensor")
+        topics.append(s["topic"])
+    if d["reference"] not in topics:
+        _fail(path, f"reference {d['reference']} is not one of the sensors")
+    n = 6 * (len(topics) - 1)
+    try:
+        C = np.array(d["covariance_rt_lidar0_sensor"], dtype=float).reshape(n, n)
+    except (ValueError, TypeError):
+        _fail(path, f"covariance_rt_lidar0_sensor must be {n}x{n}")
+    if not np.allclose(C, C.T, atol=1e-12 + 1e-9 * np.abs(C).max(initial=0)):
+        _fail(path, "covariance_rt_lidar0_sensor is not symmetric")
+    d["covariance_rt_lidar0_sensor"] = C
+    for key in ("rms", "noise", "snapshots"):
+        if not isinstance(d[key], dict):
+            _fail(path, f"'{key}' must be a mapping")
+    return d
+
+
+def sensors_from_calibration(cal: dict) -> list[Sensor]:
+    """Bare Sensor records (topic, kind) from a loaded calibration (no intrinsics)."""
+    return [Sensor(topic=s["topic"], kind=s["kind"]) for s in cal["sensors"]]

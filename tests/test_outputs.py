@@ -1,0 +1,232 @@
+"""Result files: calibration.yaml schema, cameramodels in mrcal, atomic writes, plots."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from clcgraph.config import Config
+from clcgraph.errors import DataError, InputError
+from clcgraph.geometry import R_from_r, T_from_rt, compose_rt, invert_rt, r_from_R, transform
+from clcgraph.outputs import results
+from clcgraph.outputs.results import load_result, write_results
+from clcgraph.types import (BoardGeometry, CameraBoardObservation, LidarBoardObservation, Problem, Rejected, Result,
+                            SectorReport, Sensor)
+
+LIDAR1_RT = np.array([0.01, -0.02, 0.3, -0.5, 0.8, 0.1])
+# camera right-down-forward looking along lidar0's +x, slightly offset
+_R_cam = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float)  # columns: cam axes in lidar0
+CAMERA_RT = compose_rt(np.r_[0, 0, 0, 0.3, -0.2, -0.1], np.r_[r_from_R(_R_cam), 0, 0, 0])
+
+
+def make_result(seed: int = 0, *, n_snapshots: int = 8) -> Result:
+    """A hand-built 3-sensor Result (lidar0, lidar1, camera) with consistent observations."""
+    rng = np.random.default_rng(seed)
+    board = BoardGeometry(corners_x=8, corners_y=6, spacing_m=0.1, margin_m=0.1)
+    cam = Sensor("/cam/image", "camera", lensmodel="LENSMODEL_OPENCV4",
+                 intrinsics=np.array([600.0, 600.0, 640.0, 400.0, 0.01, -0.01, 0.0, 0.0]), imagersize=(1280, 800))
+    sensors = (Sensor("/lidar/front/points", "lidar"), Sensor("/lidar/rear/points", "lidar"), cam)
+    rt_sensor = np.array([np.zeros(6), LIDAR1_RT, CAMERA_RT])
+    rt_board = np.full((n_snapshots, 6), np.nan)
+    lidar_obs, cam_obs = [], []
+    from clcgraph.cameras import project
+
+    for k in range(n_snapshots):
+        if k == 3:
+            continue  # an unused snapshot
+        yaw = rng.uniform(-0.6, 0.6)
+        # board facing lidar0 (board z toward -x), 3..6 m ahead
+        R = np.array([[0, 0, -1], [1, 0, 0], [0, -1, 0]], float)
+        R = R_from_r(np.r_[0, 0, yaw]) @ R
+        c = R_from_r(np.r_[0, 0, yaw]) @ np.r_[rng.uniform(3, 6), 0, 0]
+        rt_board[k] = np.r_[r_from_R(R), c + np.r_[0, -0.35, 0.25]]
+        pts_l0 = transform(rt_board[k], board.corners())
+        for i in (0, 1):
+            p = transform(invert_rt(rt_sensor[i]), pts_l0)
+            n = (R @ np.r_[0, 0, 1.0])
+            lidar_obs.append(LidarBoardObservation(i, k, p, np.r_[n, 0.0], 0.01))
+        q = project(transform(invert_rt(rt_sensor[2]), pts_l0), cam.lensmodel, cam.intrinsics)
+        cam_obs.append(CameraBoardObservation(2, k, q))
+    problem = Problem(sensors, board, tuple(lidar_obs), tuple(cam_obs),
+                      np.arange(n_snapshots, dtype=np.int64) * 10**9,
+                      rejected=(Rejected("board not found", "segmentation", 1, 3),))
+    A = rng.normal(size=(12, 12)) * 1e-3
+    cov = A @ A.T + np.eye(12) * 1e-6
+    nl, nc = 4000, 3000
+    residuals = {
+        "lidar_m": rng.normal(0, 0.012, nl), "lidar_sensor": rng.integers(0, 2, nl),
+        "lidar_snapshot": rng.choice([0, 1, 2, 4, 5, 6, 7], nl),
+        "camera_px": rng.normal(0, 0.4, nc), "camera_sensor": np.full(nc, 2),
+        "camera_snapshot": rng.choice([0, 1, 2, 4, 5, 6, 7], nc),
+    }
+    sectors = SectorReport(
+        n_sectors=12, observations_per_sector=np.array([3, 2, 1, 0, 0, 0, 0, 0, 0, 0, 1, 2]),
+        isvisible_per_sensor_per_sector=np.ones((3, 12), bool),
+        stdev_worst_per_sector=np.linspace(0.002, 0.05, 12),
+        isensors_pair_stdev_worst=np.tile([0, 2], (12, 1)), isector_of_last_snapshot=1,
+    )
+    return Result(problem=problem, rt_lidar0_sensor=rt_sensor, covariance_rt=cov, rt_lidar0_board=rt_board,
+                  noise={"lidar_m": 0.012, "camera_px": 0.4}, rms={"normalized": 1.01, "lidar_m": 0.012, "camera_px": 0.4},
+                  rejected=problem.rejected + (Rejected("residual 8.1 sigma", "outlier", 2, 5),),
+                  sectors=sectors, residuals=residuals)
+
+
+@pytest.fixture(scope="module")
+def written(tmp_path_factory):
+    result = make_result()
+    out = tmp_path_factory.mktemp("res") / "out"
+    dumped = []
+
+    def dump(problem, path):
+        dumped.append(problem)
+        np.savez(path, n=len(problem.sensors))
+
+    names = write_results(result, out, config=Config(), problem_dump=dump, extra_files={"notes.txt": "hi"})
+    return result, out, names, dumped
+
+
+def test_calibration_yaml_schema(written):
+    result, out, names, dumped = written
+    d = yaml.safe_load((out / "calibration.yaml").read_text())
+    for key in ("reference", "sensors", "covariance_rt_lidar0_sensor", "rms", "noise", "snapshots", "sectors"):
+        assert key in d
+    assert d["reference"] == "/lidar/front/points"
+    assert [s["topic"] for s in d["sensors"]] == ["/lidar/front/points", "/lidar/rear/points", "/cam/image"]
+    assert [s["kind"] for s in d["sensors"]] == ["lidar", "lidar", "camera"]
+    for i, s in enumerate(d["sensors"]):
+        assert len(s["rt_lidar0_sensor"]) == 6 and len(s["stdev_rt"]) == 6
+        T = np.array(s["T_lidar0_sensor"])
+        assert T.shape == (4, 4)
+        np.testing.assert_array_equal(T[3], [0, 0, 0, 1])
+        np.testing.assert_allclose(T, T_from_rt(result.rt_lidar0_sensor[i]), atol=1e-12)
+        # T really maps sensor points to lidar0: R orthonormal, same as transform()
+        p = np.array([[1.0, 2.0, 3.0]])
+        np.testing.assert_allclose(T[:3, :3] @ p[0] + T[:3, 3], transform(s["rt_lidar0_sensor"], p)[0], atol=1e-12)
+        np.testing.assert_allclose(s["stdev_rt"], result.stdev_rt(i), rtol=1e-12)
+        np.testing.assert_allclose(s["stdev_position_mm"], 1e3 * result.stdev_rt(i)[3:], rtol=1e-12)
+    np.testing.assert_array_equal(d["sensors"][0]["stdev_rt"], np.zeros(6))
+    C = np.array(d["covariance_rt_lidar0_sensor"])
+    assert C.shape == (12, 12)
+    np.testing.assert_allclose(C, C.T, atol=0)
+    np.testing.assert_allclose(C, result.covariance_rt, rtol=1e-15)
+    assert d["rms"] == {"normalized": 1.01, "lidar_m": 0.012, "camera_px": 0.4}
+    assert d["noise"] == {"lidar_m": 0.012, "camera_px": 0.4}
+    assert d["snapshots"]["used"] == 7
+    rej = d["snapshots"]["rejected"]
+    assert {"index": 3, "sensor": "/lidar/rear/points", "stage": "segmentation", "reason": "board not found"} in rej
+    assert rej[1]["index"] == 5 and rej[1]["sensor"] == "/cam/image"
+    assert d["sectors"]["n_sectors"] == 12 and len(d["sectors"]["stdev_worst_per_sector_m"]) == 12
+    assert d["sectors"]["isector_of_last_snapshot"] == 1
+    assert d["clcgraph_version"]
+
+
+def test_load_result_roundtrip_and_validation(written, tmp_path):
+    result, out, _, _ = written
+    cal = load_result(out)
+    np.testing.assert_allclose(cal["sensors"][1]["rt_lidar0_sensor"], LIDAR1_RT, atol=1e-15)
+    assert cal["covariance_rt_lidar0_sensor"].shape == (12, 12)
+    bad = yaml.safe_load((out / "calibration.yaml").read_text())
+    bad["sensors"][1]["T_lidar0_sensor"][0][3] += 0.1
+    (tmp_path / "calibration.yaml").write_text(yaml.safe_dump(bad))
+    with pytest.raises(DataError, match="disagrees"):
+        load_result(tmp_path)
+    del bad["noise"]
+    (tmp_path / "calibration.yaml").write_text(yaml.safe_dump(bad))
+    with pytest.raises(DataError, match="noise"):
+        load_result(tmp_path)
+    with pytest.raises(InputError, match="nothere"):
+        load_result(tmp_path / "nothere")
+
+
+def test_cameramodels_load_in_mrcal(written):
+    import mrcal
+
+    result, out, names, _ = written
+    for i, s in enumerate(result.problem.sensors):
+        m = mrcal.cameramodel(str(out / f"sensor{i}-mounted.cameramodel"))
+        # mrcal extrinsics are rt_cam_ref with ref = lidar0
+        np.testing.assert_allclose(m.extrinsics_rt_fromref(), invert_rt(result.rt_lidar0_sensor[i]), atol=1e-9)
+        np.testing.assert_allclose(m.extrinsics_rt_toref(), result.rt_lidar0_sensor[i], atol=1e-9)
+        if s.is_camera:
+            assert m.intrinsics()[0] == "LENSMODEL_OPENCV4"
+            np.testing.assert_allclose(m.intrinsics()[1], s.intrinsics)
+            assert tuple(m.imagersize()) == (1280, 800)
+        else:
+            assert m.intrinsics()[0] == "LENSMODEL_PINHOLE"
+
+
+def test_other_files(written):
+    result, out, names, dumped = written
+    assert Config.from_yaml(out / "config.resolved.yaml") == Config()
+    assert dumped and dumped[0] is result.problem and (out / "problem.npz").is_file()
+    assert (out / "notes.txt").read_text() == "hi"
+    assert all(p.exists() for p in names.values())
+    assert not [p for p in out.parent.iterdir() if p.name.startswith(".")]  # no temp dirs left
+
+
+def test_atomic_failure_leaves_nothing(tmp_path):
+    result = make_result()
+    out = tmp_path / "out"
+
+    def dump(problem, path):
+        Path(path).write_text("partial")
+        raise RuntimeError("disk full")
+
+    with pytest.raises(RuntimeError, match="disk full"):
+        write_results(result, out, config=Config(), problem_dump=dump)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_atomic_failure_keeps_previous_results(tmp_path):
+    result = make_result()
+    out = tmp_path / "out"
+    write_results(result, out)
+    before = sorted(p.name for p in out.iterdir())
+
+    def bad(path):
+        raise OSError(28, "No space left")
+
+    with pytest.raises(OSError):
+        write_results(result, out, extra_files={"report.html": bad})
+    assert sorted(p.name for p in out.iterdir()) == before
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]
+
+
+def test_rewrite_replaces_old_dir(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "stale.txt").write_text("old")
+    write_results(make_result(), out)
+    assert not (out / "stale.txt").exists() and (out / "calibration.yaml").is_file()
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]
+
+
+def test_unwritable_dir_is_input_error(tmp_path):
+    # a parent that is a file cannot hold a directory, for root too
+    blocker = tmp_path / "blocker"
+    blocker.write_text("x")
+    with pytest.raises(InputError, match=str(blocker / "out")):
+        write_results(make_result(), blocker / "out")
+    if os.geteuid() != 0:  # permissions only bind non-root users
+        ro = tmp_path / "ro"
+        ro.mkdir()
+        ro.chmod(0o555)
+        try:
+            with pytest.raises(InputError, match=str(ro / "out")):
+                write_results(make_result(), ro / "out")
+            assert list(ro.iterdir()) == []
+        finally:
+            ro.chmod(0o755)
+
+
+def test_out_is_a_file_is_input_error(tmp_path):
+    f = tmp_path / "out"
+    f.write_text("x")
+    with pytest.raises(InputError, match="not a directory"):
+        write_results(make_result(), f)
+    assert f.read_text() == "x"
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]
