@@ -97,6 +97,13 @@ def test_render_aligned_clouds(tmp_path):
     from clcgraph.geometry import invert_rt, transform
 
     clouds = {"/lidar/front/points": wall, "/lidar/rear/points": transform(invert_rt(LIDAR1_RT), wall)}
+    rts = {"/lidar/front/points": np.zeros(6), "/lidar/rear/points": LIDAR1_RT}
+    moved = plots.align_clouds(clouds, rts)
+    np.testing.assert_allclose(moved["/lidar/rear/points"], wall, atol=1e-12)
+    sub = plots.align_clouds({"/lidar/rear/points": np.vstack([clouds["/lidar/rear/points"], [[np.nan, 0, 0]]])},
+                             rts, max_points=500)
+    assert sub["/lidar/rear/points"].shape == (500, 3)
+    np.testing.assert_allclose(sub["/lidar/rear/points"][:, 0], 5.0, atol=1e-12)  # all on the wall, NaN dropped
     p = plots.render_aligned_clouds(clouds, {"/lidar/front/points": np.zeros(6), "/lidar/rear/points": LIDAR1_RT},
                                     tmp_path / "aligned.png")
     assert mpimg.imread(p).shape[1] > 600

@@ -120,7 +120,7 @@ def plot_residuals_per_snapshot(result: Result, path) -> Path:
         ax.set_ylabel(f"{kind} RMS ({unit})")
         ax.set_ylim(bottom=0)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="upper right")
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
         if not plotted:
             ax.text(0.5, 0.5, f"no {kind} residuals", ha="center", va="center", transform=ax.transAxes)
     axes[1].set_xlabel("snapshot index")
@@ -210,7 +210,8 @@ def plot_sectors(result: Result, path) -> Path:
         if 0 <= last < n:
             ax.bar(theta[last], vmax * 1.05, width=width, fill=False, edgecolor="r", lw=2.5, label="last snapshot's sector")
             ax.legend(fontsize=8, loc="lower left", bbox_to_anchor=(-0.15, -0.15))
-        ax.set_theta_zero_location("N")  # vehicle forward (+x) up
+        ax.set_theta_zero_location("N")  # vehicle forward (+x) up, counter-clockwise = toward +y (left)
+        ax.set_rlabel_position(112.5)
         ax.set_title(f"{title} ({unit})\nforward = up, left = left", fontsize=10)
         sm = plt.cm.ScalarMappable(norm=norm, cmap=cm)
         fig.colorbar(sm, ax=ax, shrink=0.7, pad=0.1, label=unit)
@@ -287,25 +288,33 @@ def plot_uncertainty_grid(stdev_m: np.ndarray, xs: np.ndarray, ys: np.ndarray, p
 _VIEWS = {"top": (0, 1, "x (m)", "y (m)"), "side": (0, 2, "x (m)", "z (m)"), "front": (1, 2, "y (m)", "z (m)")}
 
 
+def align_clouds(clouds: dict, rt_lidar0_sensor: dict, *, max_points: int | None = None, seed: int = 0) -> dict:
+    """topic -> (N,3) own-frame cloud  ==>  topic -> (M,3) in lidar0 (non-finite rows dropped, subsampled)."""
+    rng = np.random.default_rng(seed)
+    moved = {}
+    for topic, p in clouds.items():
+        if topic not in rt_lidar0_sensor:
+            raise KeyError(f"no rt_lidar0_sensor for {topic}")
+        p = np.asarray(p, float).reshape(-1, 3)
+        p = p[np.all(np.isfinite(p), axis=1)]
+        if max_points is not None and len(p) > max_points:
+            p = p[rng.choice(len(p), max_points, replace=False)]
+        moved[topic] = transform(np.asarray(rt_lidar0_sensor[topic], float), p)
+    return moved
+
+
 def render_aligned_clouds(clouds: dict, rt_lidar0_sensor: dict, path_png, *, views=("top", "side"),
                           max_points: int = 60000, point_size: float = 0.5, seed: int = 0) -> Path:
     """LIDAR clouds (topic -> (N,3) in their own frame) moved into lidar0 and drawn, one colour per sensor.
 
     ``rt_lidar0_sensor``: topic -> (6,). Each cloud is subsampled to ``max_points``.
     """
-    rng = np.random.default_rng(seed)
     for v in views:
         if v not in _VIEWS:
             raise ValueError(f"unknown view {v!r}; one of {sorted(_VIEWS)}")
+    moved = align_clouds(clouds, rt_lidar0_sensor, max_points=max_points, seed=seed)
     fig, axes = plt.subplots(1, len(views), figsize=(7 * len(views), 6.5), squeeze=False)
     colors = _colors(len(clouds))
-    moved = {}
-    for topic, p in clouds.items():
-        p = np.asarray(p, float).reshape(-1, 3)
-        p = p[np.all(np.isfinite(p), axis=1)]
-        if len(p) > max_points:
-            p = p[rng.choice(len(p), max_points, replace=False)]
-        moved[topic] = transform(np.asarray(rt_lidar0_sensor[topic], float), p)
     for ax, v in zip(axes[0], views):
         a, b, la, lb = _VIEWS[v]
         for (topic, p), c in zip(moved.items(), colors):
