@@ -118,3 +118,13 @@ def test_missing_frames_are_input_errors(setup):
         ros.format_for_ros(cal, tf, frames={k: v for k, v in FRAMES.items() if k != "/cam/image"})
     with pytest.raises(InputError, match="odom"):
         ros.format_for_ros(cal, tf, base_frame="odom", frames=FRAMES)
+
+
+def test_infer_frames():
+    tf_frames = {"base_link", "velodyne_0", "velodyne_1", "left_cam"}
+    topics = ["/lidar/velodyne_0/points", "/lidar/velodyne_1/points", "/front/image"]
+    got = ros.infer_frames(topics, tf_frames, frame_ids={"/front/image": "/left_cam", "/lidar/velodyne_1/points": "vlp"})
+    assert got == {"/lidar/velodyne_0/points": "velodyne_0", "/lidar/velodyne_1/points": "velodyne_1",
+                   "/front/image": "left_cam"}
+    with pytest.raises(InputError, match="/front/image"):
+        ros.infer_frames(["/front/image"], tf_frames)

@@ -25,6 +25,28 @@ def _frame_of(topic: str, frames: dict) -> str:
         raise InputError(f"topic {topic}: no frame_id known for it; pass its frame") from None
 
 
+def infer_frames(topics, tf_frames, *, frame_ids: dict | None = None) -> dict[str, str]:
+    """topic -> ROS frame name: the message's header.frame_id when it is in /tf_static, else
+    (clc's rule) the topic component that names a /tf_static frame ("/lidar/velodyne_0/points"
+    -> "velodyne_0"). Raises InputError naming a topic that matches no frame.
+    """
+    tf_frames = set(tf_frames)
+    out = {}
+    for topic in topics:
+        fid = (frame_ids or {}).get(topic)
+        if fid is not None and fid.lstrip("/") in tf_frames:
+            out[topic] = fid.lstrip("/")
+            continue
+        hits = [c for c in topic.split("/") if c and c in tf_frames]
+        if len(hits) != 1:
+            raise InputError(
+                f"topic {topic}: cannot tell its /tf_static frame ({'none' if not hits else 'several'} of "
+                f"{', '.join(sorted(tf_frames)) or 'no frames'} in the topic name); give the frames explicitly"
+            )
+        out[topic] = hits[0]
+    return out
+
+
 def format_for_ros(calibration: dict, tf, *, base_frame: str = "base_link", frames: dict[str, str],
                    stamp_ns: int | None = None) -> dict:
     """Transforms base_frame -> every sensor frame, in clc's format-geometry-for-ros shape.
