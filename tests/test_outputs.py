@@ -230,3 +230,15 @@ def test_out_is_a_file_is_input_error(tmp_path):
         write_results(make_result(), f)
     assert f.read_text() == "x"
     assert [p.name for p in tmp_path.iterdir()] == ["out"]
+
+
+def test_covariance_symmetrized(tmp_path):
+    import dataclasses
+
+    r = make_result()
+    C = r.covariance_rt.copy()
+    C[0, 1] += 1e-12  # rounding-level asymmetry from a solver
+    write_results(dataclasses.replace(r, covariance_rt=C), tmp_path / "o")
+    got = load_result(tmp_path / "o")["covariance_rt_lidar0_sensor"]
+    np.testing.assert_array_equal(got, got.T)
+    np.testing.assert_allclose(got, C, atol=1e-12)

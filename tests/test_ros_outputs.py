@@ -128,3 +128,11 @@ def test_infer_frames():
                    "/front/image": "left_cam"}
     with pytest.raises(InputError, match="/front/image"):
         ros.infer_frames(["/front/image"], tf_frames)
+
+
+def test_ros_files(setup):
+    *_, out = setup
+    files = ros.ros_files(out)
+    assert set(files) == {"ros-transforms.yaml", "sensors.urdf.xml", "static_tf.launch", "static_tf.launch.py",
+                          "static_tf_ros1.sh", "static_tf_ros2.sh"}
+    assert yaml.safe_load(files["ros-transforms.yaml"])["transforms"]["cam"]["parent_frame"] == "base_link"

@@ -85,7 +85,8 @@ def calibration_dict(result: Result) -> dict:
         "clcgraph_version": __version__,
         "reference": problem.sensors[ref].topic,
         "sensors": sensors,
-        "covariance_rt_lidar0_sensor": _floats(np.asarray(result.covariance_rt, dtype=float)),
+        # symmetrized: marginals come out of the solver symmetric only to rounding
+        "covariance_rt_lidar0_sensor": _floats(0.5 * (np.asarray(result.covariance_rt, float) + np.asarray(result.covariance_rt, float).T)),
         "rms": {k: _scalar(result.rms.get(k)) for k in ("normalized", "lidar_m", "camera_px")},
         "noise": {k: _scalar(result.noise.get(k)) for k in ("lidar_m", "camera_px")},
         "snapshots": {"used": int(len(used)), "used_indices": [int(k) for k in used],

@@ -175,3 +175,15 @@ def ros_yaml(ros: dict) -> str:
     slim = {"stamp": ros["stamp"], "transforms": {
         f: {k: e[k] for k in ("parent_frame", "translation", "rotation")} for f, e in ros["transforms"].items()}}
     return yaml.safe_dump(slim, sort_keys=False)
+
+
+def ros_files(ros: dict) -> dict[str, str]:
+    """{file name: text} of every ROS output, for format-for-ros to write next to each other."""
+    return {
+        "ros-transforms.yaml": ros_yaml(ros),
+        "sensors.urdf.xml": urdf_snippet(ros),
+        "static_tf.launch": launch_ros1_xml(ros),
+        "static_tf.launch.py": launch_ros2_python(ros),
+        "static_tf_ros1.sh": static_tf_cli_lines(ros, ros_version=1),
+        "static_tf_ros2.sh": static_tf_cli_lines(ros, ros_version=2),
+    }
