@@ -70,6 +70,27 @@ def test_per_observation_rms_matches_numpy():
     assert len([o for o in obs if o["kind"] == "camera"]) == 7
 
 
+def test_outliers_left_out_of_rms(tmp_path):
+    import dataclasses
+
+    r0 = make_result()
+    res = dict(r0.residuals)
+    x = res["lidar_m"].copy()
+    m = (res["lidar_sensor"] == 0) & (res["lidar_snapshot"] == 2)
+    k = np.flatnonzero(m)[:3]
+    x[k] = 5.0  # three gross outliers
+    res["lidar_m"] = x
+    res["lidar_outlier"] = np.zeros(x.shape, bool)
+    res["lidar_outlier"][k] = True
+    r = dataclasses.replace(r0, residuals=res)
+    o = [o for o in plots.per_observation_rms(r) if o["kind"] == "lidar" and o["sensor"] == 0 and o["snapshot"] == 2][0]
+    assert o["n_outliers"] == 3
+    inl = m.copy()
+    inl[k] = False
+    assert o["rms"] == pytest.approx(np.sqrt(np.mean(x[inl] ** 2)), rel=1e-12) and o["rms"] < 0.02
+    assert set(plots.plot_all(r, tmp_path)) == set(plots.PLOTS)
+
+
 def test_plots_without_optional_data(tmp_path):
     # no residuals, no sectors: plots still render (saying what is missing)
     import dataclasses

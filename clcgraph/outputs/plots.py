@@ -4,7 +4,8 @@ Residuals are read from ``Result.residuals`` (keys any solver may fill; missing 
 give a plot that says so):
     "lidar_m" (N,) LIDAR residuals in m, with "lidar_sensor", "lidar_snapshot" (N,) int;
     "camera_px" (M,) camera residuals in px (both coordinates), with "camera_sensor",
-    "camera_snapshot" (M,) int.
+    "camera_snapshot" (M,) int; optional "lidar_outlier" (N,) / "camera_outlier" (M,) bool
+    masks of residuals the solver rejected (drawn apart, left out of the RMS).
 
 SYNOPSIS
     paths = plot_all(result, "out/")        # {name: png path}
@@ -51,7 +52,11 @@ def plot_residual_histograms(result: Result, path) -> Path:
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for ax, key, unit, noise_key in ((axes[0], "lidar_m", "m", "lidar_m"), (axes[1], "camera_px", "px", "camera_px")):
         x = np.asarray(result.residuals.get(key, []), dtype=float).ravel()
-        x = x[np.isfinite(x)]
+        out_mask = np.asarray(result.residuals.get(key.split("_")[0] + "_outlier", np.zeros(x.shape, bool)), bool).ravel()
+        if out_mask.shape != x.shape:
+            out_mask = np.zeros(x.shape, bool)
+        xo = x[out_mask & np.isfinite(x)]
+        x = x[~out_mask & np.isfinite(x)]
         kind = "LIDAR" if key == "lidar_m" else "camera"
         if x.size == 0:
             ax.text(0.5, 0.5, f"no {kind} residuals", ha="center", va="center", transform=ax.transAxes)
@@ -62,6 +67,10 @@ def plot_residual_histograms(result: Result, path) -> Path:
         lim = max(4 * sigma, np.percentile(np.abs(x), 99.5))
         bins = np.linspace(-lim, lim, 61)
         ax.hist(np.clip(x, -lim, lim), bins=bins, density=True, color="C0", alpha=0.7, label=f"residuals (N={x.size})")
+        if xo.size:
+            # outliers on the same density scale as the inliers, clipped into the edge bins
+            ax.hist(np.clip(xo, -lim, lim), bins=bins, weights=np.full(xo.size, 1.0 / (x.size * (bins[1] - bins[0]))),
+                    color="r", alpha=0.6, label=f"outliers, rejected (N={xo.size})")
         g = np.linspace(-lim, lim, 400)
         ax.plot(g, np.exp(-0.5 * (g / sigma) ** 2) / (sigma * np.sqrt(2 * np.pi)), "r-",
                 label=f"Gaussian, sigma={sigma:.3g} {unit}")
@@ -73,7 +82,7 @@ def plot_residual_histograms(result: Result, path) -> Path:
 
 
 def per_observation_rms(result: Result) -> list[dict]:
-    """[{kind, sensor, snapshot, rms}] from the residual arrays (unit: m or px)."""
+    """[{kind, sensor, snapshot, rms, n_outliers}] from the residual arrays (unit: m or px; RMS over inliers)."""
     out = []
     for kind, key in (("lidar", "lidar_m"), ("camera", "camera_px")):
         x = np.asarray(result.residuals.get(key, []), dtype=float).ravel()
@@ -81,12 +90,20 @@ def per_observation_rms(result: Result) -> list[dict]:
         isnap = np.asarray(result.residuals.get(f"{kind}_snapshot", []), dtype=int).ravel()
         if x.size == 0 or isens.shape != x.shape or isnap.shape != x.shape:
             continue
+        bad = np.asarray(result.residuals.get(f"{kind}_outlier", np.zeros(x.shape, bool)), bool).ravel()
+        if bad.shape != x.shape:
+            bad = np.zeros(x.shape, bool)
         pair = isens.astype(np.int64) * (1 << 32) + isnap
         u, inv = np.unique(pair, return_inverse=True)
-        ss = np.bincount(inv, weights=x * x)
-        n = np.bincount(inv)
+        good = ~bad & np.isfinite(x)
+        ss = np.bincount(inv, weights=np.where(good, x * x, 0.0), minlength=len(u))
+        n = np.bincount(inv, weights=good.astype(float), minlength=len(u))
+        nbad = np.bincount(inv, weights=bad.astype(float), minlength=len(u))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rms = np.sqrt(ss / n)
         for k, p in enumerate(u):
-            out.append({"kind": kind, "sensor": int(p >> 32), "snapshot": int(p & 0xFFFFFFFF), "rms": float(np.sqrt(ss[k] / n[k]))})
+            out.append({"kind": kind, "sensor": int(p >> 32), "snapshot": int(p & 0xFFFFFFFF),
+                        "rms": float(rms[k]), "n_outliers": int(nbad[k])})
     return out
 
 
@@ -104,6 +121,8 @@ def plot_residuals_per_snapshot(result: Result, path) -> Path:
                 continue
             i = o["sensor"]
             ax.plot(o["snapshot"], o["rms"], "o", color=colors[i], ms=5, label=None if i in plotted else labels[i])
+            if o["n_outliers"]:
+                ax.plot(o["snapshot"], o["rms"], "o", mfc="none", mec="r", ms=10, mew=1.5)
             plotted.add(i)
         sigma = result.noise.get(nk)
         if sigma and np.isfinite(sigma):
@@ -117,6 +136,7 @@ def plot_residuals_per_snapshot(result: Result, path) -> Path:
             c = "k" if r.sensor is None else colors[r.sensor]
             ax.plot(r.snapshot, 0, "x", color=c, ms=8, mew=2, clip_on=False)
         ax.plot([], [], "kx", ms=8, mew=2, label="rejected (see report table)")
+        ax.plot([], [], "o", mfc="none", mec="r", ms=10, mew=1.5, label="has outlier residuals")
         ax.set_ylabel(f"{kind} RMS ({unit})")
         ax.set_ylim(bottom=0)
         ax.grid(alpha=0.3)
