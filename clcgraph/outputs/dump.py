@@ -1,0 +1,233 @@
+"""Problem dumps: save a Problem + Config to a versioned, pickle-free .npz, load it, replay it.
+
+File layout (``FORMAT_VERSION`` 1): one ``.npz`` (numpy's zip of ``.npy`` arrays, read with
+``allow_pickle=False``) holding
+
+- ``meta``: a 0-d unicode array with a JSON document: format name and version, the config
+  dict, the sensors (topic, kind, lensmodel, imagersize), the board, rejections, and the
+  scalar/ragged bookkeeping of the observations;
+- plain numeric arrays: concatenated LIDAR points (with per-observation counts), planes,
+  indices, camera corners, priors, visibility points, snapshot stamps, intrinsics.
+
+Floats are stored as float64 and so round-trip bit-exactly.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from clcgraph.config import Config
+from clcgraph.errors import DataError, InputError
+from clcgraph.geometry import compose_rt, invert_rt, transform
+from clcgraph.types import (
+    BoardGeometry,
+    CameraBoardObservation,
+    LidarBoardObservation,
+    PosePrior,
+    Problem,
+    Rejected,
+    Sensor,
+)
+
+log = logging.getLogger(__name__)
+
+FORMAT_NAME = "clcgraph-problem"
+FORMAT_VERSION = 1
+
+
+def _concat(arrays, shape_tail, dtype=float):
+    if not arrays:
+        return np.zeros((0,) + shape_tail, dtype), np.zeros(0, np.int64)
+    counts = np.array([len(a) for a in arrays], np.int64)
+    return np.concatenate([np.asarray(a, dtype).reshape((-1,) + shape_tail) for a in arrays]), counts
+
+
+def _split(data, counts):
+    return np.split(data, np.cumsum(counts)[:-1]) if len(counts) else []
+
+
+def save_problem(path: str | Path, problem: Problem, config: Config | None = None) -> None:
+    """Write ``problem`` and ``config`` (default Config()) to ``path`` (.npz, format v1)."""
+    config = config or Config()
+    arrays: dict[str, np.ndarray] = {}
+    sensors = []
+    for i, s in enumerate(problem.sensors):
+        sensors.append(
+            dict(topic=s.topic, kind=s.kind, lensmodel=s.lensmodel,
+                 imagersize=None if s.imagersize is None else [int(v) for v in s.imagersize],
+                 has_intrinsics=s.intrinsics is not None)
+        )
+        if s.intrinsics is not None:
+            arrays[f"intrinsics_{i}"] = np.asarray(s.intrinsics, float)
+    lo = problem.lidar_observations
+    arrays["lidar_points"], arrays["lidar_counts"] = _concat([o.points for o in lo], (3,))
+    arrays["lidar_planes"] = np.array([o.plane for o in lo], float).reshape(-1, 4)
+    arrays["lidar_sensor_snapshot"] = np.array([(o.sensor, o.snapshot) for o in lo], np.int64).reshape(-1, 2)
+    arrays["lidar_rms"] = np.array([o.rms_m for o in lo], float)
+    has_idx = [o.indices is not None for o in lo]
+    arrays["lidar_indices"], arrays["lidar_indices_counts"] = _concat(
+        [o.indices for o in lo if o.indices is not None], (), np.int64)
+    co = problem.camera_observations
+    arrays["camera_corners"], arrays["camera_counts"] = _concat([o.corners_px for o in co], (2,))
+    arrays["camera_sensor_snapshot"] = np.array([(o.sensor, o.snapshot) for o in co], np.int64).reshape(-1, 2)
+    arrays["snapshot_stamps_ns"] = np.asarray(problem.snapshot_stamps_ns, np.int64)
+    arrays["prior_sensor"] = np.array([p.sensor for p in problem.priors], np.int64)
+    arrays["prior_rt"] = np.array([p.rt_lidar0_sensor for p in problem.priors], float).reshape(-1, 6)
+    arrays["prior_sigma"] = np.array([p.sigma_rt for p in problem.priors], float).reshape(-1, 6)
+    vis_keys = sorted(int(k) for k in problem.lidar_visibility_points)
+    for k in vis_keys:
+        arrays[f"visibility_{k}"] = np.asarray(problem.lidar_visibility_points[k], float)
+    b = problem.board
+    meta = dict(
+        format=FORMAT_NAME,
+        version=FORMAT_VERSION,
+        config=config.to_dict(),
+        sensors=sensors,
+        board=dict(corners_x=b.corners_x, corners_y=b.corners_y, spacing_m=b.spacing_m, margin_m=b.margin_m),
+        rejected=[dict(reason=r.reason, stage=r.stage, sensor=r.sensor, snapshot=r.snapshot)
+                  for r in problem.rejected],
+        lidar_has_indices=has_idx,
+        visibility_sensors=vis_keys,
+    )
+    arrays["meta"] = np.array(json.dumps(meta))
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    tmp.replace(path)
+    log.info("wrote problem dump %s", path)
+
+
+def load_problem(path: str | Path) -> tuple[Problem, Config]:
+    """Read a dump written by save_problem -> (Problem, Config). DataError if unreadable."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            a = {k: z[k] for k in z.files}
+    except OSError as e:
+        if not path.exists():
+            raise InputError(f"{path}: no such problem dump") from None
+        raise DataError(f"{path}: not a problem dump ({e})") from None
+    except ValueError as e:
+        raise DataError(f"{path}: not a problem dump ({str(e).splitlines()[0]})") from None
+    try:
+        meta = json.loads(str(a["meta"]))
+    except (KeyError, json.JSONDecodeError):
+        raise DataError(f"{path}: not a clcgraph problem dump (no metadata)") from None
+    if meta.get("format") != FORMAT_NAME:
+        raise DataError(f"{path}: not a clcgraph problem dump (format {meta.get('format')!r})")
+    if meta.get("version") != FORMAT_VERSION:
+        raise DataError(
+            f"{path}: problem dump format version {meta.get('version')!r} is not supported "
+            f"(this clcgraph reads version {FORMAT_VERSION})"
+        )
+    try:
+        sensors = tuple(
+            Sensor(topic=s["topic"], kind=s["kind"], lensmodel=s["lensmodel"],
+                   intrinsics=a[f"intrinsics_{i}"] if s["has_intrinsics"] else None,
+                   imagersize=None if s["imagersize"] is None else tuple(s["imagersize"]))
+            for i, s in enumerate(meta["sensors"])
+        )
+        pts = _split(a["lidar_points"], a["lidar_counts"])
+        idx = iter(_split(a["lidar_indices"], a["lidar_indices_counts"]))
+        lidar = tuple(
+            LidarBoardObservation(sensor=int(ss[0]), snapshot=int(ss[1]), points=p, plane=pl,
+                                  rms_m=float(rms), indices=next(idx) if h else None)
+            for ss, p, pl, rms, h in zip(a["lidar_sensor_snapshot"], pts, a["lidar_planes"],
+                                         a["lidar_rms"], meta["lidar_has_indices"])
+        )
+        camera = tuple(
+            CameraBoardObservation(sensor=int(ss[0]), snapshot=int(ss[1]), corners_px=c)
+            for ss, c in zip(a["camera_sensor_snapshot"], _split(a["camera_corners"], a["camera_counts"]))
+        )
+        priors = tuple(
+            PosePrior(sensor=int(s), rt_lidar0_sensor=rt, sigma_rt=sg)
+            for s, rt, sg in zip(a["prior_sensor"], a["prior_rt"], a["prior_sigma"])
+        )
+        problem = Problem(
+            sensors=sensors,
+            board=BoardGeometry(**meta["board"]),
+            lidar_observations=lidar,
+            camera_observations=camera,
+            snapshot_stamps_ns=a["snapshot_stamps_ns"],
+            rejected=tuple(Rejected(**r) for r in meta["rejected"]),
+            priors=priors,
+            lidar_visibility_points={k: a[f"visibility_{k}"] for k in meta["visibility_sensors"]},
+        )
+        config = Config.from_dict(meta["config"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise DataError(f"{path}: corrupt problem dump ({type(e).__name__}: {e})") from None
+    return problem, config
+
+
+def renoise_problem(
+    problem: Problem,
+    rt_lidar0_sensor: np.ndarray,
+    rt_lidar0_board: np.ndarray,
+    *,
+    sigma_lidar_m: float,
+    sigma_camera_px: float,
+    rng: np.random.Generator,
+) -> Problem:
+    """A copy of ``problem`` whose observations are the ones the given geometry predicts plus noise.
+
+    LIDAR points are moved along their rays onto the given board plane, then by N(0, sigma_lidar_m)
+    in range; camera corners are the board corners projected through the given poses plus
+    N(0, sigma_camera_px) per coordinate. Observations of snapshots without a finite board pose
+    are dropped. Used for Monte-Carlo uncertainty checks (replay --inject-noise).
+    """
+    from clcgraph import cameras
+
+    rts = np.asarray(rt_lidar0_sensor, float)
+    boards = np.asarray(rt_lidar0_board, float)
+    ok = np.all(np.isfinite(boards), axis=1)
+    lidar = []
+    for o in problem.lidar_observations:
+        if not ok[o.snapshot]:
+            continue
+        rt_l_b = compose_rt(invert_rt(rts[o.sensor]), boards[o.snapshot])
+        T_n = transform(np.r_[rt_l_b[:3], 0, 0, 0], np.array([[0.0, 0, 1]]))[0]
+        u = o.points / np.linalg.norm(o.points, axis=1, keepdims=True)
+        s = (T_n @ rt_l_b[3:]) / (u @ T_n)
+        s = s + rng.normal(0.0, sigma_lidar_m, size=s.shape)
+        p = u * s[:, None]
+        d = T_n @ rt_l_b[3:]
+        # normal towards the sensor (at the origin) means n . x = d < 0 on the board
+        plane = np.r_[-T_n, -d] if d > 0 else np.r_[T_n, d]
+        lidar.append(LidarBoardObservation(o.sensor, o.snapshot, p, plane, sigma_lidar_m, o.indices))
+    corners = problem.board.corners()
+    camera = []
+    for o in problem.camera_observations:
+        if not ok[o.snapshot]:
+            continue
+        s = problem.sensors[o.sensor]
+        p_c = transform(compose_rt(invert_rt(rts[o.sensor]), boards[o.snapshot]), corners)
+        q = cameras.project(p_c, s.lensmodel, s.intrinsics)
+        q = q + rng.normal(0.0, sigma_camera_px, size=q.shape)
+        q[~np.all(np.isfinite(o.corners_px), axis=1)] = np.nan  # keep the same missing corners
+        camera.append(CameraBoardObservation(o.sensor, o.snapshot, q))
+    return Problem(problem.sensors, problem.board, tuple(lidar), tuple(camera), problem.snapshot_stamps_ns,
+                   problem.rejected, problem.priors, problem.lidar_visibility_points)
+
+
+def exclude_snapshots(problem: Problem, exclude) -> Problem:
+    """A copy of ``problem`` without the observations of the snapshot indices in ``exclude``.
+
+    Snapshot indices are kept (not renumbered), so results stay comparable with the full solve;
+    the excluded snapshots get NaN board poses.
+    """
+    ex = {int(k) for k in exclude}
+    bad = ex - set(range(problem.n_snapshots))
+    if bad:
+        raise InputError(f"--exclude: no snapshot {min(bad)} (the problem has {problem.n_snapshots})")
+    return Problem(
+        problem.sensors, problem.board,
+        tuple(o for o in problem.lidar_observations if o.snapshot not in ex),
+        tuple(o for o in problem.camera_observations if o.snapshot not in ex),
+        problem.snapshot_stamps_ns,
+        problem.rejected + tuple(Rejected("excluded by the user", "snapshot", None, k) for k in sorted(ex)),
+        problem.priors, problem.lidar_visibility_points,
+    )

@@ -1,0 +1,120 @@
+import json
+
+import numpy as np
+import pytest
+
+from clcgraph.config import Config
+from clcgraph.errors import DataError
+from clcgraph.outputs.dump import exclude_snapshots, load_problem, renoise_problem, save_problem
+from clcgraph.geometry import compose_rt, invert_rt, transform
+from clcgraph.types import (BoardGeometry, CameraBoardObservation, LidarBoardObservation, PosePrior, Problem,
+                            Rejected, Sensor)
+
+
+def _problem():
+    rng = np.random.default_rng(3)
+    cam = Sensor("/cam0/image", "camera", "LENSMODEL_OPENCV8", rng.normal(size=12), (1280, 1024))
+    sensors = (Sensor("/l0", "lidar"), Sensor("/l1", "lidar"), cam)
+    lidar = (
+        LidarBoardObservation(0, 0, rng.normal(size=(17, 3)), rng.normal(size=4), 0.011, np.arange(17) * 3),
+        LidarBoardObservation(1, 0, rng.normal(size=(5, 3)), rng.normal(size=4), 0.02, None),
+        LidarBoardObservation(0, 2, rng.normal(size=(9, 3)), rng.normal(size=4), 1 / 3, np.arange(9)),
+    )
+    corners = rng.normal(size=(12, 2)) * 100
+    corners[3] = np.nan
+    camera = (CameraBoardObservation(2, 0, corners), CameraBoardObservation(2, 2, rng.normal(size=(12, 2))))
+    return Problem(
+        sensors, BoardGeometry(4, 3, 0.0254, 0.05), lidar, camera, np.array([10, 2**62 + 7, 30], np.int64),
+        rejected=(Rejected("no board", "segmentation", 1, 2), Rejected("blurry", "snapshot")),
+        priors=(PosePrior(1, rng.normal(size=6), np.full(6, 0.1)),),
+        lidar_visibility_points={0: rng.normal(size=(100, 3)), 1: np.zeros((0, 3))},
+    )
+
+
+def _same(a, b):
+    if a is None or b is None:
+        assert a is None and b is None
+        return
+    a, b = np.asarray(a), np.asarray(b)
+    assert a.dtype.kind == b.dtype.kind and a.shape == b.shape
+    np.testing.assert_array_equal(a, b)
+
+
+def test_round_trip_exact(tmp_path):
+    p = _problem()
+    cfg = Config().replace(solve=dict(sigma_lidar_m=0.017), sectors=dict(n_sectors=12))
+    save_problem(tmp_path / "p.npz", p, cfg)
+    q, cfg2 = load_problem(tmp_path / "p.npz")
+    assert cfg2 == cfg
+    assert [(s.topic, s.kind, s.lensmodel, s.imagersize) for s in q.sensors] == \
+        [(s.topic, s.kind, s.lensmodel, s.imagersize) for s in p.sensors]
+    for s, t in zip(p.sensors, q.sensors):
+        _same(s.intrinsics, t.intrinsics)
+    assert q.board == p.board
+    for o, r in zip(p.lidar_observations, q.lidar_observations, strict=True):
+        assert (o.sensor, o.snapshot, o.rms_m) == (r.sensor, r.snapshot, r.rms_m)
+        _same(o.points, r.points), _same(o.plane, r.plane), _same(o.indices, r.indices)
+    for o, r in zip(p.camera_observations, q.camera_observations, strict=True):
+        assert (o.sensor, o.snapshot) == (r.sensor, r.snapshot)
+        _same(o.corners_px, r.corners_px)
+    _same(p.snapshot_stamps_ns, q.snapshot_stamps_ns)
+    assert q.rejected == p.rejected
+    assert len(q.priors) == 1 and q.priors[0].sensor == 1
+    _same(p.priors[0].rt_lidar0_sensor, q.priors[0].rt_lidar0_sensor)
+    _same(p.priors[0].sigma_rt, q.priors[0].sigma_rt)
+    assert sorted(q.lidar_visibility_points) == [0, 1]
+    for k in (0, 1):
+        _same(p.lidar_visibility_points[k], q.lidar_visibility_points[k])
+
+
+def test_no_pickle_and_versioning(tmp_path):
+    save_problem(tmp_path / "p.npz", _problem())
+    with np.load(tmp_path / "p.npz", allow_pickle=False) as z:  # would raise on object arrays
+        arrays = {k: z[k] for k in z.files}
+    assert all(a.dtype != object for a in arrays.values())
+    meta = json.loads(str(arrays["meta"]))
+    assert meta["version"] == 1
+    meta["version"] = 2
+    arrays["meta"] = np.array(json.dumps(meta))
+    np.savez(tmp_path / "new.npz", **arrays)
+    with pytest.raises(DataError, match=r"new\.npz.*version 2"):
+        load_problem(tmp_path / "new.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(DataError, match="junk.npz"):
+        load_problem(tmp_path / "junk.npz")
+
+
+def test_exclude_snapshots_keeps_indices():
+    q = exclude_snapshots(_problem(), [2])
+    assert {o.snapshot for o in q.lidar_observations} == {0}
+    assert {o.snapshot for o in q.camera_observations} == {0}
+    assert q.n_snapshots == 3 and q.rejected[-1].snapshot == 2
+
+
+def test_renoise_puts_points_on_the_plane():
+    p = _problem()
+    cam = Sensor("/cam", "camera", "LENSMODEL_PINHOLE", np.array([500.0, 500, 640, 512]), (1280, 1024))
+    p = Problem((p.sensors[0], p.sensors[1], cam), p.board, p.lidar_observations,
+                (CameraBoardObservation(2, 0, np.zeros((12, 2))),), p.snapshot_stamps_ns)
+    rts = np.array([[0, 0, 0, 0, 0, 0], [0, 0, 0.3, 0, 1, 0], [-1.2, 1.2, -1.2, 0, 0, 0.]])
+    boards = np.array([[0, 1.3, 0, 5, 0, 0], [np.nan] * 6, [0.2, 1.2, 0, 6, 1, 0]])
+    # zero noise: points exactly on the board plane, corners exactly at the projections
+    q = renoise_problem(p, rts, boards, sigma_lidar_m=0.0, sigma_camera_px=0.0, rng=np.random.default_rng(0))
+    for o in q.lidar_observations:
+        n, d = o.plane[:3], o.plane[3]
+        assert d < 0
+        np.testing.assert_allclose(o.points @ n, d, atol=1e-12)
+        p_b = transform(compose_rt(invert_rt(boards[o.snapshot]), rts[o.sensor]), o.points)
+        np.testing.assert_allclose(p_b[:, 2], 0, atol=1e-12)
+    from clcgraph import cameras
+    c = q.camera_observations[0]
+    pc = transform(compose_rt(invert_rt(rts[2]), boards[0]), p.board.corners())
+    np.testing.assert_allclose(c.corners_px, cameras.project(pc, cam.lensmodel, cam.intrinsics), atol=1e-9)
+    # with noise: range residual std ~ sigma
+    o = p.lidar_observations[0]
+    big = Problem(p.sensors, p.board, (LidarBoardObservation(0, 0, np.tile(o.points, (300, 1)), o.plane, 0, None),),
+                  (), p.snapshot_stamps_ns)
+    q = renoise_problem(big, rts, boards, sigma_lidar_m=0.02, sigma_camera_px=0.0, rng=np.random.default_rng(1))
+    r0 = renoise_problem(big, rts, boards, sigma_lidar_m=0.0, sigma_camera_px=0.0, rng=np.random.default_rng(1))
+    dr = np.linalg.norm(q.lidar_observations[0].points, axis=1) - np.linalg.norm(r0.lidar_observations[0].points, axis=1)
+    assert abs(dr.std() / 0.02 - 1) < 0.05
