@@ -111,11 +111,14 @@ class SolveOptions:
 
 @dataclass(frozen=True)
 class SectorOptions:
+    # Seed's sector feedback (backend/sectors.py): equal azimuth slices of the ground plane.
     n_sectors: int = 36
     # rt_vehicle_lidar0 (r, t); the sectors are slices of the vehicle's ground plane.
     rt_vehicle_lidar0: list = field(default_factory=lambda: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    # A LIDAR sees a sector if it has >= npoints visibility points beyond this range there.
     threshold_valid_lidar_range_m: float = 1.5
     threshold_valid_lidar_npoints: int = 100
+    # Worst-pair stdev is evaluated on the ground this far from the vehicle origin (m).
     uncertainty_quantification_range_m: float = 10.0
 
 
@@ -130,6 +133,79 @@ class TargetlessOptions:
     min_mapping_pointcloud_size: int = 10000
     min_calibration_pointcloud_size: int = 500
     mapping_lost_timeout: float = 1.0
+    # Mapper (seed names; NDT ones kept for the voxelized-GICP option: resolution = voxel size).
+    mapper_registrator: str = "GICP"  # "GICP" | "VGICP" (NDT-like)
+    mapper_resolution: float = 5.0
+    mapper_step_size: float = 0.1
+    mapper_max_iterations: int = 35
+    mapper_epsilon: float = 0.01
+    mapper_num_threads: int = 2
+    mapper_max_correspondence_distance: float = 0.1  # seed default; the first pass uses 10x
+    mapping_viz_leaf_size: float = 0.15
+    calibration_viz_leaf_size: float = 0.15
+    leaf_size_input: float = 0.1
+    leaf_size_local_map: float = 0.1
+    leaf_size_dense_map: float = 0.05
+    new_keyframe_min_distance: float = 1.0
+    new_frame_min_distance: float = 0.05
+    frame_stopped_distance: float = 0.02
+    frames_since_stopped_force_frame: int = 5
+    calibration_skip_keyframes: int = 5
+    # Deskew with per-point times and the estimated twist; iterations of (deskew, register).
+    deskew: bool = True
+    deskew_iterations: int = 2
+    # Calibration-frame interpolation limits, "standard" criteria (s, m, deg, m/s, m/s^2).
+    max_allowed_interpolated_time: float = 0.05
+    max_allowed_interpolated_distance: float = 0.05
+    max_allowed_interpolated_angle: float = 1.0
+    max_allowed_interpolated_speed: float = 3.0
+    max_allowed_interpolated_accel: float = 0.4
+    # ... "straight" criteria (used when the turn is small).
+    max_allowed_interpolated_distance_straight: float = 0.08
+    max_allowed_interpolated_angle_straight: float = 0.5
+    max_allowed_interpolated_speed_straight: float = 5.0
+    max_allowed_interpolated_accel_straight: float = 0.1
+    filter_detections: bool = True
+    detection_max_time_tolerance: float = 0.5
+    detection_size_tolerance: float = 0.4
+    # Lost-frame detection between consecutive frames (deg, m, m/s^2).
+    lost_frame_max_angle_diff: float = 25.0
+    lost_frame_interpolation_error: float = 0.05
+    lost_frame_max_acceleration: float = 8.0
+    viz_max_range: float = 80.0
+    crop_z_calibration_pointclouds: bool = True
+    crop_z_calibration_pointclouds_value: float = 2.0
+    calibration_use_only_stopped: bool = False
+    calibration_use_only_last_frames: bool = False
+    max_calibration_range: float = 80.0
+    min_calibration_range: float = 1.5
+    calibration_min_pca_eigenvalue: float = 0.25
+    calibration_min_distance_between_frames: float = 5.0
+    calibration_eval_max_corr_distance: float = 0.1
+    # Registration ensemble.
+    solver_iterations: int = 200
+    max_corr_dist_coarse: float = 0.5
+    max_corr_dist_fine: float = 0.1
+    max_corr_dist_ultra_fine: float = 0.05
+    lidar_calibration_min_frames: int = 2
+    lidar_calibration_max_frames: int = 10
+    camera_calibration_min_frames: int = 1
+    camera_calibration_max_frames: int = 10
+    pc_features_min_distance: float = 0.2
+    pc_features_max_distance: float = 40.0
+    # base_link-LIDAR ground plane (crop box in the LIDAR frame, m).
+    base_lidar_crop_box_min_x: float = -20.0
+    base_lidar_crop_box_min_y: float = -20.0
+    base_lidar_crop_box_min_z: float = -20.0
+    base_lidar_crop_box_max_x: float = 20.0
+    base_lidar_crop_box_max_y: float = 20.0
+    base_lidar_crop_box_max_z: float = 20.0
+    base_lidar_max_inlier_distance: float = 0.01
+    base_lidar_max_iterations: int = 1000
+    base_lidar_min_plane_points: int = 1000
+    base_lidar_min_plane_points_percentage: float = 10.0
+    base_lidar_max_cos_distance: float = 0.5
+    base_lidar_overwrite_xy_yaw: bool = False
 
 
 @dataclass(frozen=True)
