@@ -231,3 +231,59 @@ def exclude_snapshots(problem: Problem, exclude) -> Problem:
         problem.rejected + tuple(Rejected("excluded by the user", "snapshot", None, k) for k in sorted(ex)),
         problem.priors, problem.lidar_visibility_points,
     )
+
+
+def replay(
+    path: str | Path,
+    *,
+    inject_noise: bool = False,
+    fit_seed: bool = False,
+    exclude=(),
+    seed: int = 0,
+):
+    """Re-solve a problem dump, like the seed's fit-from-inputs-dump -> types.Result.
+
+    - ``exclude``: snapshot indices to drop (the seed's --exclude); indices are not renumbered.
+    - ``inject_noise``: solve once, then replace the observations by what that solution predicts
+      plus fresh noise with the re-estimated sigmas (``renoise_problem``, rng seeded by ``seed``)
+      and solve again: one Monte-Carlo sample for checking the reported uncertainty.
+    - ``fit_seed``: stop after the seed (initial estimate): the Result carries the seed poses,
+      a NaN covariance, empty noise/rms, and ``stats["stage"] == "seed"``.
+    The dump's config supplies the solve options.
+    """
+    from clcgraph.backend.solve import calibrate
+
+    problem, config = load_problem(path)
+    if exclude:
+        problem = exclude_snapshots(problem, exclude)
+    if fit_seed:
+        return _seed_result(problem, config)
+    result = calibrate(problem, config.solve)
+    if not inject_noise:
+        return result
+    noisy = renoise_problem(
+        problem, result.rt_lidar0_sensor, result.rt_lidar0_board,
+        sigma_lidar_m=float(result.noise["lidar_m"]),
+        sigma_camera_px=float(result.noise.get("camera_px", config.solve.sigma_camera_px)),
+        rng=np.random.default_rng(seed),
+    )
+    return calibrate(noisy, config.solve)
+
+
+def _seed_result(problem: Problem, config: Config):
+    """The seed's estimate as a Result (no covariance: NaN; no noise/rms; stats["stage"] = "seed")."""
+    from clcgraph.backend.seed import seed as seed_poses
+    from clcgraph.types import Result
+
+    rt_sensor, rt_board = seed_poses(problem, config.solve)[:2]
+    nv = 6 * (len(problem.sensors) - 1)
+    return Result(
+        problem=problem,
+        rt_lidar0_sensor=np.asarray(rt_sensor, float),
+        covariance_rt=np.full((nv, nv), np.nan),
+        rt_lidar0_board=np.asarray(rt_board, float),
+        noise={},
+        rms={},
+        rejected=problem.rejected,
+        stats={"stage": "seed"},
+    )
