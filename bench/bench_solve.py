@@ -1,0 +1,62 @@
+"""Backend solve time vs problem size (``python -m bench solve``).
+
+Cases: the demo-sized rig (2 LIDARs + 3 cameras, 24 board poses) up to 240 poses x 8 sensors.
+Prints a table with the time per solve (best of a few runs for the small cases), the number
+of observations, and the growth exponent between consecutive cases: time ~ Nobs^exponent.
+Targets on the 2-core reference machine: <= 1 s (24 poses) and <= 10 s (240 x 8).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+from clcgraph.config import Config
+
+
+def _problem(n_snapshots: int, n_lidars: int, n_cameras: int, seed: int = 0):
+    from clcgraph.sim import observations as sim
+
+    rig = None if (n_lidars, n_cameras) == (2, 3) else sim.make_rig(n_lidars=n_lidars, n_cameras=n_cameras)
+    problem, _ = sim.simulate_problem(rig=rig, n_snapshots=n_snapshots, seed=seed)
+    return problem
+
+
+def _time(problem, repeats: int) -> float:
+    from clcgraph.backend.solve import calibrate
+
+    best = math.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        calibrate(problem, Config().solve)
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+CASES = [  # (snapshots, lidars, cameras, repeats, target_s)
+    (24, 2, 3, 3, 1.0),
+    (72, 2, 3, 1, None),
+    (240, 2, 3, 1, None),
+    (240, 3, 5, 1, 10.0),
+]
+
+
+def main() -> str:
+    rows = []
+    prev = None
+    for n, nl, nc, reps, target in CASES:
+        problem = _problem(n, nl, nc)
+        nobs = len(problem.lidar_observations) + len(problem.camera_observations)
+        t = _time(problem, reps)
+        growth = "" if prev is None else f"{math.log(t / prev[1]) / math.log(nobs / prev[0]):.2f}"
+        status = "" if target is None else ("ok" if t <= target else f"SLOW (> {target:g} s)")
+        rows.append((f"{n}", f"{nl}+{nc}", f"{nobs}", f"{t:.3f}", growth, status))
+        prev = (nobs, t)
+    head = ("poses", "lidars+cams", "observations", "solve s", "growth exp", "target")
+    w = [max(len(r[i]) for r in rows + [head]) for i in range(len(head))]
+    fmt = lambda r: " | ".join(c.rjust(w[i]) for i, c in enumerate(r))  # noqa: E731
+    return "\n".join([fmt(head), "-+-".join("-" * x for x in w)] + [fmt(r) for r in rows])
+
+
+if __name__ == "__main__":
+    print(main())
