@@ -67,6 +67,35 @@ def _add_show_bag(sub):
     p.set_defaults(func=run)
 
 
+@_command
+def _add_targetless(sub):
+    p = sub.add_parser("targetless", help="targetless LIDAR-LIDAR (and base_link-LIDAR) calibration from a drive")
+    p.add_argument("--bag", action="append", required=True, metavar="BAG", help="bag file/dir (repeatable)")
+    p.add_argument("--mapping-topic", required=True, help="the mapping LIDAR (reference, lidar0)")
+    p.add_argument("--calibration-topics", required=True, help="comma-separated LIDAR topics to calibrate")
+    p.add_argument("--base-frame", default=None, help="also calibrate base_link-LIDAR roll/pitch/z from the ground")
+    p.add_argument("--out", required=True, help="output directory (replaced atomically)")
+    p.add_argument("--config", default=None, help="YAML config (section 'targetless')")
+
+    def run(args):
+        from .config import Config, ConfigError
+        from .errors import InputError
+        from .targetless.pipeline import calibrate_targetless, write_targetless_outputs
+
+        try:
+            cfg = Config.from_yaml(args.config) if args.config else Config()
+        except ConfigError as e:
+            raise InputError(str(e)) from None
+        topics = [t for t in args.calibration_topics.split(",") if t]
+        res = calibrate_targetless(args.bag, mapping_topic=args.mapping_topic, calibration_topics=topics,
+                                   base_frame=args.base_frame, config=cfg)
+        paths = write_targetless_outputs(res, args.out, config=cfg)
+        print(f"wrote {paths['calibration']}")
+        return 0
+
+    p.set_defaults(func=run)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="clcgraph",

@@ -1,0 +1,107 @@
+"""base_link-LIDAR from the ground plane: roll, pitch and height; x, y, yaw from the initial guess.
+
+SYNOPSIS
+    gp = fit_ground(points_lidar0, opts)                 # GroundPlane (unit normal up, offset) or DegenerateError
+    T_base_lidar = base_from_ground(normal, d, T_base_lidar_guess)
+
+RANSAC (Open3D) on the dense cloud around keyframes in the crop box; a plane is rejected
+and its inliers removed when it has too few points / too small a share, or its normal is
+further than ``base_lidar_max_cos_distance`` from the guess's up direction; repeat.
+The body rolls/pitches on its suspension, so the normals of many keyframes are averaged
+in the map frame and brought back with the mean attitude.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from ..errors import DegenerateError
+
+log = logging.getLogger(__name__)
+
+
+def fit_ground(points: np.ndarray, up_guess: np.ndarray, o, *, seed: int = 0):
+    """(n (3,), d) of the ground plane n.p + d = 0 in the points' frame, n pointing along up_guess."""
+    import open3d as o3d
+
+    lo = np.array([o.base_lidar_crop_box_min_x, o.base_lidar_crop_box_min_y, o.base_lidar_crop_box_min_z])
+    hi = np.array([o.base_lidar_crop_box_max_x, o.base_lidar_crop_box_max_y, o.base_lidar_crop_box_max_z])
+    p = points[np.all((points >= lo) & (points <= hi), axis=1)]
+    n_all = len(p)
+    o3d.utility.random.seed(seed)
+    while len(p) >= o.base_lidar_min_plane_points:
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
+        model, inl = pc.segment_plane(o.base_lidar_max_inlier_distance, 3, o.base_lidar_max_iterations)
+        n, d = np.asarray(model[:3]), float(model[3])
+        s = np.linalg.norm(n)
+        n, d = n / s, d / s
+        if n @ up_guess < 0:
+            n, d = -n, -d
+        ok_count = len(inl) >= o.base_lidar_min_plane_points and 100.0 * len(inl) / n_all >= o.base_lidar_min_plane_points_percentage
+        if ok_count and (1.0 - n @ up_guess) <= o.base_lidar_max_cos_distance:
+            q = p[inl]  # least-squares refit on the inliers
+            c = q.mean(0)
+            w, V = np.linalg.eigh(np.cov((q - c).T))
+            n2 = V[:, 0] * np.sign(V[:, 0] @ n)
+            return n2, float(-n2 @ c), len(inl)
+        if not ok_count:
+            break
+        p = np.delete(p, inl, axis=0)
+    raise DegenerateError("no ground plane found in the base-lidar crop box (too few inliers or normals too far from up)")
+
+
+def base_from_ground(n: np.ndarray, d: float, T_base_lidar_guess: np.ndarray, *, overwrite_xy_yaw: bool = False) -> np.ndarray:
+    """(4,4) T_base_lidar whose z axis is the ground normal and height d; x, y, yaw from the guess."""
+    R0 = T_base_lidar_guess[:3, :3]
+    a = R0 @ n  # ground normal in the guessed base frame
+    z = np.array([0.0, 0.0, 1.0])
+    v = np.cross(a, z)
+    s, c = np.linalg.norm(v), a @ z
+    if s < 1e-12:
+        Rfix = np.eye(3)
+    else:
+        k = v / s
+        K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+        Rfix = np.eye(3) + s * K + (1 - c) * K @ K  # minimal rotation a -> z: keeps the heading
+    T = np.eye(4)
+    T[:3, :3] = Rfix @ R0
+    T[:3, 3] = [T_base_lidar_guess[0, 3], T_base_lidar_guess[1, 3], d]
+    return T
+
+
+def calibrate_base(mp, T_base_lidar_guess: np.ndarray, o, *, max_keyframes: int = 20):
+    """T_base_lidar0 from ground planes around keyframes (mean normal over the attitude of the keyframes).
+
+    The ground is fitted in the map frame on dense clouds around keyframes; each fit's
+    normal and height are brought into the LIDAR frame of every frame nearby, and the
+    frame-wise values averaged so the suspension roll/pitch averages out.
+    """
+    up0 = np.linalg.inv(T_base_lidar_guess)[:3, :3] @ np.array([0, 0, 1.0])
+    kids = mp.keyframe_ids
+    pick = kids if len(kids) <= max_keyframes else [kids[i] for i in np.linspace(0, len(kids) - 1, max_keyframes).round().astype(int)]
+    normals, ds = [], []
+    for kid in pick:
+        Tk = mp.frames[kid].T_map_lidar
+        near = [j for j in range(max(0, kid - 10), min(len(mp.frames), kid + 11))]
+        cloud = np.concatenate([mp.frames[j].points @ (np.linalg.inv(Tk) @ mp.frames[j].T_map_lidar)[:3, :3].T
+                                + (np.linalg.inv(Tk) @ mp.frames[j].T_map_lidar)[:3, 3] for j in near[::2]])
+        try:
+            n, d, _ = fit_ground(cloud, up0, o)
+        except DegenerateError:
+            continue
+        # the plane in map coordinates, then seen from every frame near the keyframe
+        nm = Tk[:3, :3] @ n
+        dm = d - nm @ Tk[:3, 3]
+        for j in near:
+            Tj = mp.frames[j].T_map_lidar
+            normals.append(Tj[:3, :3].T @ nm)
+            ds.append(dm + nm @ Tj[:3, 3])
+    if not normals:
+        raise DegenerateError(f"{mp.topic}: no ground plane found around any keyframe")
+    n = np.mean(normals, axis=0)
+    n /= np.linalg.norm(n)
+    d = float(np.mean(ds))
+    T = base_from_ground(n, d, T_base_lidar_guess)
+    return T, {"n_planes": len(pick), "n_frames": len(normals)}

@@ -1,0 +1,191 @@
+"""Scan-to-local-map mapping with one LIDAR: deskew, crop, downsample, GICP, keyframes.
+
+SYNOPSIS
+    m = build_map(scans, opts)            # scans: list[LidarScan] of the mapping LIDAR, in time order
+    m.frames[k].T_map_lidar               # (4,4) pose at the scan stamp
+    m.keyframe_ids                        # indices into m.frames
+
+The first frame defines the map frame. Each scan is deskewed with the twist of the last
+registration (constant velocity), registered to the local map of the latest
+``local_map_num_keyframes`` keyframes, then deskewed again with the twist implied by the
+new pose and re-registered (``deskew_iterations``). Frames closer than
+``new_frame_min_distance`` to the last frame are dropped (stopped frames kept every
+``frames_since_stopped_force_frame``). A frame whose stamp gap, acceleration or heading
+jump exceeds the seed's limits is a lost frame: the local map restarts there.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import DegenerateError, DataError
+from .deskew import deskew, exp, twist_between
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Frame:
+    """One kept mapping scan: deskewed points (lidar frame at the stamp) and its map pose."""
+
+    stamp_ns: int
+    points: np.ndarray  # (N,3) deskewed, cropped (not downsampled)
+    T_map_lidar: np.ndarray  # (4,4)
+    twist: np.ndarray  # (6,) [omega, v] per second used for deskew
+    keyframe: bool = False
+    stopped: bool = False
+    lost: bool = False
+    H: np.ndarray | None = None  # (6,6) registration Hessian vs the local map
+    T_prev_cur: np.ndarray | None = None  # (4,4) relative pose from the previous kept frame
+    cond: float = np.inf  # registration condition number (degeneracy)
+
+
+@dataclass
+class MapResult:
+    topic: str
+    frames: list = field(default_factory=list)
+    keyframe_ids: list = field(default_factory=list)
+    n_scans: int = 0
+
+    def poses(self) -> np.ndarray:
+        return np.array([f.T_map_lidar for f in self.frames])
+
+    def stamps_ns(self) -> np.ndarray:
+        return np.array([f.stamp_ns for f in self.frames], dtype=np.int64)
+
+
+def crop_range(points: np.ndarray, valid: np.ndarray, rmin: float, rmax: float) -> np.ndarray:
+    """(N,) mask of valid points with rmin <= range <= rmax."""
+    r = np.linalg.norm(points, axis=1)
+    return valid & np.isfinite(r) & (r >= rmin) & (r <= rmax)
+
+
+def voxel_down(points: np.ndarray, leaf: float) -> np.ndarray:
+    """(M,3) voxel-grid centroids."""
+    import small_gicp
+
+    if len(points) == 0:
+        return points
+    return np.asarray(small_gicp.voxelgrid_sampling(np.ascontiguousarray(points, float), leaf).points())[:, :3]
+
+
+def register(target, target_tree, source_pts: np.ndarray, T0: np.ndarray, *, kind: str = "GICP",
+             max_corr: float = 1.0, iters: int = 30, threads: int = 2, leaf: float = 0.2):
+    """small_gicp registration of (M,3) source points to a preprocessed target; returns RegistrationResult."""
+    import small_gicp
+
+    src, _ = small_gicp.preprocess_points(np.ascontiguousarray(source_pts, float), leaf, num_neighbors=10,
+                                          num_threads=threads)
+    return small_gicp.align(target, src, target_tree, init_T_target_source=T0, registration_type=kind,
+                            max_correspondence_distance=max_corr, num_threads=threads, max_iterations=iters)
+
+
+def _target(points: np.ndarray, leaf: float, threads: int):
+    import small_gicp
+
+    return small_gicp.preprocess_points(np.ascontiguousarray(points, float), leaf, num_neighbors=10,
+                                        num_threads=threads)
+
+
+def degeneracy(H: np.ndarray) -> float:
+    """Condition number of the registration Hessian (large = some direction unconstrained)."""
+    w = np.linalg.eigvalsh(0.5 * (H + H.T))
+    return float(w[-1] / max(w[0], 1e-12))
+
+
+def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult:
+    """Map the mapping LIDAR's scans (time-ordered list[LidarScan]); see the module doc."""
+    o = opts
+    res = MapResult(topic=scans[0].topic if scans else "?")
+    if len(scans) < 3:
+        raise DataError(f"{res.topic}: only {len(scans)} scans; mapping needs a drive")
+    leaf_in = max(o.leaf_size_input, 0.05)
+    map_leaf = max(o.leaf_size_local_map, 0.05)
+    twist = np.zeros(6)
+    T_last = np.eye(4)
+    last_stamp = None
+    local_ids: list[int] = []
+    target = tree = None
+    stopped_count = 0
+    for i, scan in enumerate(scans):
+        res.n_scans += 1
+        if progress is not None:
+            progress(1)
+        if len(res.frames) >= o.mapping_max_frames:
+            break
+        m = crop_range(scan.points, scan.valid, o.mapping_min_range, o.mapping_max_range)
+        raw = scan.points[m]
+        tau = scan.time_s[m] if (scan.time_s is not None and o.deskew) else None
+        if last_stamp is None:
+            pts = deskew(raw, tau, twist)
+            f = Frame(scan.stamp_ns, pts, np.eye(4), twist.copy(), keyframe=True)
+            res.frames.append(f)
+            res.keyframe_ids.append(0)
+            local_ids = [0]
+            target, tree = _target(pts, map_leaf, o.mapper_num_threads)
+            T_last, last_stamp = f.T_map_lidar, scan.stamp_ns
+            prev_scan_ns = scan.stamp_ns
+            continue
+        dt = (scan.stamp_ns - last_stamp) * 1e-9
+        lost = (scan.stamp_ns - prev_scan_ns) * 1e-9 > o.mapping_lost_timeout  # sensor gap, not a skipped frame
+        prev_scan_ns = scan.stamp_ns
+        T = T_last @ exp(twist * dt)
+        xi = twist
+        for it in range(max(1, o.deskew_iterations if tau is not None else 1)):
+            pts = deskew(raw, tau, xi)
+            src = voxel_down(pts, leaf_in)
+            r1 = register(target, tree, src, T, max_corr=1.0, iters=o.mapper_max_iterations,
+                          threads=o.mapper_num_threads, leaf=leaf_in)
+            r = register(target, tree, src, r1.T_target_source, kind=o.mapper_registrator if o.mapper_registrator != "NDT" else "VGICP",
+                         max_corr=max(o.mapper_max_correspondence_distance, 3 * leaf_in), iters=o.mapper_max_iterations,
+                         threads=o.mapper_num_threads, leaf=leaf_in)
+            T = r.T_target_source
+            xi = twist_between(T_last, T, dt)
+        H = np.asarray(r.H)
+        cond = degeneracy(H)
+        rel = np.linalg.inv(T_last) @ T
+        dist = np.linalg.norm(rel[:3, 3])
+        v_new, v_old = xi[3:], twist[3:]
+        acc = np.linalg.norm(v_new - v_old) / max(dt, 1e-3)
+        ang = np.degrees(np.linalg.norm(xi[:3] * dt))
+        lost = lost or acc > o.lost_frame_max_acceleration or ang > o.lost_frame_max_angle_diff
+        if dist < o.new_frame_min_distance and not lost:
+            if dist < o.frame_stopped_distance:
+                stopped_count += 1
+                if stopped_count != o.frames_since_stopped_force_frame:
+                    twist = xi
+                    continue
+            else:
+                twist = xi
+                continue
+        stopped = stopped_count >= o.frames_since_stopped_force_frame
+        stopped_count = 0 if not stopped else stopped_count
+        f = Frame(scan.stamp_ns, pts, T, xi.copy(), stopped=stopped, lost=lost, H=H, T_prev_cur=rel, cond=cond)
+        res.frames.append(f)
+        k = len(res.frames) - 1
+        kf_T = res.frames[res.keyframe_ids[-1]].T_map_lidar
+        if lost:
+            log.warning("%s: lost frame at %.3f s (gap/accel/heading); local map restarts", res.topic, scan.stamp_ns * 1e-9)
+            local_ids = []
+        if lost or np.linalg.norm(np.linalg.inv(kf_T)[:3] @ np.r_[T[:3, 3], 1]) >= o.new_keyframe_min_distance:
+            f.keyframe = True
+            res.keyframe_ids.append(k)
+            local_ids = (local_ids + [k])[-o.local_map_num_keyframes:]
+            cloud = np.concatenate([res.frames[j].points @ res.frames[j].T_map_lidar[:3, :3].T
+                                    + res.frames[j].T_map_lidar[:3, 3] for j in local_ids])
+            target, tree = _target(voxel_down(cloud, map_leaf), map_leaf, o.mapper_num_threads)
+        T_last, last_stamp, twist = T, scan.stamp_ns, xi
+    P = res.poses()
+    path = float(np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1).sum()) if len(P) > 1 else 0.0
+    if len(res.keyframe_ids) < 3 or path < 2 * o.new_keyframe_min_distance:
+        raise DegenerateError(f"{res.topic}: the vehicle did not move (only {len(res.keyframe_ids)} keyframes, "
+                              f"{path:.2f} m travelled over {res.n_scans} scans); drive through the scene")
+    conds = np.array([f.cond for f in res.frames[1:]])
+    if np.median(conds) > max_cond:
+        raise DegenerateError(f"{res.topic}: mapping is degenerate (median registration condition number "
+                              f"{np.median(conds):.3g} > {max_cond:g}): the scene has no structure that fixes "
+                              "the motion (open flat field?)")
+    return res

@@ -1,0 +1,313 @@
+"""Targetless calibration: map with one LIDAR, register the others, fit the ground for base_link.
+
+SYNOPSIS
+    res = calibrate_targetless(["drive.bag"], mapping_topic="/top/points",
+                               calibration_topics=["/side/points"], base_frame="base_link")
+    res.T_lidar0_sensor["/side/points"]      # (4,4); res.covariance_rt["/side/points"] (6,6)
+    write_targetless_outputs(res, "out/")    # calibration.yaml, ros_static_tf.txt, report.html + PNGs
+
+    res = calibrate_targetless_scans(scans_by_topic, mapping_topic=..., calibration_topics=[...],
+                                     T_base_sensor_guess={...})   # in-memory variant (tests, sim)
+
+Stages (timed in ``res.timings_s``): mapping (deskew + scan-to-map GICP), calibration
+frames, selection, registration (ensemble + per-frame refinement), graph (GTSAM fusion
+and Marginals), ground (base_link roll/pitch/z).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .. import geometry as geo
+from ..config import Config
+from ..errors import DegenerateError, InputError
+from .calibration_frames import make_calibration_frames
+from .graph import fuse
+from .mapping import build_map
+from .registration import ensemble, prepare_frames, refine_per_frame, score
+from .selection import select_frames
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TargetlessResult:
+    mapping_topic: str
+    T_lidar0_sensor: dict  # topic -> (4,4) (the mapping topic maps to identity)
+    covariance_rt: dict  # topic -> (6,6) Var(rt_lidar0_sensor)
+    T_lidar0_sensor_guess: dict
+    frames: dict = field(default_factory=dict)  # topic -> frame_id
+    T_base_sensor: dict = field(default_factory=dict)  # topic -> (4,4) base_link results
+    base_frame: str | None = None
+    map_result: object = None
+    per_frame: dict = field(default_factory=dict)  # topic -> list of dicts (score, frame, errors)
+    candidates: dict = field(default_factory=dict)  # topic -> ensemble candidates
+    timings_s: dict = field(default_factory=dict)
+    notes: list = field(default_factory=list)
+
+    def rt_lidar0_sensor(self, topic: str) -> np.ndarray:
+        return geo.rt_from_T(self.T_lidar0_sensor[topic])
+
+    def stdev_rt(self, topic: str) -> np.ndarray:
+        return np.sqrt(np.diag(self.covariance_rt[topic]))
+
+
+def _stage(timings, name):
+    class _T:
+        def __enter__(self):
+            self.t = time.perf_counter()
+
+        def __exit__(self, *exc):
+            timings[name] = timings.get(name, 0.0) + time.perf_counter() - self.t
+    return _T()
+
+
+def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_topics, T_base_sensor_guess: dict,
+                               base_frame: str | None = None, config: Config | None = None, frames: dict | None = None,
+                               progress=None) -> TargetlessResult:
+    """Calibrate from in-memory scans: ``scans[topic]`` time-ordered list[LidarScan].
+
+    T_base_sensor_guess: topic -> (4,4) initial guess (tf_static) in a common parent frame.
+    """
+    cfg = config or Config()
+    o = cfg.targetless
+    timings: dict = {}
+    if mapping_topic not in scans or not scans[mapping_topic]:
+        raise InputError(f"{mapping_topic}: no scans of the mapping topic")
+    with _stage(timings, "mapping"):
+        mp = build_map(scans[mapping_topic], o, progress=progress)
+    G0 = np.asarray(T_base_sensor_guess[mapping_topic])
+    res = TargetlessResult(mapping_topic, {mapping_topic: np.eye(4)}, {mapping_topic: np.zeros((6, 6))},
+                           {mapping_topic: np.eye(4)}, frames=dict(frames or {}), base_frame=base_frame, map_result=mp)
+    for topic in calibration_topics:
+        if topic not in scans or not scans[topic]:
+            raise InputError(f"{topic}: no scans of this calibration topic")
+        Tg = np.linalg.inv(G0) @ np.asarray(T_base_sensor_guess[topic])
+        res.T_lidar0_sensor_guess[topic] = Tg
+        with _stage(timings, "calibration frames"):
+            cfs = make_calibration_frames(mp, scans[topic], o)
+        with _stage(timings, "selection"):
+            chosen = select_frames(cfs, mp, o)
+        if len(chosen) < o.lidar_calibration_min_frames:
+            reasons = sorted({cf.reason for cf in cfs if cf.reason})
+            raise DegenerateError(f"{topic}: {len(chosen)} usable calibration frames of {len(cfs)} "
+                                  f"(< lidar_calibration_min_frames={o.lidar_calibration_min_frames}); "
+                                  f"rejections: {'; '.join(reasons[:3]) or 'none'}")
+        with _stage(timings, "registration"):
+            fr = prepare_frames(chosen, mp, Tg, o, deskew_on=o.deskew)
+            T_best, cands = ensemble(fr, Tg, o)
+            meas = refine_per_frame(fr, T_best, o)
+        with _stage(timings, "graph"):
+            est = fuse(meas, min_frames=o.lidar_calibration_min_frames)
+        s_guess, s_final = score(fr, Tg, o), score(fr, est.T, o)
+        T_final, cov = est.T, est.cov_rt
+        if s_guess <= s_final:  # the initial guess stays a candidate
+            log.warning("%s: the initial guess scores better than the registration; keeping it", topic)
+            res.notes.append(f"{topic}: initial guess kept (score {s_guess:.3g} <= {s_final:.3g})")
+            T_final = Tg
+        res.T_lidar0_sensor[topic] = T_final
+        res.covariance_rt[topic] = cov
+        res.candidates[topic] = cands
+        res.per_frame[topic] = [
+            {"keyframe": fd.cf.keyframe_id, "stamp_ns": int(fd.cf.scan.stamp_ns), "pca": fd.cf.score,
+             "score_guess": score([fd], Tg, o), "score_final": score([fd], T_final, o),
+             "rt_frame": geo.rt_from_T(m.T).tolist(), **fd.cf.stats} for fd, m in zip(fr, meas)]
+        res._frame_data = getattr(res, "_frame_data", {})
+        res._frame_data[topic] = fr
+    if base_frame is not None:
+        from .ground import calibrate_base
+
+        with _stage(timings, "ground"):
+            T_b0, info = calibrate_base(mp, G0, o)
+        for topic, T in res.T_lidar0_sensor.items():
+            res.T_base_sensor[topic] = T_b0 @ T
+    res.timings_s = timings
+    return res
+
+
+def calibrate_targetless(bags, *, mapping_topic: str, calibration_topics, base_frame: str | None = None,
+                         config: Config | None = None, progress=None) -> TargetlessResult:
+    """Read the bags (scans + /tf_static guess) and run :func:`calibrate_targetless_scans`."""
+    from ..frontend.bag import frame_id, read_messages, read_tf_static
+
+    bags = [bags] if isinstance(bags, (str, Path)) else list(bags)
+    calibration_topics = list(calibration_topics)
+    topics = [mapping_topic] + calibration_topics
+    scans = {t: [] for t in topics}
+    for m in read_messages(bags, topics):
+        scans[m.topic].append(m.data)
+    for t in topics:
+        scans[t].sort(key=lambda s: s.stamp_ns)
+    frames = {t: frame_id(bags[0], t) for t in topics}
+    tf = read_tf_static(bags)
+    parent = base_frame or frames[mapping_topic]
+    guess = {}
+    for t in topics:
+        try:
+            guess[t] = tf.lookup(parent, frames[t])
+        except Exception as e:  # noqa: BLE001 - the tf tree raises its own error types
+            raise InputError(f"{t}: no /tf_static transform from {parent} to {frames[t]} ({e})") from None
+    return calibrate_targetless_scans(scans, mapping_topic=mapping_topic, calibration_topics=calibration_topics,
+                                      T_base_sensor_guess=guess, base_frame=base_frame, config=config,
+                                      frames=frames, progress=progress)
+
+
+# ------------------------------------------------------------------ outputs
+
+def calibration_dict(res: TargetlessResult) -> dict:
+    """calibration.yaml content: the ``sensors`` shape of the target-based result plus ``base_link``."""
+    topics = [res.mapping_topic] + [t for t in res.T_lidar0_sensor if t != res.mapping_topic]
+    n = len(topics)
+    cov = np.zeros((6 * n, 6 * n))
+    sensors = []
+    for i, t in enumerate(topics):
+        rt = res.rt_lidar0_sensor(t)
+        sd = res.stdev_rt(t)
+        cov[6 * i:6 * i + 6, 6 * i:6 * i + 6] = 0.5 * (res.covariance_rt[t] + res.covariance_rt[t].T)
+        sensors.append({"topic": t, "kind": "lidar", "rt_lidar0_sensor": rt.tolist(),
+                        "T_lidar0_sensor": geo.T_from_rt(rt).tolist(), "stdev_rt": sd.tolist(),
+                        "stdev_position_mm": (sd[3:] * 1e3).tolist(), "stdev_orientation_deg": np.degrees(sd[:3]).tolist()})
+    d = {"reference": res.mapping_topic, "method": "targetless", "sensors": sensors,
+         "covariance_rt_lidar0_sensor": cov.tolist()}
+    if res.base_frame is not None:
+        d["base_link"] = [{"topic": t, "frame": res.base_frame, "T_base_link_sensor": np.asarray(T).tolist(),
+                           "rt_base_link_sensor": geo.rt_from_T(T).tolist()} for t, T in res.T_base_sensor.items()]
+    d["timings_s"] = {k: float(v) for k, v in res.timings_s.items()}
+    return d
+
+
+def _static_tf_lines(res: TargetlessResult) -> str:
+    lines = []
+    parent_T = res.T_base_sensor if res.base_frame else res.T_lidar0_sensor
+    parent = res.base_frame or res.frames.get(res.mapping_topic, res.mapping_topic.strip("/").replace("/", "_"))
+    for t, T in parent_T.items():
+        child = res.frames.get(t, t.strip("/").replace("/", "_"))
+        if child == parent:
+            continue
+        x, y, z = np.asarray(T)[:3, 3]
+        from scipy.spatial.transform import Rotation
+
+        yaw, pitch, roll = Rotation.from_matrix(np.asarray(T)[:3, :3]).as_euler("ZYX")
+        lines.append(f"ros2 run tf2_ros static_transform_publisher --x {x:.6f} --y {y:.6f} --z {z:.6f} "
+                     f"--roll {roll:.8f} --pitch {pitch:.8f} --yaw {yaw:.8f} --frame-id {parent} --child-frame-id {child}")
+    return "\n".join(lines) + "\n"
+
+
+def _urdf(res: TargetlessResult) -> str:
+    from scipy.spatial.transform import Rotation
+
+    parent_T = res.T_base_sensor if res.base_frame else res.T_lidar0_sensor
+    parent = res.base_frame or res.frames.get(res.mapping_topic, "lidar0")
+    out = []
+    for t, T in parent_T.items():
+        child = res.frames.get(t, t.strip("/").replace("/", "_"))
+        if child == parent:
+            continue
+        r, p, y = Rotation.from_matrix(np.asarray(T)[:3, :3]).as_euler("xyz")
+        x = np.asarray(T)[:3, 3]
+        out.append(f'<joint name="{child}_joint" type="fixed">\n  <parent link="{parent}"/>\n  <child link="{child}"/>\n'
+                   f'  <origin xyz="{x[0]:.6f} {x[1]:.6f} {x[2]:.6f}" rpy="{r:.8f} {p:.8f} {y:.8f}"/>\n</joint>')
+    return "\n".join(out) + "\n"
+
+
+def _plots(res: TargetlessResult, d: Path) -> list:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = []
+    mp = res.map_result
+    P = mp.poses()
+    kf = np.array(mp.keyframe_ids)
+    fig, ax = plt.subplots(figsize=(8, 6))
+    pts = np.concatenate([mp.frames[k].points[::20] @ mp.frames[k].T_map_lidar[:3, :3].T + mp.frames[k].T_map_lidar[:3, 3]
+                          for k in kf])
+    ax.scatter(pts[:, 0], pts[:, 1], s=0.2, c=pts[:, 2], cmap="viridis")
+    ax.plot(P[:, 0, 3], P[:, 1, 3], "r-", lw=1, label="trajectory")
+    ax.plot(P[kf, 0, 3], P[kf, 1, 3], "k.", label="keyframes")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title("map (top view) and trajectory")
+    ax.legend(loc="upper left", bbox_to_anchor=(1, 1))
+    fig.savefig(d / "map_top.png", dpi=90, bbox_inches="tight")
+    plt.close(fig)
+    out.append("map_top.png")
+    for topic, rows in res.per_frame.items():
+        name = topic.strip("/").replace("/", "_")
+        fig, ax = plt.subplots(figsize=(7, 3.5))
+        x = np.arange(len(rows))
+        ax.bar(x - 0.2, [r["score_guess"] for r in rows], 0.4, label="initial guess")
+        ax.bar(x + 0.2, [r["score_final"] for r in rows], 0.4, label="final")
+        ax.set_xlabel("calibration frame")
+        ax.set_ylabel("truncated mean sq. distance [m^2]")
+        ax.set_title(f"{topic}: per-frame scores")
+        ax.legend()
+        fig.savefig(d / f"scores_{name}.png", dpi=90, bbox_inches="tight")
+        plt.close(fig)
+        out.append(f"scores_{name}.png")
+        fds = getattr(res, "_frame_data", {}).get(topic)
+        if fds:
+            fd = fds[len(fds) // 2]
+            fig, axs = plt.subplots(1, 2, figsize=(12, 5))
+            for a, T, title in ((axs[0], res.T_lidar0_sensor_guess[topic], "before (tf_static)"),
+                                (axs[1], res.T_lidar0_sensor[topic], "after")):
+                tg = fd.target_pts[::5]
+                s = fd.source_pts @ T[:3, :3].T + T[:3, 3]
+                a.scatter(tg[:, 0], tg[:, 1], s=0.2, c="0.6", label="mapping (dense)")
+                a.scatter(s[:, 0], s[:, 1], s=0.4, c="r", label=topic)
+                a.set_aspect("equal")
+                a.set_title(title)
+            axs[1].legend(loc="upper left", bbox_to_anchor=(1, 1))
+            fig.savefig(d / f"aligned_{name}.png", dpi=90, bbox_inches="tight")
+            plt.close(fig)
+            out.append(f"aligned_{name}.png")
+    return out
+
+
+def write_targetless_outputs(res: TargetlessResult, out_dir, *, config: Config | None = None) -> dict:
+    """Write calibration.yaml, static_tf.txt, urdf_snippet.xml, report.html (+ PNGs) atomically into out_dir."""
+    import yaml
+
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=out_dir.parent))
+    try:
+        cal = calibration_dict(res)
+        (tmp / "calibration.yaml").write_text(yaml.safe_dump(cal, sort_keys=False))
+        (tmp / "static_tf.txt").write_text(_static_tf_lines(res))
+        (tmp / "urdf_snippet.xml").write_text(_urdf(res))
+        if config is not None:
+            (tmp / "config.resolved.yaml").write_text(config.to_yaml())
+        pngs = _plots(res, tmp)
+        rows = "".join(f"<tr><td>{s['topic']}</td><td>{np.round(s['rt_lidar0_sensor'], 6).tolist()}</td>"
+                       f"<td>{np.round(s['stdev_position_mm'], 3).tolist()}</td>"
+                       f"<td>{np.round(s['stdev_orientation_deg'], 4).tolist()}</td></tr>" for s in cal["sensors"])
+        tim = "".join(f"<tr><td>{k}</td><td>{v:.2f}</td></tr>" for k, v in res.timings_s.items())
+        html = (f"<html><head><title>clcgraph targetless</title></head><body><h1>clcgraph targetless calibration</h1>"
+                f"<p>reference: {res.mapping_topic}</p><table border=1><tr><th>topic</th><th>rt_lidar0_sensor</th>"
+                f"<th>stdev position [mm]</th><th>stdev orientation [deg]</th></tr>{rows}</table>"
+                f"<h2>timings [s]</h2><table border=1>{tim}</table>"
+                + "".join(f'<h2>{p}</h2><img src="{p}">' for p in pngs)
+                + "".join(f"<p>{n}</p>" for n in res.notes) + "</body></html>")
+        (tmp / "report.html").write_text(html)
+        old = None
+        if out_dir.exists():
+            old = out_dir.with_name(f".{out_dir.name}.old-{os.getpid()}")
+            os.rename(out_dir, old)
+        os.rename(tmp, out_dir)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return {"calibration": out_dir / "calibration.yaml", "report": out_dir / "report.html"}

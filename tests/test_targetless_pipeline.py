@@ -1,0 +1,84 @@
+"""Targetless calibration end to end on a simulated drive (bag round trip, truth comparison)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+
+from clcgraph import geometry as geo
+from clcgraph.config import Config
+from clcgraph.errors import DegenerateError
+from clcgraph.sim.drive import DrivePlan, simulate_drive, write_drive_bag
+from clcgraph.targetless.pipeline import calibrate_targetless, calibrate_targetless_scans, write_targetless_outputs
+
+TOP, SIDE = "/top/points", "/side/points"
+
+
+def _cfg():
+    # a 15 s test drive has ~9 keyframes: skip fewer, space selected frames closer than the seed's 5 m
+    return Config().replace(targetless=dict(calibration_skip_keyframes=1, calibration_min_distance_between_frames=1.0))
+
+
+def _err(T_true, T):
+    e = geo.rt_from_T(np.linalg.inv(T_true) @ T)
+    return np.degrees(np.linalg.norm(e[:3])), np.linalg.norm(e[3:])
+
+
+@pytest.fixture(scope="module")
+def drive():
+    return simulate_drive(DrivePlan.small(duration_s=15.0), seed=0)
+
+
+@pytest.mark.slow
+def test_targetless_from_bag_accuracy_covariance_outputs(drive, tmp_path_factory):
+    d = tmp_path_factory.mktemp("tl")
+    write_drive_bag(drive, d / "drive.bag")
+    res = calibrate_targetless([d / "drive.bag"], mapping_topic=TOP, calibration_topics=[SIDE], base_frame="base_link",
+                               config=_cfg())
+    T_true = drive.T_lidar0_lidar(SIDE, TOP)
+    g_deg, g_m = _err(T_true, res.T_lidar0_sensor_guess[SIDE])
+    assert g_deg == pytest.approx(2.0, abs=1e-3) and g_m == pytest.approx(0.2, abs=1e-3)  # the perturbed guess
+    e_deg, e_m = _err(T_true, res.T_lidar0_sensor[SIDE])
+    assert e_deg <= 0.02 and e_m <= 0.003, (e_deg, e_m)
+    # covariance consistent: every rt component within 3 sigma
+    drt = res.rt_lidar0_sensor(SIDE) - geo.rt_from_T(T_true)
+    sd = res.stdev_rt(SIDE)
+    assert np.all(np.abs(drt) <= 3 * sd), (drt, sd)
+    assert np.all(sd < np.r_[np.radians([0.05] * 3), [0.005] * 3])  # and not uselessly large
+    # base_link: roll/pitch from the ground while the body rolls/pitches 0.5 deg
+    Tb = res.T_base_sensor[TOP]
+    Tt = drive.T_base_lidar[TOP]
+    R = Tt[:3, :3].T @ Tb[:3, :3]
+    up_err = np.degrees(np.arccos(np.clip((Tb[:3, :3].T @ [0, 0, 1]) @ (Tt[:3, :3].T @ [0, 0, 1]), -1, 1)))
+    assert up_err <= 0.1, up_err
+    assert abs(Tb[2, 3] - Tt[2, 3]) <= 0.005
+    assert np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) < 0.2  # guess yaw kept (zero for the reference)
+    # outputs
+    out = d / "out"
+    paths = write_targetless_outputs(res, out)
+    cal = yaml.safe_load(paths["calibration"].read_text())
+    assert cal["reference"] == TOP and [s["topic"] for s in cal["sensors"]] == [TOP, SIDE]
+    assert np.allclose(np.array(cal["sensors"][1]["T_lidar0_sensor"]), res.T_lidar0_sensor[SIDE])
+    assert np.array(cal["covariance_rt_lidar0_sensor"]).shape == (12, 12)
+    assert cal["base_link"][0]["topic"] == TOP
+    assert np.allclose(geo.T_from_rt(np.array(cal["base_link"][1]["rt_base_link_sensor"])),
+                       np.array(cal["base_link"][1]["T_base_link_sensor"]))
+    assert "static_transform_publisher" in (out / "static_tf.txt").read_text()
+    html = (out / "report.html").read_text()
+    for png in ("map_top.png", "scores_side_points.png", "aligned_side_points.png"):
+        assert png in html and (out / png).stat().st_size > 1000
+
+
+def test_open_flat_field_is_degenerate():
+    dr = simulate_drive(DrivePlan.small(duration_s=4.0, scene="flat"), seed=1)
+    with pytest.raises(DegenerateError, match="degenerate|did not move"):
+        calibrate_targetless_scans(dr.scans, mapping_topic=TOP, calibration_topics=[SIDE],
+                                   T_base_sensor_guess=dr.T_base_lidar_guess, config=_cfg())
+
+
+def test_stopped_vehicle_is_degenerate():
+    dr = simulate_drive(DrivePlan.small(duration_s=3.0, stopped=True), seed=2)
+    with pytest.raises(DegenerateError, match="did not move"):
+        calibrate_targetless_scans(dr.scans, mapping_topic=TOP, calibration_topics=[SIDE],
+                                   T_base_sensor_guess=dr.T_base_lidar_guess, config=_cfg())
