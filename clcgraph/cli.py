@@ -96,6 +96,38 @@ def _add_targetless(sub):
     p.set_defaults(func=run)
 
 
+@_command
+def _add_replay(sub):
+    p = sub.add_parser("replay", help="re-solve a problem dump (problem.npz), like the seed's fit-from-inputs-dump")
+    p.add_argument("dump", help="problem.npz written with a calibration")
+    p.add_argument("--inject-noise", action="store_true", help="re-noise the observations around the solve, re-solve")
+    p.add_argument("--fit-seed", action="store_true", help="stop after the seed (initial estimate)")
+    p.add_argument("--exclude", default="", help="comma-separated snapshot indices to leave out")
+    p.add_argument("--seed", type=int, default=0, help="rng seed for --inject-noise")
+
+    def run(args):
+        import numpy as np
+
+        from .errors import InputError
+        from .outputs.dump import replay
+
+        try:
+            exclude = [int(k) for k in args.exclude.split(",") if k.strip()]
+        except ValueError:
+            raise InputError(f"--exclude: expected comma-separated integers, got '{args.exclude}'") from None
+        res = replay(args.dump, inject_noise=args.inject_noise, fit_seed=args.fit_seed, exclude=exclude, seed=args.seed)
+        for i, s in enumerate(res.problem.sensors):
+            sd = res.stdev_rt(i) if np.all(np.isfinite(res.covariance_rt)) else np.full(6, np.nan)
+            print(f"{s.topic}: rt_lidar0_sensor {np.array2string(res.rt_lidar0_sensor[i], precision=6)}"
+                  f"  stdev {np.array2string(sd, precision=6)}")
+        for k, v in res.noise.items():
+            print(f"noise {k}: {v:.4g}")
+        print(f"{len(res.rejected)} rejected")
+        return 0
+
+    p.set_defaults(func=run)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="clcgraph",
