@@ -72,7 +72,7 @@ def test_targetless_from_bag_accuracy_covariance_outputs(drive, tmp_path_factory
 
 def test_open_flat_field_is_degenerate():
     dr = simulate_drive(DrivePlan.small(duration_s=4.0, scene="flat"), seed=1)
-    with pytest.raises(DegenerateError, match="degenerate|did not move"):
+    with pytest.raises(DegenerateError, match="degenerate"):
         calibrate_targetless_scans(dr.scans, mapping_topic=TOP, calibration_topics=[SIDE],
                                    T_base_sensor_guess=dr.T_base_lidar_guess, config=_cfg())
 

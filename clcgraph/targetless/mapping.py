@@ -178,14 +178,14 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
                                     + res.frames[j].T_map_lidar[:3, 3] for j in local_ids])
             target, tree = _target(voxel_down(cloud, map_leaf), map_leaf, o.mapper_num_threads)
         T_last, last_stamp, twist = T, scan.stamp_ns, xi
-    P = res.poses()
-    path = float(np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1).sum()) if len(P) > 1 else 0.0
-    if len(res.keyframe_ids) < 3 or path < 2 * o.new_keyframe_min_distance:
-        raise DegenerateError(f"{res.topic}: the vehicle did not move (only {len(res.keyframe_ids)} keyframes, "
-                              f"{path:.2f} m travelled over {res.n_scans} scans); drive through the scene")
     conds = np.array([f.cond for f in res.frames[1:]])
     if np.median(conds) > max_cond:
         raise DegenerateError(f"{res.topic}: mapping is degenerate (median registration condition number "
                               f"{np.median(conds):.3g} > {max_cond:g}): the scene has no structure that fixes "
                               "the motion (open flat field?)")
+    P = res.poses()
+    path = float(np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1).sum()) if len(P) > 1 else 0.0
+    if len(res.keyframe_ids) < 3 or path < 2 * o.new_keyframe_min_distance:
+        raise DegenerateError(f"{res.topic}: the vehicle did not move (only {len(res.keyframe_ids)} keyframes, "
+                              f"{path:.2f} m travelled over {res.n_scans} scans); drive through the scene")
     return res

@@ -1,0 +1,98 @@
+"""Unit tests of the targetless stages: deskew, pose interpolation, ground plane, graph fusion, CLI errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from clcgraph import geometry as geo
+from clcgraph.config import Config
+from clcgraph.targetless.calibration_frames import interpolate_pose
+from clcgraph.targetless.deskew import deskew, exp, twist_between
+from clcgraph.targetless.graph import fuse
+from clcgraph.targetless.ground import base_from_ground, fit_ground
+from clcgraph.targetless.registration import FrameMeasurement
+
+
+def test_deskew_matches_exact_motion():
+    rng = np.random.default_rng(0)
+    xi = np.r_[np.radians([1.0, -2.0, 6.0]), 0.6, 0.1, -0.05]  # deg/s and m/s
+    p = rng.uniform(-30, 30, (500, 3))
+    tau = rng.uniform(0, 0.1, 500)
+    exact = np.array([exp(t * xi)[:3, :3] @ q + exp(t * xi)[:3, 3] for q, t in zip(p, tau)])
+    assert np.abs(deskew(p, tau, xi) - exact).max() < 2e-5
+    assert np.abs(deskew(p, None, xi) - p).max() == 0  # no time field: unchanged
+    Ta = geo.T_from_rt(np.r_[0.1, 0.2, 0.3, 1, 2, 3])
+    assert np.allclose(twist_between(Ta, Ta @ exp(0.1 * xi), 0.1), xi)
+
+
+def test_interpolate_pose_slerp_linear():
+    Ta = geo.T_from_rt(np.r_[0, 0, 0.1, 1, 0, 0])
+    Tb = geo.T_from_rt(np.r_[0, 0, 0.3, 3, 2, 0])
+    T = interpolate_pose(Ta, Tb, 0.25)
+    assert np.allclose(geo.rt_from_T(T), [0, 0, 0.15, 1.5, 0.5, 0])
+
+
+def test_ground_plane_roll_pitch_height_and_rejects_walls():
+    rng = np.random.default_rng(1)
+    o = Config().targetless
+    T_true = geo.T_from_rt(np.r_[np.radians([0.7, -1.1, 20.0]), 0.3, -0.1, 1.85])  # base <- lidar
+    g = np.c_[rng.uniform(-15, 15, (20000, 2)), rng.normal(0, 0.003, 20000)]  # ground in base
+    wall = np.c_[rng.uniform(-15, 15, 30000), np.full(30000, 6.0), rng.uniform(0, 8, 30000)]  # a bigger wall
+    pts_b = np.r_[g, wall]
+    Tl = np.linalg.inv(T_true)
+    pts_l = pts_b @ Tl[:3, :3].T + Tl[:3, 3]
+    guess = T_true @ geo.T_from_rt(np.r_[np.radians([1.5, -1.0, 0.0]), 0, 0, 0.1])
+    n, d, ninl = fit_ground(pts_l, np.linalg.inv(guess)[:3, :3] @ [0, 0, 1.0], o)
+    T = base_from_ground(n, d, guess)
+    up_err = np.degrees(np.arccos((T[:3, :3].T @ [0, 0, 1]) @ (T_true[:3, :3].T @ [0, 0, 1])))
+    assert up_err < 0.05 and abs(T[2, 3] - 1.85) < 0.002 and ninl >= 15000
+    assert np.allclose(T[:2, 3], guess[:2, 3])  # x, y from the guess
+    # yaw (heading of the x axis in the ground plane) kept from the guess
+    yaw = lambda T: np.arctan2(T[1, 0], T[0, 0])  # noqa: E731
+    assert abs(np.degrees(yaw(T) - yaw(guess))) < 0.05
+
+
+def test_fusion_covariance_covers_the_error_monte_carlo():
+    """Independent per-frame errors with covariance H^-1*s: the reported sigma is >= the true spread."""
+    rng = np.random.default_rng(2)
+    T_true = geo.T_from_rt(np.r_[0.1, -0.2, 0.3, 0.5, 0.8, -0.4])
+    errs, sds = [], []
+    for _ in range(40):
+        meas = []
+        for k in range(8):
+            A = rng.normal(size=(6, 6))
+            H = A @ A.T + 6 * np.eye(6)
+            C = 1e-6 * np.linalg.inv(H)
+            xi = rng.multivariate_normal(np.zeros(6), C)
+            meas.append(FrameMeasurement(T_true @ exp(xi), H, 1000, 0.0))
+        est = fuse(meas)
+        errs.append(geo.rt_from_T(est.T) - geo.rt_from_T(T_true))
+        sds.append(np.sqrt(np.diag(est.cov_rt)))
+    errs, sds = np.array(errs), np.array(sds)
+    z = np.abs(errs) / sds
+    assert np.mean(z < 3) > 0.99  # consistent (conservative by design)
+    assert np.median(sds / errs.std(axis=0)) < 6  # but not absurdly inflated
+
+
+def test_fusion_degenerate_hessian_raises():
+    from clcgraph.errors import DegenerateError
+
+    H = np.diag([1.0, 1.0, 1.0, 1.0, 1.0, 1e-9])
+    with pytest.raises(DegenerateError, match="degenerate"):
+        fuse([FrameMeasurement(np.eye(4), H, 10, 0.0)] * 3)
+    with pytest.raises(DegenerateError, match="usable calibration frames"):
+        fuse([FrameMeasurement(np.eye(4), np.eye(6), 10, 0.0)])
+
+
+def test_cli_targetless_flat_field_one_line_error(tmp_path, capsys):
+    from clcgraph.cli import main
+    from clcgraph.sim.drive import DrivePlan, simulate_drive, write_drive_bag
+
+    dr = simulate_drive(DrivePlan.small(duration_s=3.0, scene="flat"), seed=3)
+    write_drive_bag(dr, tmp_path / "flat.bag")
+    rc = main(["-q", "targetless", "--bag", str(tmp_path / "flat.bag"), "--mapping-topic", "/top/points",
+               "--calibration-topics", "/side/points", "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc != 0 and len(err) == 1 and "degenerate" in err[0] and "/top/points" in err[0]
+    assert not (tmp_path / "out").exists()
