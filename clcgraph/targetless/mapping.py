@@ -110,10 +110,9 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
     local_ids: list[int] = []
     target = tree = None
     stopped_count = 0
-    for i, scan in enumerate(scans):
+    # progress: optional wrapper of the scan iterable (the orchestration layer's bar)
+    for i, scan in enumerate(progress(scans) if progress is not None else scans):
         res.n_scans += 1
-        if progress is not None:
-            progress(1)
         if len(res.frames) >= o.mapping_max_frames:
             break
         m = crop_range(scan.points, scan.valid, o.mapping_min_range, o.mapping_max_range)

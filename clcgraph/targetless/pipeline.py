@@ -82,6 +82,11 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
     timings: dict = {}
     if mapping_topic not in scans or not scans[mapping_topic]:
         raise InputError(f"{mapping_topic}: no scans of the mapping topic")
+    if progress is None:
+        from .. import progress as _pg
+
+        def progress(items, desc=f"mapping {mapping_topic}"):
+            return _pg.progress(items, desc=desc, total=len(items), unit="scan")
     with _stage(timings, "mapping"):
         mp = build_map(scans[mapping_topic], o, progress=progress)
     G0 = np.asarray(T_base_sensor_guess[mapping_topic])
@@ -102,7 +107,7 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
                                   f"(< lidar_calibration_min_frames={o.lidar_calibration_min_frames}); "
                                   f"rejections: {'; '.join(reasons[:3]) or 'none'}")
         with _stage(timings, "registration"):
-            fr = prepare_frames(chosen, mp, Tg, o, deskew_on=o.deskew)
+            fr = prepare_frames(list(progress(chosen, desc=f"dense targets {topic}")), mp, Tg, o, deskew_on=o.deskew)
             T_best, cands = ensemble(fr, Tg, o)
             meas = refine_per_frame(fr, T_best, o)
         with _stage(timings, "graph"):
