@@ -84,6 +84,10 @@ class DetectionOptions:
     spacing_m: float = 0.1
     margin_m: float = 0.1
     jobs: int = 2
+    # Reject a grid whose neighbour steps change by more than this fraction of a step.
+    max_grid_irregularity: float = 0.5
+    # Reject a blurred board: median edge blur (Gaussian sigma, px) above this.
+    max_blur_sigma_px: float = 2.5
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,285 @@
+"""Chessboard corner detection in camera images (mrgingham CLI or OpenCV).
+
+SYNOPSIS
+
+    from clcgraph.frontend.camera_board import detect_corners
+    out = detect_corners(images, DetectionOptions(detector="mrgingham"))
+    for o in out:
+        if isinstance(o, Rejected): print(o.reason)
+        else: o.shape == (corners_y*corners_x, 2)
+
+Pixel convention: mrcal's (the centre of pixel (u, v) is at integer (u, v)).
+
+Corner order and its limitation: the returned corners are in board-corner order
+(row-major, x fastest, like ``BoardGeometry.corners()``). A printed chessboard has a
+front side, so mirror orderings are never produced (the grid's handedness in the image
+is that of a board seen from its front). The remaining in-plane rotation (4 for a
+square grid, 2 otherwise) cannot be told from the image of a plain chessboard; we pick
+the one whose rows run most nearly left-to-right in the image (and columns
+top-to-bottom). Consequence: two cameras of the same snapshot get the same ordering
+iff their views of the board differ in roll by less than 45 deg (square grid) / 90 deg;
+cameras mounted upside-down or 90 deg rolled relative to each other get orderings
+rotated by a multiple of 90 deg and the solver must resolve that (e.g. by trying the
+4 rotations at seeding).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import subprocess
+import tempfile
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from clcgraph.errors import DependencyError, InputError
+from clcgraph.types import Image, Rejected
+
+log = logging.getLogger(__name__)
+
+MRGINGHAM = "mrgingham"
+
+
+def to_gray8(pixels: np.ndarray) -> np.ndarray:
+    """(H,W) uint8 from mono8, (H,W,3) BGR uint8 or 16-bit mono.
+
+    16-bit images are scaled by their 0.5 / 99.5 percentiles so a few hot pixels or a
+    dark 12-bit range do not crush the board's contrast.
+    """
+    import cv2
+
+    p = np.asarray(pixels)
+    if p.ndim == 3:
+        if p.shape[2] == 1:
+            p = p[..., 0]
+        else:
+            if p.dtype != np.uint8:
+                p = _scale8(p[..., :3])
+            p = cv2.cvtColor(np.ascontiguousarray(p[..., :3]), cv2.COLOR_BGR2GRAY)
+    if p.dtype == np.uint8:
+        return np.ascontiguousarray(p)
+    return _scale8(p)
+
+
+def _scale8(p: np.ndarray) -> np.ndarray:
+    p = p.astype(np.float32)
+    lo, hi = np.percentile(p, [0.5, 99.5])
+    if hi <= lo:
+        hi = lo + 1.0
+    return np.clip((p - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)
+
+
+# ---------------------------------------------------------------- ordering and checks
+
+
+def canonicalize(grid: np.ndarray, nx: int, ny: int) -> np.ndarray | None:
+    """Reorder (ny*nx, 2) corners to the canonical board order; None if mirrored.
+
+    The grid is first made right-handed in the image (x right, y down), then rotated
+    (4 ways if nx == ny, else 2) so rows run most nearly left-to-right and columns
+    top-to-bottom. See the module docstring for the limitation.
+    """
+    g = grid.reshape(ny, nx, 2)
+    # Handedness: cross(row direction, column direction) > 0 for a front view (y down).
+    drow = (g[:, -1] - g[:, 0]).mean(axis=0)
+    dcol = (g[-1, :] - g[0, :]).mean(axis=0)
+    if drow[0] * dcol[1] - drow[1] * dcol[0] < 0:
+        # a mirrored order from a detector: flip the columns (board seen from the front)
+        g = g[:, ::-1]
+    candidates = [g, g[::-1, ::-1]]
+    if nx == ny:
+        gt = np.swapaxes(g, 0, 1)
+        candidates += [gt[:, ::-1], gt[::-1, :]]  # the two 90 deg rotations
+    best, score_best = None, -np.inf
+    for c in candidates:
+        dr = (c[:, -1] - c[:, 0]).mean(axis=0)
+        dc = (c[-1, :] - c[0, :]).mean(axis=0)
+        score = dr[0] / (np.linalg.norm(dr) + 1e-12) + dc[1] / (np.linalg.norm(dc) + 1e-12)
+        if score > score_best:
+            best, score_best = c, score
+    return best.reshape(-1, 2)
+
+
+def check_grid(corners: np.ndarray, nx: int, ny: int, imagersize: tuple[int, int],
+               *, max_irregularity: float) -> str | None:
+    """Why a (ny*nx, 2) grid is implausible, or None if it looks like a chessboard.
+
+    Checks: finite and inside the image; every cell has the same orientation (no fold);
+    neighbour steps change smoothly (second difference / step < max_irregularity).
+    """
+    w, h = imagersize
+    c = corners.reshape(ny, nx, 2)
+    if not np.all(np.isfinite(c)):
+        return "non-finite corners"
+    if np.any(c[..., 0] < -0.5) or np.any(c[..., 1] < -0.5) or np.any(c[..., 0] > w - 0.5) \
+            or np.any(c[..., 1] > h - 0.5):
+        return "corners outside the image"
+    a = c[:-1, 1:] - c[:-1, :-1]
+    b = c[1:, :-1] - c[:-1, :-1]
+    cross = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    if not (np.all(cross > 0) or np.all(cross < 0)):
+        return "non-monotonic grid (cells of both orientations)"
+    for axis in (0, 1):
+        d = np.diff(c, axis=axis)
+        step = np.linalg.norm(d, axis=-1)
+        if np.any(step < 2.0):
+            return "grid cells smaller than 2 px"
+        dd = np.linalg.norm(np.diff(d, axis=axis), axis=-1)
+        s = np.minimum(np.take(step, range(step.shape[axis] - 1), axis=axis),
+                       np.take(step, range(1, step.shape[axis]), axis=axis))
+        worst = float(np.max(dd / s))
+        if worst > max_irregularity:
+            return f"irregular grid (step change {worst:.2f} > {max_irregularity})"
+    return None
+
+
+def blur_sigma_px(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int) -> float:
+    """Median Gaussian-blur sigma (px) of the board's edges, from intensity profiles.
+
+    Profiles cross the square edges midway between neighbour corners, perpendicular
+    to the edge; a step of contrast C blurred by sigma has a peak slope
+    C / (sqrt(2 pi) sigma). An ideal area-sampled step reads ~0.4 px.
+    """
+    from scipy.ndimage import map_coordinates
+
+    c = corners.reshape(ny, nx, 2)
+    mids, perps, lens = [], [], []
+    for axis in (0, 1):  # edges between neighbours along rows (axis=1) / columns (axis=0)
+        d = np.diff(c, axis=1 - axis)
+        m = 0.5 * (np.take(c, range(c.shape[1 - axis] - 1), axis=1 - axis)
+                   + np.take(c, range(1, c.shape[1 - axis]), axis=1 - axis))
+        L = np.linalg.norm(d, axis=-1)
+        u = d / L[..., None]
+        p = np.stack([-u[..., 1], u[..., 0]], axis=-1)
+        mids.append(m.reshape(-1, 2))
+        perps.append(p.reshape(-1, 2))
+        lens.append(L.reshape(-1))
+    mids = np.concatenate(mids)
+    perps = np.concatenate(perps)
+    half = 0.35 * np.concatenate(lens)  # stay inside the two squares
+    t = np.linspace(-1.0, 1.0, 41)
+    xy = mids[:, None, :] + (half[:, None] * t)[..., None] * perps[:, None, :]  # (E,41,2)
+    prof = map_coordinates(gray.astype(np.float32), [xy[..., 1].ravel(), xy[..., 0].ravel()],
+                           order=1, mode="nearest").reshape(xy.shape[:2])
+    dt = half * (t[1] - t[0])  # px per sample
+    contrast = np.abs(prof[:, -5:].mean(axis=1) - prof[:, :5].mean(axis=1))
+    slope = np.max(np.abs(np.gradient(prof, axis=1)), axis=1) / dt
+    ok = contrast > 10.0
+    if not np.any(ok):
+        return float("inf")
+    sigma = contrast[ok] / (np.sqrt(2 * np.pi) * slope[ok])
+    return float(np.median(sigma))
+
+
+def _validate(corners: np.ndarray | None, gray: np.ndarray, nx: int, ny: int, options,
+              why_missing: str) -> np.ndarray | Rejected:
+    if corners is None:
+        return Rejected(why_missing, "detection")
+    if corners.shape != (nx * ny, 2):
+        return Rejected(f"wrong corner count {len(corners)} (expected {nx * ny})", "detection")
+    c = canonicalize(corners, nx, ny)
+    h, w = gray.shape
+    why = check_grid(c, nx, ny, (w, h), max_irregularity=options.max_grid_irregularity)
+    if why is not None:
+        return Rejected(why, "detection")
+    sigma = blur_sigma_px(gray, c, nx, ny)
+    if sigma > options.max_blur_sigma_px:
+        return Rejected(f"blurred board (edge sigma {sigma:.2f} px > {options.max_blur_sigma_px})",
+                        "detection")
+    return c
+
+
+# ---------------------------------------------------------------- mrgingham
+
+
+def _run_mrgingham(grays: list[np.ndarray], options) -> list[np.ndarray | None]:
+    """Corners (N,2) or None per image, from ONE mrgingham run over all the images."""
+    import cv2
+
+    exe = shutil.which(MRGINGHAM)
+    if exe is None:
+        raise DependencyError("mrgingham command-line tool not found (apt install mrgingham)")
+    if options.corners_x != options.corners_y:
+        raise InputError(f"mrgingham needs a square grid, got {options.corners_x}x"
+                         f"{options.corners_y} corners: use detector: opencv")
+    with tempfile.TemporaryDirectory(prefix="clcgraph-mrg-") as tmp:
+        names = []
+        for i, g in enumerate(grays):
+            name = os.path.join(tmp, f"{i:06d}.png")
+            cv2.imwrite(name, g, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+            names.append(name)
+        cmd = [exe, "--jobs", str(max(1, options.jobs)), "--gridn", str(options.corners_x),
+               os.path.join(tmp, "*.png")]
+        r = subprocess.run(cmd, capture_output=True, text=True)
+        if r.returncode != 0:
+            raise DependencyError(f"mrgingham failed (exit {r.returncode}): "
+                                  f"{r.stderr.strip().splitlines()[-1:] or ''}")
+    pts: dict[str, list[tuple[float, float]]] = {n: [] for n in names}
+    for line in r.stdout.splitlines():
+        if not line or line.startswith("#"):
+            continue
+        f = line.split()
+        if f[1] == "-":
+            continue
+        pts[f[0]].append((float(f[1]), float(f[2])))
+    return [np.array(pts[n], dtype=float) if pts[n] else None for n in names]
+
+
+# ---------------------------------------------------------------- opencv
+
+
+def _opencv_one(args) -> np.ndarray | None:
+    import cv2
+
+    gray, nx, ny = args
+    cv2.setNumThreads(1)
+    flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
+    ok, c = cv2.findChessboardCornersSB(gray, (nx, ny), flags=flags)
+    if not ok or c is None:
+        return None
+    return c.reshape(-1, 2).astype(float)
+
+
+def _run_opencv(grays: list[np.ndarray], options) -> list[np.ndarray | None]:
+    nx, ny = options.corners_x, options.corners_y
+    args = [(g, nx, ny) for g in grays]
+    if options.jobs <= 1 or len(grays) < 4:
+        return [_opencv_one(a) for a in args]
+    with ProcessPoolExecutor(max_workers=options.jobs) as ex:
+        return list(ex.map(_opencv_one, args, chunksize=max(1, len(args) // (4 * options.jobs))))
+
+
+# Added to the detectors' output to get mrcal's convention (measured against rendered
+# truth in tests/test_camera_board.py).
+_OFFSET_PX = {"mrgingham": np.zeros(2), "opencv": np.zeros(2)}
+
+
+def detect_corners(images: list[Image], options) -> list[np.ndarray | Rejected]:
+    """Chessboard corners per image: (corners_y*corners_x, 2) pixels, or Rejected(reason).
+
+    options: ``config.DetectionOptions``. Corners are in canonical board order (module
+    docstring) in mrcal's pixel convention. The mrgingham detector runs one batched
+    command-line call (``--jobs``); OpenCV runs in a process pool of ``jobs`` workers.
+    """
+    if options.detector not in _OFFSET_PX:
+        raise InputError(f"unknown detector {options.detector!r}: use mrgingham or opencv")
+    if not images:
+        return []
+    grays = [to_gray8(im.pixels) for im in images]
+    nx, ny = options.corners_x, options.corners_y
+    if options.detector == "mrgingham":
+        raw = _run_mrgingham(grays, options)
+    else:
+        raw = _run_opencv(grays, options)
+    out = []
+    for im, g, c in zip(images, grays, raw):
+        if c is not None:
+            c = c + _OFFSET_PX[options.detector]
+        r = _validate(c, g, nx, ny, options, f"no full {nx}x{ny} chessboard found")
+        if isinstance(r, Rejected):
+            log.debug("%s @%d: %s", im.topic, im.stamp_ns, r.reason)
+        out.append(r)
+    return out

@@ -1,0 +1,135 @@
+"""Chessboard detection (mrgingham CLI and OpenCV) against rendered truth.
+
+Images are rendered here by an area-sampled pinhole renderer (pixel centres at
+integer coordinates, mrcal's convention), so corner truth is exact.
+"""
+
+import cv2
+import numpy as np
+import pytest
+
+from clcgraph.config import DetectionOptions
+from clcgraph.frontend.camera_board import blur_sigma_px, canonicalize, detect_corners, to_gray8
+from clcgraph.types import BoardGeometry, Image
+
+W, H, F = 1024, 768, 700.0
+BOARD = BoardGeometry()  # 10x10 corners, 0.1 m
+DETECTORS = ["mrgingham", "opencv"]
+
+
+def render(r, t, *, blur=0.0, noise=2.0, seed=0, S=3):
+    """(H,W) uint8 image of the board at rt_cam_board = (r, t), and (100,2) truth corners."""
+    R, _ = cv2.Rodrigues(np.asarray(r, float))
+    t = np.asarray(t, float)
+    s, n = BOARD.spacing_m, BOARD.corners_x
+    cx, cy = (W - 1) / 2, (H - 1) / 2
+    off = (np.arange(S) + 0.5) / S - 0.5
+    uu, vv = np.meshgrid((np.arange(W)[:, None] + off).ravel(), (np.arange(H)[:, None] + off).ravel())
+    d = np.stack([(uu - cx) / F, (vv - cy) / F, np.ones_like(uu)], -1)
+    lam = (R[:, 2] @ t) / (d @ R[:, 2])
+    pb = (d * lam[..., None] - t) @ R
+    x, y = pb[..., 0], pb[..., 1]
+    black = ((np.floor(x / s) + np.floor(y / s)) % 2 == 0) & (x >= -s) & (x <= n * s) \
+        & (y >= -s) & (y <= n * s)
+    board = (x >= -1.5 * s) & (x <= (n + 0.5) * s) & (y >= -1.5 * s) & (y <= (n + 0.5) * s) & (lam > 0)
+    val = np.where(board, 230.0, 100.0)
+    val[black] = 25.0
+    img = val.reshape(H, S, W, S).mean(axis=(1, 3))
+    if blur > 0:
+        img = cv2.GaussianBlur(img, (0, 0), blur)
+    img += np.random.default_rng(seed).normal(0, noise, img.shape)
+    pc = BOARD.corners() @ R.T + t
+    q = F * pc[:, :2] / pc[:, 2:] + [cx, cy]
+    return np.clip(img, 0, 255).astype(np.uint8), q
+
+
+def poses(k):
+    rng = np.random.default_rng(k)
+    return rng.normal(0, 0.3, 3), (-0.5 + rng.normal(0, 0.3), -0.45 + rng.normal(0, 0.1),
+                                   2.5 + rng.normal(0, 0.4))
+
+
+@pytest.fixture(scope="module")
+def clean():
+    out = []
+    for k in range(5):
+        r, t = poses(k)
+        out.append(render(r, t, seed=k))
+    return out
+
+
+@pytest.mark.parametrize("detector", DETECTORS)
+def test_clean_images_found_within_0p3px(clean, detector):
+    imgs = [Image("cam", k, px, "mono8") for k, (px, _) in enumerate(clean)]
+    out = detect_corners(imgs, DetectionOptions(detector=detector))
+    for o, (_, q) in zip(out, clean):
+        assert isinstance(o, np.ndarray), o
+        err = o - q  # same order as the board frame: the board is seen upright
+        rms = np.sqrt(np.mean(np.sum(err**2, axis=1)))
+        assert rms < 0.3, rms
+        assert np.all(np.abs(err.mean(axis=0)) < 0.05)  # no half-pixel convention offset
+
+
+@pytest.mark.parametrize("detector", DETECTORS)
+def test_blurred_and_half_visible_rejected(detector):
+    r, t = poses(0)
+    sharp_blur, _ = render(r, t, blur=1.0)
+    blurred, _ = render(r, t, blur=4.0)
+    half, _ = render(r, (1.3, t[1], t[2]))  # board crosses the right image edge
+    imgs = [Image("cam", i, px, "mono8") for i, px in enumerate([sharp_blur, blurred, half])]
+    out = detect_corners(imgs, DetectionOptions(detector=detector))
+    assert isinstance(out[0], np.ndarray)
+    assert not isinstance(out[1], np.ndarray) and "blur" in out[1].reason
+    assert not isinstance(out[2], np.ndarray) and "no full" in out[2].reason
+
+
+@pytest.mark.parametrize("detector", DETECTORS)
+def test_colour_and_16bit(clean, detector):
+    px, q = clean[1]
+    bgr = np.stack([px, px // 2 + 20, px], axis=-1)  # unequal channels
+    # 12-bit data in 16-bit with a few hot pixels
+    m16 = px.astype(np.uint16) * 16
+    m16[5, 5:20] = 65535
+    imgs = [Image("cam", 0, bgr, "bgr8"), Image("cam", 1, m16, "mono16")]
+    out = detect_corners(imgs, DetectionOptions(detector=detector))
+    for o in out:
+        assert isinstance(o, np.ndarray), o
+        assert np.sqrt(np.mean(np.sum((o - q) ** 2, axis=1))) < 0.3
+    assert to_gray8(m16).max() == 255 and np.percentile(to_gray8(m16), 99) > 200
+
+
+def test_rolled_board_canonical_order():
+    """A board rolled by ~100 deg: ordering rotated by 90 deg so rows run left-to-right."""
+    r, t = np.array([0, 0, np.pi / 2 + 0.2]), (0.4, -0.5, 2.5)
+    px, q = render(r, t)
+    out = detect_corners([Image("cam", 0, px, "mono8")], DetectionOptions())[0]
+    assert isinstance(out, np.ndarray), out
+    g = q.reshape(10, 10, 2)
+    expected = np.swapaxes(g, 0, 1)[:, ::-1].reshape(-1, 2)  # truth, rotated by 90 deg
+    assert np.sqrt(np.mean(np.sum((out - expected) ** 2, axis=1))) < 0.3
+    row = out.reshape(10, 10, 2)
+    assert np.all(np.diff(row[..., 0], axis=1) > 0)  # rows left-to-right
+    # every rotation of the same grid canonicalizes to the same order; mirrors are undone
+    for gg in [g, g[::-1, ::-1], np.swapaxes(g, 0, 1)[::-1], g[:, ::-1]]:
+        assert np.allclose(canonicalize(gg.reshape(-1, 2), 10, 10), out, atol=0.5)
+
+
+def test_irregular_grid_rejected(clean):
+    from clcgraph.frontend.camera_board import check_grid
+
+    q = clean[0][1].copy()
+    assert check_grid(q, 10, 10, (W, H), max_irregularity=0.5) is None
+    q[44] += [8.0, 0.0]  # a corner jumping most of a cell
+    assert "irregular" in check_grid(q, 10, 10, (W, H), max_irregularity=0.5)
+    q2 = clean[0][1].copy()
+    q2[[44, 45]] = q2[[45, 44]]  # swapped neighbours fold the grid
+    assert check_grid(q2, 10, 10, (W, H), max_irregularity=0.5) is not None
+
+
+def test_blur_estimate_tracks_truth(clean):
+    r, t = poses(2)
+    for sigma in (1.5, 3.0):
+        px, q = render(r, t, blur=sigma, noise=0.5)
+        est = blur_sigma_px(px, q, 10, 10)
+        # ideal area-sampled step reads ~0.5 px, adding in quadrature
+        assert abs(est - np.hypot(sigma, 0.5)) < 0.25 * sigma, (sigma, est)
