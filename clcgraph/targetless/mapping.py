@@ -125,6 +125,7 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
             res.keyframe_ids.append(0)
             local_ids = [0]
             target, tree = _target(pts, map_leaf, o.mapper_num_threads)
+            first_raw = (raw, tau)  # re-deskewed once the first twist is known
             T_last, last_stamp = f.T_map_lidar, scan.stamp_ns
             prev_scan_ns = scan.stamp_ns
             continue
@@ -133,7 +134,13 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
         prev_scan_ns = scan.stamp_ns
         T = T_last @ exp(twist * dt)
         xi = twist
-        for it in range(max(1, o.deskew_iterations if tau is not None else 1)):
+        n_it = max(1, o.deskew_iterations if tau is not None else 1)
+        for it in range(n_it + (n_it if first_raw is not None and first_raw[1] is not None else 0)):
+            if first_raw is not None and first_raw[1] is not None and it == n_it:
+                # the first frame (the map origin) was deskewed with zero twist: redo it, then re-register
+                f0 = res.frames[0]
+                f0.points, f0.twist = deskew(first_raw[0], first_raw[1], xi), xi.copy()
+                target, tree = _target(f0.points, map_leaf, o.mapper_num_threads)
             pts = deskew(raw, tau, xi)
             src = voxel_down(pts, leaf_in)
             r1 = register(target, tree, src, T, max_corr=1.0, iters=o.mapper_max_iterations,
@@ -143,6 +150,7 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
                          threads=o.mapper_num_threads, leaf=leaf_in)
             T = r.T_target_source
             xi = twist_between(T_last, T, dt)
+        first_raw = None
         H = np.asarray(r.H)
         cond = degeneracy(H)
         rel = np.linalg.inv(T_last) @ T
