@@ -40,6 +40,10 @@ class SnapshotOptions:
     exclude_bag: str | None = None
     # Continuous bags: drop a period whose board moved (LIDAR board points shift more than this).
     max_board_motion_m: float = 0.03
+    # Motion check: compare the chosen scan with the scans this long before and after it.
+    motion_window_s: float = 0.5
+    # ... and call it motion if at least this many (ring, azimuth) cells changed (in runs).
+    min_moving_cells: int = 4
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,348 @@
+"""Snapshots: synchronized sets of sensor messages, each of one stationary board pose.
+
+SYNOPSIS
+
+    snaps, rejected = assemble_snapshots(bags, ["/lidar0"], ["/cam0"], SnapshotOptions())
+
+Two capture schemes (the clc seed's):
+- one bag per board pose (``decimation_period_s`` None): the first message of every
+  topic in each bag;
+- one continuous bag: periods of ``decimation_period_s`` from the first kept message;
+  per period and topic the message nearest the period's centre. The period is dropped
+  (``Rejected``) if the chosen messages span more than ``max_time_spread_s`` or if the
+  scene moved around that time: LIDAR range images a ``motion_window_s`` before and
+  after the chosen scan differ by more than ``max_board_motion_m`` over a region
+  (runs of >= 2 neighbouring cells on a ring, >= ``min_moving_cells`` such cells).
+
+Time values (``after``, ``before``, ``exclude_time_periods``): int seconds or
+nanoseconds since the epoch (told apart by magnitude: >= 1e13 is ns), float seconds,
+or a date string (ISO 8601 via ``datetime.fromisoformat``, else ``dateutil`` if
+installed); a date without a timezone is taken as UTC. Messages are streamed: a
+continuous bag holds at most 3 messages per topic in memory.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import logging
+import re
+from decimal import Decimal, InvalidOperation
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Iterator, Sequence
+
+import numpy as np
+
+from clcgraph.errors import InputError
+from clcgraph.types import Image, LidarScan, Rejected, Snapshot
+
+log = logging.getLogger(__name__)
+
+_NS_THRESHOLD = 10**13  # ints at or above: ns since the epoch (1e13 s is year 318857)
+AZIMUTH_BINS = 1800  # range-image resolution for motion detection (0.2 deg)
+
+
+# ---------------------------------------------------------------- time parsing
+
+
+def parse_time_ns(value) -> int:
+    """ns since the epoch from an int (s or ns), a float (s) or a date string."""
+    if isinstance(value, bool):
+        raise InputError(f"bad time value {value!r}")
+    if isinstance(value, (int, np.integer)):
+        v = int(value)
+        return v if abs(v) >= _NS_THRESHOLD else v * 10**9
+    if isinstance(value, (float, np.floating)):
+        # through the shortest decimal repr: 1700000000.25 -> exactly ...250000000 ns
+        return int(Decimal(repr(float(value))) * 10**9)
+    if isinstance(value, _dt.datetime):
+        return _datetime_ns(value)
+    if isinstance(value, str):
+        s = value.strip()
+        if re.fullmatch(r"[+-]?\d+", s):
+            return parse_time_ns(int(s))
+        try:
+            float(s)
+            return int(Decimal(s) * 10**9)
+        except (ValueError, InvalidOperation):
+            pass
+        try:
+            return _datetime_ns(_dt.datetime.fromisoformat(s))
+        except ValueError:
+            pass
+        try:
+            import dateutil.parser
+        except ImportError:
+            raise InputError(f"cannot parse time {value!r} (ISO 8601, or install python-dateutil)")
+        try:
+            return _datetime_ns(dateutil.parser.parse(s))
+        except (ValueError, OverflowError):
+            raise InputError(f"cannot parse time {value!r}")
+    raise InputError(f"bad time value {value!r}: use s/ns since epoch or a date string")
+
+
+def _datetime_ns(d: _dt.datetime) -> int:
+    if d.tzinfo is None:
+        d = d.replace(tzinfo=_dt.timezone.utc)
+    delta = d - _dt.datetime(1970, 1, 1, tzinfo=_dt.timezone.utc)
+    return (delta.days * 86400 + delta.seconds) * 10**9 + delta.microseconds * 1000
+
+
+@dataclass(frozen=True)
+class TimeFilter:
+    """Which stamps to keep: ``after <= t < before`` and outside every excluded period."""
+
+    after_ns: int | None = None
+    before_ns: int | None = None
+    exclude_ns: tuple[tuple[int, int], ...] = ()
+
+    @classmethod
+    def from_options(cls, options) -> "TimeFilter":
+        ex = []
+        for p in options.exclude_time_periods or []:
+            if isinstance(p, str):
+                p = p.split(",")
+            if len(p) != 2:
+                raise InputError(f"exclude_time_periods entry {p!r}: need [start, end]")
+            a, b = parse_time_ns(p[0]), parse_time_ns(p[1])
+            if b < a:
+                raise InputError(f"exclude_time_periods entry {p!r}: end before start")
+            ex.append((a, b))
+        return cls(None if options.after is None else parse_time_ns(options.after),
+                   None if options.before is None else parse_time_ns(options.before), tuple(ex))
+
+    def why_not(self, stamp_ns: int) -> str | None:
+        """None if the stamp is kept, else the reason."""
+        if self.after_ns is not None and stamp_ns < self.after_ns:
+            return "before the 'after' time"
+        if self.before_ns is not None and stamp_ns >= self.before_ns:
+            return "after the 'before' time"
+        for a, b in self.exclude_ns:
+            if a <= stamp_ns <= b:
+                return "in an excluded time period"
+        return None
+
+    def keeps(self, stamps_ns: np.ndarray) -> np.ndarray:
+        """(N,) bool mask of kept stamps."""
+        t = np.asarray(stamps_ns, dtype=np.int64)
+        k = np.ones(t.shape, bool)
+        if self.after_ns is not None:
+            k &= t >= self.after_ns
+        if self.before_ns is not None:
+            k &= t < self.before_ns
+        for a, b in self.exclude_ns:
+            k &= ~((t >= a) & (t <= b))
+        return k
+
+
+def time_spread_s(stamps_ns: Iterable[int]) -> float:
+    s = list(stamps_ns)
+    return (max(s) - min(s)) * 1e-9 if s else 0.0
+
+
+# ---------------------------------------------------------------- motion detection
+
+
+def range_image(scan: LidarScan, *, azimuth_bins: int = AZIMUTH_BINS,
+                ring_gap_rad: float = np.radians(0.3)) -> tuple[np.ndarray, np.ndarray]:
+    """Per-(ring, azimuth bin) nearest range of a scan.
+
+    Returns (ring_ids (R,), ranges (R, azimuth_bins)) with NaN where no valid point
+    fell. Rings come from the scan's ring field, else from clusters of elevation angles
+    separated by gaps > ``ring_gap_rad`` (numbered from the lowest).
+    """
+    p = np.asarray(scan.points, float)
+    ok = np.asarray(scan.valid, bool) & np.all(np.isfinite(p), axis=1)
+    p = p[ok]
+    r = np.linalg.norm(p, axis=1)
+    if scan.ring is not None:
+        ring = np.asarray(scan.ring)[ok].astype(np.int64)
+    else:
+        el = np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))
+        e = np.sort(el)
+        gaps = np.flatnonzero(np.diff(e) > ring_gap_rad)
+        ring = np.searchsorted(0.5 * (e[gaps] + e[gaps + 1]), el)
+    az = np.arctan2(p[:, 1], p[:, 0])
+    a = np.floor((az + np.pi) / (2 * np.pi) * azimuth_bins).astype(np.int64) % azimuth_bins
+    rings, ri = np.unique(ring, return_inverse=True)
+    img = np.full((len(rings), azimuth_bins), np.inf)
+    np.minimum.at(img, (ri, a), r)
+    img[np.isinf(img)] = np.nan
+    return rings, img
+
+
+def scene_motion(a: LidarScan, b: LidarScan, *, threshold_m: float, min_cells: int,
+                 azimuth_bins: int = AZIMUTH_BINS) -> tuple[bool, float, int]:
+    """Did something move between two scans of the same LIDAR?
+
+    Cells (ring, azimuth) whose range changed by more than max(threshold_m, 4 x the
+    robust noise of the differences) count as changed if a ring neighbour changed too
+    (isolated noise hits do not); motion if at least ``min_cells`` such cells.
+    Returns (moved, median |change| of those cells in m, their count).
+    """
+    ra, ia = range_image(a, azimuth_bins=azimuth_bins)
+    rb, ib = range_image(b, azimuth_bins=azimuth_bins)
+    common, ka, kb = np.intersect1d(ra, rb, return_indices=True)
+    d = ia[ka] - ib[kb]  # (R, A)
+    fin = np.isfinite(d)
+    if not np.any(fin):
+        return False, 0.0, 0
+    ad = np.abs(d[fin])
+    noise = 1.4826 * np.median(ad)
+    thr = max(threshold_m, 4.0 * noise)
+    ch = np.zeros(d.shape, bool)
+    ch[fin] = np.abs(d[fin]) > thr
+    run = ch & (np.roll(ch, 1, axis=1) | np.roll(ch, -1, axis=1))
+    n = int(run.sum())
+    mag = float(np.median(np.abs(d[run]))) if n else 0.0
+    return n >= min_cells, mag, n
+
+
+# ---------------------------------------------------------------- assembly
+
+
+def _excluded_bag(path: Path, options) -> bool:
+    return bool(options.exclude_bag) and re.search(options.exclude_bag, str(path)) is not None
+
+
+@dataclass
+class _Period:
+    """The few messages one period keeps per topic (streaming state)."""
+
+    k: int
+    ref_ns: int
+    start_ns: int
+    stop_ns: int
+    # topic -> [best before ref - w, nearest to ref, best after ref + w] as (|dt|, msg)
+    picks: dict = field(default_factory=dict)
+
+
+def _consider(period: _Period, msg, window_ns: int) -> None:
+    slots = period.picks.setdefault(msg.topic, [None, None, None])
+    for i, target in enumerate((period.ref_ns - window_ns, period.ref_ns, period.ref_ns + window_ns)):
+        dt = abs(msg.stamp_ns - target)
+        if slots[i] is None or dt < slots[i][0]:
+            slots[i] = (dt, msg)
+
+
+def _finish_period(period: _Period, lidar_topics, camera_topics, options, source: str,
+                   index: int, tfilter: TimeFilter = TimeFilter()) -> Snapshot | Rejected:
+    chosen = {t: s[1][1] for t, s in period.picks.items()}
+    where = f"{source} period {period.k} @{period.ref_ns * 1e-9:.3f}s"
+    for a, b in tfilter.exclude_ns:
+        if a < period.stop_ns and b >= period.start_ns:
+            return Rejected(f"{where}: overlaps an excluded time period", "snapshot")
+    if not chosen:
+        return Rejected(f"{where}: no messages", "snapshot")
+    spread = time_spread_s(m.stamp_ns for m in chosen.values())
+    if spread > options.max_time_spread_s:
+        return Rejected(f"{where}: time spread {spread:.3f}s > max_time_spread_s "
+                        f"{options.max_time_spread_s}", "snapshot")
+    for t in lidar_topics:
+        if t not in period.picks:
+            continue
+        before, mid, after = (s[1] for s in period.picks[t])
+        for other in (before, after):
+            if other is mid:
+                continue
+            moved, mag, n = scene_motion(other.data, mid.data, threshold_m=options.max_board_motion_m,
+                                         min_cells=options.min_moving_cells)
+            if moved:
+                return Rejected(f"{where}: board/scene moving on {t}: {n} range cells changed by "
+                                f"~{mag:.3f} m within {abs(other.stamp_ns - mid.stamp_ns) * 1e-9:.2f}s "
+                                f"(max_board_motion_m {options.max_board_motion_m})", "snapshot")
+    return _snapshot(index, chosen, where, lidar_topics, camera_topics)
+
+
+def _snapshot(index: int, chosen: dict, source: str, lidar_topics, camera_topics) -> Snapshot:
+    stamps = [m.stamp_ns for m in chosen.values()]
+    return Snapshot(index=index, stamp_ns=int(np.mean(stamps)), source=source,
+                    scans={t: chosen[t].data for t in lidar_topics if t in chosen},
+                    images={t: chosen[t].data for t in camera_topics if t in chosen})
+
+
+def group_periods(messages: Iterator, topics: Sequence[str], *, period_s: float,
+                  window_s: float, tfilter: TimeFilter) -> Iterator[_Period]:
+    """Stream messages (in stamp order) into periods; yield each finished period.
+
+    Periods start at the first kept message's stamp; messages at excluded times are
+    skipped (``_finish_period`` drops a period overlapping an excluded time whole).
+    """
+    period_ns = int(round(period_s * 1e9))
+    window_ns = int(round(window_s * 1e9))
+    t0 = None
+    cur: _Period | None = None
+    for m in messages:
+        if tfilter.why_not(m.stamp_ns) is not None:
+            continue
+        if t0 is None:
+            t0 = m.stamp_ns
+        k = (m.stamp_ns - t0) // period_ns
+        if cur is not None and k != cur.k:
+            yield cur
+            cur = None
+        if cur is None:
+            start = t0 + k * period_ns
+            cur = _Period(k, start + period_ns // 2, start, start + period_ns)
+        _consider(cur, m, window_ns)
+    if cur is not None:
+        yield cur
+
+
+def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
+                       camera_topics: Sequence[str], options) -> tuple[list[Snapshot], list[Rejected]]:
+    """Snapshots from bags, and the candidate snapshots dropped (with reasons).
+
+    options: ``config.SnapshotOptions``. Without ``decimation_period_s``, one snapshot
+    per bag from the first message of each topic; with it, one per period of the
+    (continuous) bags, streamed. Snapshot indices count the kept snapshots from 0.
+    """
+    from clcgraph.frontend.bag import first_messages, read_messages
+
+    tfilter = TimeFilter.from_options(options)
+    lidar_topics, camera_topics = list(lidar_topics), list(camera_topics)
+    topics = lidar_topics + camera_topics
+    rejected: list[Rejected] = []
+    kept_bags = []
+    for b in map(Path, bags):
+        if _excluded_bag(b, options):
+            rejected.append(Rejected(f"{b}: excluded by exclude_bag {options.exclude_bag!r}", "snapshot"))
+        else:
+            kept_bags.append(b)
+    snaps: list[Snapshot] = []
+    if options.decimation_period_s is None:
+        for b in kept_bags:
+            first = first_messages(b, topics)
+            chosen = {t: _Msg(t, d.stamp_ns, d) for t, d in first.items()}
+            if not chosen:
+                rejected.append(Rejected(f"{b}: none of the topics present", "snapshot"))
+                continue
+            why = next((w for w in (tfilter.why_not(m.stamp_ns) for m in chosen.values()) if w), None)
+            if why:
+                rejected.append(Rejected(f"{b}: {why}", "snapshot"))
+                continue
+            spread = time_spread_s(m.stamp_ns for m in chosen.values())
+            if spread > options.max_time_spread_s:
+                rejected.append(Rejected(f"{b}: time spread {spread:.3f}s > max_time_spread_s "
+                                         f"{options.max_time_spread_s}", "snapshot"))
+                continue
+            snaps.append(_snapshot(len(snaps), chosen, str(b), lidar_topics, camera_topics))
+    else:
+        if options.decimation_period_s <= 0:
+            raise InputError(f"decimation_period_s must be > 0, got {options.decimation_period_s}")
+        for b in kept_bags:  # each continuous bag on its own time line
+            msgs = read_messages([b], topics, start_ns=tfilter.after_ns, stop_ns=tfilter.before_ns)
+            for per in group_periods(msgs, topics, period_s=options.decimation_period_s,
+                                     window_s=options.motion_window_s, tfilter=tfilter):
+                r = _finish_period(per, lidar_topics, camera_topics, options, str(b), len(snaps),
+                                   tfilter)
+                (rejected if isinstance(r, Rejected) else snaps).append(r)
+    log.info("%d snapshots kept, %d rejected", len(snaps), len(rejected))
+    return snaps, rejected
+
+
+@dataclass(frozen=True)
+class _Msg:
+    topic: str
+    stamp_ns: int
+    data: LidarScan | Image

@@ -1,0 +1,216 @@
+"""Snapshots: time parsing, filters, per-bag and continuous-bag assembly, board-motion rejection."""
+
+import datetime as dt
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from clcgraph.config import SnapshotOptions
+from clcgraph.errors import InputError
+from clcgraph.frontend.snapshots import (
+    TimeFilter, assemble_snapshots, parse_time_ns, range_image, scene_motion)
+from clcgraph.sim.bag_writer import BagWriter
+from clcgraph.types import Image, LidarScan
+
+T0 = 1_700_000_000 * 10**9  # a plausible epoch in ns
+NR, NA = 16, 1800
+
+
+# ---------------------------------------------------------------- a tiny LIDAR scene
+
+
+def _dirs():
+    el = np.radians(np.linspace(-15, 15, NR))
+    az = np.linspace(-np.pi, np.pi, NA, endpoint=False) + np.pi / NA
+    e, a = np.meshgrid(el, az, indexing="ij")
+    d = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3)
+    ring = np.repeat(np.arange(NR), NA)
+    return d, ring
+
+
+DIRS, RING = _dirs()
+
+
+def cast(board_c, *, rng, noise=0.01, stamp_ns=0, with_ring=True):
+    """A 16x1800 scan: ground z=-1.5, a cylindrical wall r=15 m, a 1.2 m board facing -x."""
+    d = DIRS
+    lam = np.full(len(d), np.inf)
+    g = d[:, 2] < -1e-6
+    lam[g] = -1.5 / d[g, 2]
+    lam = np.minimum(lam, 15.0 / np.hypot(d[:, 0], d[:, 1]))
+    f = d[:, 0] > 1e-6
+    lb = np.full(len(d), np.inf)
+    lb[f] = board_c[0] / d[f, 0]
+    hit = d * lb[:, None]
+    on = f & (np.abs(hit[:, 1] - board_c[1]) < 0.6) & (np.abs(hit[:, 2] - board_c[2]) < 0.6)
+    lam = np.where(on & (lb < lam), lb, lam)
+    lam = lam + rng.normal(0, noise, lam.shape)
+    return LidarScan("/lidar0", stamp_ns, d * lam[:, None], np.ones(len(d), bool),
+                     ring=RING.copy() if with_ring else None)
+
+
+# Continuous capture: board still, carried (0.25 m/s), still, carried, still.
+STILL = [(0.0, 2.5), (4.0, 6.5), (8.0, 99.0)]
+
+
+def board_at(t):
+    c0 = np.array([4.0, -0.5, 0.0])
+    v = np.array([0.1, 0.23, 0.0])  # ~0.25 m/s
+    if t < 2.5:
+        return c0
+    if t < 4.0:
+        return c0 + v * (t - 2.5)
+    if t < 6.5:
+        return c0 + v * 1.5
+    if t < 8.0:
+        return c0 + v * (1.5 + t - 6.5)
+    return c0 + v * 3.0
+
+
+@pytest.fixture(scope="module")
+def continuous_bag(tmp_path_factory):
+    """12 s bag: LIDAR at 10 Hz, camera at 7 Hz with an offset (unsynchronised)."""
+    path = tmp_path_factory.mktemp("cont") / "cont.bag"
+    rng = np.random.default_rng(1)
+    with BagWriter(path) as w:
+        for k in range(120):
+            t = 0.013 + k * 0.1
+            s = cast(board_at(t), rng=rng, stamp_ns=T0 + int(t * 1e9))
+            w.write_pointcloud("/lidar0", s, frame_id="lidar0", layout="velodyne")
+        for k in range(84):
+            t = 0.05 + k / 7
+            px = np.full((24, 32), 100 + k % 50, np.uint8)
+            w.write_image("/cam0", Image("/cam0", T0 + int(t * 1e9), px, "mono8"), frame_id="cam0")
+    return path
+
+
+# ---------------------------------------------------------------- time parsing and filters
+
+
+def test_parse_time_ns():
+    assert parse_time_ns(1_700_000_000) == T0
+    assert parse_time_ns(T0 + 5) == T0 + 5
+    assert parse_time_ns(1_700_000_000.25) == T0 + 250_000_000
+    assert parse_time_ns("1700000000") == T0
+    assert parse_time_ns(str(T0)) == T0
+    assert parse_time_ns("1700000000.5") == T0 + 500_000_000
+    iso = dt.datetime.fromtimestamp(1_700_000_000, dt.timezone.utc).isoformat()
+    assert parse_time_ns(iso) == T0
+    assert parse_time_ns("2023-11-14T22:13:20") == T0  # naive = UTC
+    assert parse_time_ns("2023-11-14T23:13:20+01:00") == T0
+    with pytest.raises(InputError):
+        parse_time_ns("yesterday-ish nonsense")
+
+
+def test_time_filter():
+    o = SnapshotOptions(after=1_700_000_001, before="1700000010.0",
+                        exclude_time_periods=[[1_700_000_003, 1_700_000_004], "1700000006,1700000007"])
+    f = TimeFilter.from_options(o)
+    t = T0 + np.arange(12) * 10**9
+    assert f.keeps(t).tolist() == [False, True, True, False, False, True, False, False, True, True,
+                                   False, False]
+    assert f.why_not(T0) == "before the 'after' time"
+    assert f.why_not(T0 + 3 * 10**9) == "in an excluded time period"
+    with pytest.raises(InputError):
+        TimeFilter.from_options(SnapshotOptions(exclude_time_periods=[[5, 1]]))
+
+
+# ---------------------------------------------------------------- motion on arrays
+
+
+def test_scene_motion_physical_threshold():
+    rng = np.random.default_rng(0)
+    c = np.array([4.0, -0.5, 0.0])
+    a = cast(c, rng=rng)
+    still = cast(c, rng=rng)
+    for with_ring in (True, False):  # rings from elevation bins too
+        b = cast(c, rng=rng, with_ring=with_ring)
+        moved, _, n = scene_motion(a, b, threshold_m=0.03, min_cells=4)
+        assert not moved, n
+    moved, mag, n = scene_motion(a, still, threshold_m=0.03, min_cells=4)
+    assert not moved
+    # 6 cm along the normal: the whole board face changes by ~6 cm
+    moved, mag, n = scene_motion(a, cast(c + [0.06, 0, 0], rng=rng), threshold_m=0.03, min_cells=4)
+    assert moved and abs(mag - 0.06) < 0.015 and n > 50
+    # 1 cm: below the threshold
+    moved, _, _ = scene_motion(a, cast(c + [0.01, 0, 0], rng=rng), threshold_m=0.03, min_cells=4)
+    assert not moved
+    # 10 cm sideways: only the board's edges change (board <-> wall)
+    moved, mag, n = scene_motion(a, cast(c + [0, 0.10, 0], rng=rng), threshold_m=0.03, min_cells=4)
+    assert moved and mag > 5
+
+
+def test_range_image_shape():
+    s = cast(np.array([4.0, 0, 0]), rng=np.random.default_rng(0), noise=0)
+    rings, img = range_image(s)
+    assert img.shape == (16, 1800) and np.isfinite(img).all()
+    assert np.isclose(np.nanmin(img), 4.0 / np.cos(np.radians(1.0)), atol=0.02)
+
+
+# ---------------------------------------------------------------- assembly from bags
+
+
+def test_continuous_bag_drops_moving_periods(continuous_bag):
+    o = SnapshotOptions(decimation_period_s=1.0, max_time_spread_s=0.1)
+    snaps, rej = assemble_snapshots([continuous_bag], ["/lidar0"], ["/cam0"], o)
+    # periods start at the first message (t=0.013 s); a period is still if the motion
+    # window (its centre +- 0.5 s = the whole period) lies in a still interval
+    t0 = 0.013
+    still = [k for k in range(12)
+             if any(a <= t0 + k and t0 + k + 1 <= b for a, b in STILL)]
+    kept_periods = [int(s.source.split("period ")[1].split()[0]) for s in snaps]
+    moving_rej = [r for r in rej if "moving" in r.reason]
+    assert kept_periods == still, (kept_periods, [r.reason for r in rej])
+    assert len(moving_rej) == 12 - len(still) == 4
+    for s in snaps:
+        st = [s.scans["/lidar0"].stamp_ns, s.images["/cam0"].stamp_ns]
+        assert (max(st) - min(st)) * 1e-9 <= 0.1
+        tb = (s.scans["/lidar0"].stamp_ns - T0) * 1e-9
+        assert any(a <= tb <= b for a, b in STILL)
+    assert [s.index for s in snaps] == list(range(len(snaps)))
+
+
+def test_continuous_bag_spread_and_windows(continuous_bag):
+    base = SnapshotOptions(decimation_period_s=1.0, max_board_motion_m=100.0)  # motion check off
+    snaps, rej = assemble_snapshots([continuous_bag], ["/lidar0"], ["/cam0"], base)
+    assert len(snaps) + len(rej) == 12
+    # camera 7 Hz vs LIDAR 10 Hz: the nearest pair can be up to ~50 ms apart
+    tight, rej_t = assemble_snapshots([continuous_bag], ["/lidar0"], ["/cam0"],
+                                      replace(base, max_time_spread_s=0.01))
+    assert len(tight) < len(snaps) and all("spread" in r.reason for r in rej_t)
+    for s in tight:
+        assert abs(s.scans["/lidar0"].stamp_ns - s.images["/cam0"].stamp_ns) <= 10**7
+    w, rej_w = assemble_snapshots([continuous_bag], ["/lidar0"], ["/cam0"],
+                                  replace(base, after=T0 + 3 * 10**9, before=(T0 * 1e-9 + 9.0),
+                                          exclude_time_periods=[[T0 + 5_500_000_000, T0 + 5_600_000_000]]))
+    for s in w:
+        for m in list(s.scans.values()) + list(s.images.values()):
+            assert T0 + 3 * 10**9 <= m.stamp_ns < T0 + 9 * 10**9
+    assert any("excluded" in r.reason for r in rej_w)
+    assert len(w) == 5  # 6 s window, one period overlaps the exclusion
+
+
+def test_bag_per_pose(tmp_path):
+    rng = np.random.default_rng(2)
+    paths = []
+    for i, cam_dt in enumerate([0.0, 0.02, 0.5, 0.0]):
+        p = tmp_path / f"pose{i}.bag"
+        t = T0 + i * 10 * 10**9
+        with BagWriter(p) as w:
+            for k in range(3):
+                w.write_pointcloud("/lidar0", cast(np.array([4.0, 0, 0]), rng=rng, stamp_ns=t + k * 10**8),
+                                   frame_id="lidar0", layout="velodyne")
+                w.write_image("/cam0", Image("/cam0", t + int(cam_dt * 1e9) + k * 10**8,
+                                             np.zeros((8, 8), np.uint8), "mono8"), frame_id="cam0")
+        paths.append(p)
+    o = SnapshotOptions(max_time_spread_s=0.1, exclude_bag=r"pose3")
+    snaps, rej = assemble_snapshots(paths, ["/lidar0"], ["/cam0"], o)
+    assert [s.source for s in snaps] == [str(paths[0]), str(paths[1])]
+    assert snaps[1].scans["/lidar0"].stamp_ns == T0 + 10 * 10**9  # first message
+    reasons = sorted(r.reason for r in rej)
+    assert any("pose2" in r and "spread" in r for r in reasons)
+    assert any("pose3" in r and "exclude_bag" in r for r in reasons)
+    snaps, rej = assemble_snapshots(paths, ["/lidar0"], ["/cam0"],
+                                    replace(o, exclude_bag=None, after=T0 + 5 * 10**9))
+    assert [s.source for s in snaps] == [str(paths[1]), str(paths[3])]
