@@ -87,6 +87,9 @@ def calibrate_base(mp, T_base_lidar_guess: np.ndarray, o, *, max_keyframes: int 
         near = [j for j in range(max(0, kid - 10), min(len(mp.frames), kid + 11))]
         cloud = np.concatenate([mp.frames[j].points @ (np.linalg.inv(Tk) @ mp.frames[j].T_map_lidar)[:3, :3].T
                                 + (np.linalg.inv(Tk) @ mp.frames[j].T_map_lidar)[:3, 3] for j in near[::2]])
+        from .mapping import voxel_down
+
+        cloud = voxel_down(cloud, max(o.leaf_size_dense_map, 0.05))
         try:
             n, d, _ = fit_ground(cloud, up0, o)
         except DegenerateError:

@@ -142,12 +142,17 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
                 f0.points, f0.twist = deskew(first_raw[0], first_raw[1], xi), xi.copy()
                 target, tree = _target(f0.points, map_leaf, o.mapper_num_threads)
             pts = deskew(raw, tau, xi)
-            src = voxel_down(pts, leaf_in)
-            r1 = register(target, tree, src, T, max_corr=1.0, iters=o.mapper_max_iterations,
-                          threads=o.mapper_num_threads, leaf=leaf_in)
-            r = register(target, tree, src, r1.T_target_source, kind=o.mapper_registrator if o.mapper_registrator != "NDT" else "VGICP",
-                         max_corr=max(o.mapper_max_correspondence_distance, 3 * leaf_in), iters=o.mapper_max_iterations,
-                         threads=o.mapper_num_threads, leaf=leaf_in)
+            import small_gicp
+
+            src, _ = small_gicp.preprocess_points(np.ascontiguousarray(pts, float), leaf_in, num_neighbors=10,
+                                                  num_threads=o.mapper_num_threads)
+            if it == 0:  # coarse pass only from the constant-velocity guess
+                T = small_gicp.align(target, src, tree, init_T_target_source=T, registration_type="GICP",
+                                     max_correspondence_distance=1.0, num_threads=o.mapper_num_threads,
+                                     max_iterations=o.mapper_max_iterations).T_target_source
+            r = small_gicp.align(target, src, tree, init_T_target_source=T, registration_type="GICP",
+                                 max_correspondence_distance=max(o.mapper_max_correspondence_distance, 3 * leaf_in),
+                                 num_threads=o.mapper_num_threads, max_iterations=o.mapper_max_iterations)
             T = r.T_target_source
             xi = twist_between(T_last, T, dt)
         first_raw = None
