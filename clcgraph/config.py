@@ -142,7 +142,7 @@ class TargetlessOptions:
     min_calibration_pointcloud_size: int = 500
     mapping_lost_timeout: float = 1.0
     # Mapper (seed names; NDT ones kept for the voxelized-GICP option: resolution = voxel size).
-    mapper_registrator: str = "GICP"  # "GICP" | "VGICP" (NDT-like)
+    mapper_registrator: str = "GICP"  # mapping uses GICP; VGICP (NDT-like) is in the calibration ensemble
     mapper_resolution: float = 5.0
     mapper_step_size: float = 0.1
     mapper_max_iterations: int = 35
