@@ -128,6 +128,51 @@ def _add_replay(sub):
     p.set_defaults(func=run)
 
 
+@_command
+def _add_detect(sub):
+    p = sub.add_parser("detect", help="chessboard detection in the images of a topic: found or rejected (why)")
+    p.add_argument("bags", nargs="+", metavar="BAG", help="bag files/dirs")
+    p.add_argument("--topic", required=True, help="the image topic")
+    p.add_argument("--png", default=None, metavar="DIR", help="write an annotated PNG per image here")
+    p.add_argument("--detector", default=None, choices=["mrgingham", "opencv"], help="override the config")
+    p.add_argument("--every", action="store_true", help="every image, not just the first of each bag")
+    p.add_argument("--config", default=None, help="YAML config (section 'detection')")
+
+    def run(args):
+        from dataclasses import replace
+        from pathlib import Path
+
+        import cv2
+        import numpy as np
+
+        from .config import Config, ConfigError
+        from .errors import InputError
+        from .frontend.camera_board import detect_in_bags, draw_detection
+
+        try:
+            cfg = Config.from_yaml(args.config) if args.config else Config()
+        except ConfigError as e:
+            raise InputError(str(e)) from None
+        opts = cfg.detection if args.detector is None else replace(cfg.detection, detector=args.detector)
+        outdir = Path(args.png) if args.png else None
+        if outdir:
+            outdir.mkdir(parents=True, exist_ok=True)
+        nfound = ntotal = 0
+        for k, (im, res) in enumerate(detect_in_bags(args.bags, args.topic, opts, every=args.every)):
+            ntotal += 1
+            if isinstance(res, np.ndarray):
+                nfound += 1
+                print(f"{im.stamp_ns * 1e-9:.6f} found {len(res)} corners")
+            else:
+                print(f"{im.stamp_ns * 1e-9:.6f} rejected: {res.reason}")
+            if outdir:
+                cv2.imwrite(str(outdir / f"{k:05d}_{im.stamp_ns}.png"), draw_detection(im, res))
+        print(f"{nfound}/{ntotal} images with a chessboard")
+        return 0
+
+    p.set_defaults(func=run)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="clcgraph",

@@ -133,3 +133,23 @@ def test_blur_estimate_tracks_truth(clean):
         est = blur_sigma_px(px, q, 10, 10)
         # ideal area-sampled step reads ~0.5 px, adding in quadrature
         assert abs(est - np.hypot(sigma, 0.5)) < 0.25 * sigma, (sigma, est)
+
+
+def test_cli_detect(tmp_path, clean, capsys):
+    from clcgraph.cli import main
+    from clcgraph.sim.bag_writer import BagWriter
+
+    r, t = poses(0)
+    half, _ = render(r, (1.3, t[1], t[2]))
+    bags = []
+    for i, px in enumerate([clean[0][0], half]):
+        p = tmp_path / f"b{i}.bag"
+        with BagWriter(p) as w:
+            w.write_image("/cam0", Image("/cam0", 10**18 + i, px, "mono8"), frame_id="cam0")
+        bags.append(str(p))
+    rc = main(["detect", *bags, "--topic", "/cam0", "--png", str(tmp_path / "png"), "--detector", "opencv"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "found 100 corners" in out and "rejected: no full 10x10 chessboard" in out
+    assert "1/2 images with a chessboard" in out
+    assert len(list((tmp_path / "png").glob("*.png"))) == 2

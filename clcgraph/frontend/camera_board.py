@@ -283,3 +283,49 @@ def detect_corners(images: list[Image], options) -> list[np.ndarray | Rejected]:
             log.debug("%s @%d: %s", im.topic, im.stamp_ns, r.reason)
         out.append(r)
     return out
+
+
+def detect_in_bags(bags, topic: str, options, *, every: bool = False, batch: int = 32):
+    """Yield (Image, corners (N,2) | Rejected) for the images of ``topic`` in ``bags``.
+
+    Default: the first image of each bag (one snapshot per bag); ``every``: all images,
+    streamed and detected in batches of ``batch``.
+    """
+    from clcgraph.frontend.bag import first_messages, read_messages
+
+    def images():
+        if every:
+            for m in read_messages(list(bags), [topic]):
+                yield m.data
+        else:
+            for b in bags:
+                first = first_messages(b, [topic])
+                if topic in first:
+                    yield first[topic]
+
+    buf: list[Image] = []
+    for im in images():
+        if not isinstance(im, Image):
+            raise InputError(f"topic {topic} is not an image topic")
+        buf.append(im)
+        if len(buf) == batch:
+            yield from zip(buf, detect_corners(buf, options))
+            buf = []
+    if buf:
+        yield from zip(buf, detect_corners(buf, options))
+
+
+def draw_detection(image: Image, result) -> np.ndarray:
+    """(H,W,3) BGR picture of an image with its detected grid or the rejection reason."""
+    import cv2
+
+    g = to_gray8(image.pixels)
+    out = cv2.cvtColor(g, cv2.COLOR_GRAY2BGR)
+    if isinstance(result, Rejected):
+        cv2.putText(out, result.reason[:90], (10, 25), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 255), 2)
+        return out
+    pts = np.round(result).astype(np.int32)
+    cv2.polylines(out, [pts.reshape(-1, 1, 2)], False, (0, 200, 0), 1)
+    for k, (u, v) in enumerate(pts):
+        cv2.circle(out, (int(u), int(v)), 3, (0, 0, 255) if k == 0 else (0, 255, 255), -1)
+    return out
