@@ -19,6 +19,8 @@ _API = {
     "detect",
     "simulate",
     "load_result",
+    "write_outputs",
+    "summary_table",
 }
 
 

@@ -173,6 +173,270 @@ def _add_detect(sub):
     p.set_defaults(func=run)
 
 
+def _load_config(args):
+    """Config from --config, then the command's own flags, then --set KEY=VALUE (last wins)."""
+    import yaml
+
+    from .config import Config, ConfigError
+    from .errors import InputError
+
+    try:
+        cfg = Config.from_yaml(args.config) if getattr(args, "config", None) else Config()
+        overrides: dict = {}
+        for section, key, value in getattr(args, "overrides", lambda a: [])(args):
+            overrides.setdefault(section, {})[key] = value
+        for item in getattr(args, "set", None) or []:
+            name, sep, value = item.partition("=")
+            section, dot, key = name.partition(".")
+            if not sep or not dot:
+                raise InputError(f"--set {item!r}: expected SECTION.KEY=VALUE, e.g. solve.outlier_sigma=5")
+            overrides.setdefault(section, {})[key] = yaml.safe_load(value)
+        return cfg.replace(**overrides) if overrides else cfg
+    except ConfigError as e:
+        raise InputError(str(e)) from None
+
+
+def _floats(text: str, n: int, flag: str) -> list:
+    from .errors import InputError
+
+    try:
+        v = [float(x) for x in text.split(",")]
+    except ValueError:
+        v = []
+    if len(v) != n:
+        raise InputError(f"{flag} {text!r}: expected {n} comma-separated numbers")
+    return v
+
+
+def _section_flags(p, section_cls, section: str, group_title: str):
+    """One --flag per field of a config section (names follow the config keys)."""
+    import dataclasses
+    import typing
+
+    g = p.add_argument_group(group_title, f"override config '{section}' keys (see `clcgraph config dump`)")
+    hints = typing.get_type_hints(section_cls)
+    flags = []
+    for f in dataclasses.fields(section_cls):
+        tp = hints[f.name]
+        if tp is bool or typing.get_origin(tp) is list or tp is list:
+            continue
+        base = next((a for a in typing.get_args(tp) if a is not type(None)), tp)
+        dest = f"{section}__{f.name}"
+        g.add_argument("--" + f.name.replace("_", "-"), dest=dest, type=base, default=None, metavar=f.name.upper())
+        flags.append((dest, section, f.name))
+    return flags
+
+
+@_command
+def _add_solve(sub):
+    from .config import SegmentationOptions
+
+    p = sub.add_parser("solve", help="target-based calibration of LIDARs and cameras from bags (the clc fit)",
+                       description="Calibrate LIDARs and cameras from bags of a moving chessboard. "
+                       "Writes calibration.yaml, one .cameramodel per sensor, report.html and a replayable dump.")
+    p.add_argument("models", nargs="*", metavar="MODEL.cameramodel", help="one per camera topic, in --topics order")
+    p.add_argument("--bag", action="append", required=True, metavar="GLOB", help="bag file/dir or glob (repeatable)")
+    p.add_argument("--topics", required=True, help="comma-separated LIDAR and camera topics; the first LIDAR is lidar0")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory (replaced atomically)")
+    p.add_argument("--config", default=None, metavar="FILE.yaml", help="settings (see `clcgraph config dump`)")
+    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one config key (repeatable)")
+    p.add_argument("--exclude-bag", default=None, metavar="REGEX", help="skip bags whose path matches")
+    p.add_argument("--decimation-period", type=float, default=None, metavar="S",
+                   help="continuous bags: one snapshot per this many seconds")
+    p.add_argument("--after", default=None, help="start time: s or ns since epoch, or a date")
+    p.add_argument("--before", default=None, help="end time: s or ns since epoch, or a date")
+    p.add_argument("--exclude-time-period", action="append", default=None, metavar="START,END",
+                   help="skip this time period (repeatable)")
+    p.add_argument("--max-time-spread-s", type=float, default=None, help="drop snapshots spread wider in time")
+    p.add_argument("--Nsectors", type=int, default=None, help="number of sectors of the uncertainty feedback")
+    p.add_argument("--threshold-valid-lidar-range", type=float, default=None, metavar="M")
+    p.add_argument("--threshold-valid-lidar-Npoints", type=int, default=None, metavar="N")
+    p.add_argument("--uncertainty-quantification-range", type=float, default=None, metavar="M")
+    p.add_argument("--rt-vehicle-lidar0", default=None, metavar="r0,r1,r2,t0,t1,t2")
+    p.add_argument("--prior-from-tf-static", type=float, default=None, metavar="SIGMA",
+                   help="nominal poses from the bags' /tf_static as priors with this sigma (rad and m)")
+    p.add_argument("--detector", choices=["mrgingham", "opencv"], default=None, help="chessboard detector")
+    seg_flags = _section_flags(p, SegmentationOptions, "segmentation", "LIDAR segmentation")
+
+    def overrides(args):
+        o = [("snapshots", "exclude_bag", args.exclude_bag), ("snapshots", "decimation_period_s", args.decimation_period),
+             ("snapshots", "after", args.after), ("snapshots", "before", args.before),
+             ("snapshots", "exclude_time_periods", args.exclude_time_period),
+             ("snapshots", "max_time_spread_s", args.max_time_spread_s),
+             ("sectors", "n_sectors", args.Nsectors),
+             ("sectors", "threshold_valid_lidar_range_m", args.threshold_valid_lidar_range),
+             ("sectors", "threshold_valid_lidar_npoints", args.threshold_valid_lidar_Npoints),
+             ("sectors", "uncertainty_quantification_range_m", args.uncertainty_quantification_range),
+             ("solve", "prior_from_tf_static_sigma", args.prior_from_tf_static),
+             ("detection", "detector", args.detector)]
+        if args.rt_vehicle_lidar0 is not None:
+            o.append(("sectors", "rt_vehicle_lidar0", _floats(args.rt_vehicle_lidar0, 6, "--rt-vehicle-lidar0")))
+        o += [(section, key, getattr(args, dest)) for dest, section, key in seg_flags]
+        return [x for x in o if x[2] is not None]
+
+    def run(args):
+        from . import api
+
+        cfg = _load_config(args)
+        topics = [t for t in args.topics.split(",") if t.strip()]
+        result = api.calibrate_bags(args.bag, topics, args.models, out=args.out, config=cfg)
+        print(api.summary_table(result))
+        print(f"wrote {args.out}/calibration.yaml and report.html")
+        return 0
+
+    p.set_defaults(func=run, overrides=overrides)
+
+
+@_command
+def _add_config(sub):
+    p = sub.add_parser("config", help="print the default settings (`config dump`) or check a config file")
+    p.add_argument("action", choices=["dump", "check"], help="dump: defaults as YAML; check: validate --config")
+    p.add_argument("--config", default=None, metavar="FILE.yaml", help="start from this file")
+    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one config key")
+
+    def run(args):
+        cfg = _load_config(args)
+        if args.action == "dump":
+            print(cfg.to_yaml(), end="")
+        else:
+            print(f"{args.config or 'defaults'}: OK")
+        return 0
+
+    p.set_defaults(func=run)
+
+
+@_command
+def _add_format_for_ros(sub):
+    p = sub.add_parser("format-for-ros", help="base_link-relative transforms of a calibration, for ROS (YAML, URDF, launch)")
+    p.add_argument("bag", help="a bag with /tf_static (the vehicle's frames) and the sensor topics")
+    p.add_argument("--calibration", required=True, metavar="DIR", help="the --out directory of clcgraph solve")
+    p.add_argument("--base-frame", default="base_link", help="parent frame of the published transforms")
+    p.add_argument("--out", default=None, metavar="DIR", help="write ros.yaml, URDF and launch snippets here")
+
+    def run(args):
+        from pathlib import Path
+
+        from .frontend.bag import frame_id, read_tf_static
+        from .outputs.results import load_result
+        from .outputs.ros import format_for_ros, infer_frames, ros_files, ros_yaml
+
+        cal = load_result(args.calibration)
+        tf = read_tf_static(args.bag)
+        topics = [s["topic"] for s in cal["sensors"]]
+        frames = infer_frames(topics, tf.frames, frame_ids={t: frame_id(args.bag, t) for t in topics})
+        ros = format_for_ros(cal, tf, base_frame=args.base_frame, frames=frames)
+        if args.out:
+            out = Path(args.out)
+            out.mkdir(parents=True, exist_ok=True)
+            for name, text in ros_files(ros).items():
+                (out / name).write_text(text)
+                print(f"wrote {out / name}")
+        else:
+            print(ros_yaml(ros), end="")
+        return 0
+
+    p.set_defaults(func=run)
+
+
+@_command
+def _add_show_aligned(sub):
+    p = sub.add_parser("show-aligned", help="LIDAR clouds of a bag aligned by a calibration, rendered to PNG")
+    p.add_argument("bag", help="the bag to show (its first scan of each LIDAR)")
+    p.add_argument("--calibration", required=True, metavar="DIR", help="the --out directory of clcgraph solve")
+    p.add_argument("--topics", default=None, help="comma-separated LIDAR topics (default: every LIDAR of the calibration)")
+    p.add_argument("--png", default="aligned.png", help="output picture")
+    p.add_argument("--threshold-range", type=float, default=None, metavar="M", help="drop points farther than this")
+    p.add_argument("--viewer", action="store_true", help="also open the Open3D viewer (needs a display)")
+
+    def run(args):
+        import os
+
+        import numpy as np
+
+        from .errors import InputError
+        from .frontend.bag import first_messages
+        from .outputs.plots import align_clouds, render_aligned_clouds
+        from .outputs.results import load_result
+
+        cal = load_result(args.calibration)
+        by_topic = {s["topic"]: s for s in cal["sensors"]}
+        topics = [t for t in args.topics.split(",") if t] if args.topics else \
+            [s["topic"] for s in cal["sensors"] if s["kind"] == "lidar"]
+        missing = [t for t in topics if t not in by_topic]
+        if missing:
+            raise InputError(f"{missing[0]} is not a sensor of the calibration in {args.calibration}")
+        first = first_messages(args.bag, topics)
+        clouds = {}
+        for t in topics:
+            if t not in first:
+                raise InputError(f"{args.bag}: no message on {t}")
+            pts = first[t].points[first[t].valid]
+            if args.threshold_range is not None:
+                pts = pts[np.linalg.norm(pts, axis=1) < args.threshold_range]
+            clouds[t] = pts
+        rts = {t: by_topic[t]["rt_lidar0_sensor"] for t in topics}
+        render_aligned_clouds(clouds, rts, args.png)
+        print(f"wrote {args.png}")
+        if args.viewer:
+            if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
+                raise InputError("--viewer needs a display (DISPLAY is not set); the PNG was written")
+            import open3d as o3d
+
+            geoms = []
+            for k, (t, pts) in enumerate(align_clouds(clouds, rts).items()):
+                pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+                pc.paint_uniform_color(np.eye(3)[k % 3] * 0.8)
+                geoms.append(pc)
+            o3d.visualization.draw_geometries(geoms, window_name="clcgraph show-aligned")
+        return 0
+
+    p.set_defaults(func=run)
+
+
+@_command
+def _add_show_uncertainty(sub):
+    p = sub.add_parser("show-uncertainty", help="worst-direction uncertainty of points moved between two sensors, over a grid (PNG)")
+    p.add_argument("dump", help="problem.npz of a calibration (its --out directory or the file)")
+    p.add_argument("--sensors", default=None, metavar="I,J", help="sensor indices (default: lidar0 and the worst other sensor)")
+    p.add_argument("--radius", type=float, default=20.0, help="half-width of the grid (m)")
+    p.add_argument("--gridn", type=int, default=41, help="grid points per side")
+    p.add_argument("--z", type=float, default=0.0, help="height of the grid in lidar0 (m)")
+    p.add_argument("--png", default="uncertainty.png", help="output picture")
+
+    def run(args):
+        from pathlib import Path
+
+        import numpy as np
+
+        from .backend.sectors import uncertainty_grid
+        from .errors import InputError
+        from .outputs.dump import replay
+        from .outputs.plots import plot_uncertainty_grid
+
+        path = Path(args.dump)
+        if path.is_dir():
+            path = path / "problem.npz"
+        res = replay(path)
+        n = len(res.problem.sensors)
+        if args.sensors:
+            try:
+                i, j = (int(x) for x in args.sensors.split(","))
+            except ValueError:
+                raise InputError(f"--sensors {args.sensors!r}: expected two indices I,J") from None
+            if not (0 <= i < n and 0 <= j < n and i != j):
+                raise InputError(f"--sensors {args.sensors}: need two different indices in 0..{n - 1}")
+        else:
+            i = res.problem.reference
+            j = max((k for k in range(n) if k != i), key=lambda k: np.trace(res.covariance_block(k)[3:, 3:]))
+        xs, ys, stdev = uncertainty_grid(res, i, j, radius=args.radius, gridn=args.gridn, z=args.z)
+        title = f"{res.problem.sensor_name(i)} -> {res.problem.sensor_name(j)}"
+        plot_uncertainty_grid(stdev, xs, ys, args.png, title=title)
+        print(f"{title}: worst-direction stdev {1e3 * stdev.min():.2f} .. {1e3 * stdev.max():.2f} mm; wrote {args.png}")
+        return 0
+
+    p.set_defaults(func=run)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="clcgraph",
@@ -210,10 +474,8 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as e:  # an internal error: still one line unless --verbose
         if args.verbose:
             log.exception("clcgraph %s: internal error", args.command)
-        print(
-            f"clcgraph {args.command}: internal error: {type(e).__name__}: {e} (rerun with --verbose for a traceback)",
-            file=sys.stderr,
-        )
+        hint = "" if args.verbose else " (rerun with --verbose for a traceback)"
+        print(f"clcgraph {args.command}: internal error: {type(e).__name__}: {e}{hint}", file=sys.stderr)
         return 1
 
 

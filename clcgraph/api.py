@@ -1,0 +1,350 @@
+"""The Python API: the one module that joins the stages (bags -> Problem -> Result -> files).
+
+SYNOPSIS
+    import clcgraph
+    from clcgraph.config import Config
+
+    cfg = Config.from_yaml("clcgraph.yaml")                      # or Config()
+    problem = clcgraph.read_problem(["capture/*.bag"], ["/lidar0/points", "/lidar1/points",
+                                    "/cam0/image"], models=["cam0.cameramodel"], config=cfg)
+    result = clcgraph.calibrate(problem, cfg)                    # GTSAM solve + uncertainty + sectors
+    clcgraph.write_outputs(result, "out/", cfg)                  # calibration.yaml, models, report
+    cal = clcgraph.load_result("out/")                           # what downstream scripts read
+
+    # or all at once, as `clcgraph solve` does:
+    result = clcgraph.calibrate_bags(["capture/*.bag"], topics, models, out="out/", config=cfg)
+
+Every failure is a ``clcgraph.errors.ClcgraphError`` with a one-line message naming the
+bag, topic or sensor; nothing is written to ``out`` unless the whole calibration succeeded.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import glob
+import logging
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .config import Config, ConfigError
+from .errors import DataError, DegenerateError, InputError
+from .progress import progress
+from .types import (
+    BoardGeometry,
+    CameraBoardObservation,
+    LidarBoardObservation,
+    PosePrior,
+    Problem,
+    Rejected,
+    Result,
+    Sensor,
+)
+
+log = logging.getLogger(__name__)
+
+# Visibility points kept per LIDAR for the sector report (a subsample of one scan).
+_VISIBILITY_POINTS = 20000
+
+
+# ---------------------------------------------------------------- inputs
+
+
+def expand_bags(patterns: Sequence[str | Path]) -> list[Path]:
+    """Bag paths from globs or paths, sorted, duplicates dropped; InputError for no match."""
+    out: list[Path] = []
+    for pat in patterns:
+        matches = sorted(glob.glob(str(pat)))
+        if not matches:
+            if Path(pat).exists():
+                matches = [str(pat)]
+            else:
+                raise InputError(f"{pat}: no such bag (nothing matches this path or glob)")
+        out.extend(Path(m) for m in matches if Path(m) not in out)
+    return out
+
+
+def _config(config) -> Config:
+    if config is None:
+        return Config()
+    if isinstance(config, Config):
+        return config
+    try:
+        return Config.from_yaml(config) if isinstance(config, (str, Path)) else Config.from_dict(config)
+    except ConfigError as e:
+        raise InputError(str(e)) from None
+
+
+def classify_topics(bags: Sequence[Path], topics: Sequence[str]) -> tuple[list[str], list[str]]:
+    """(lidar topics, camera topics) in the given order, from the message types in the bags."""
+    from .frontend.bag import COMPRESSED_IMAGE, IMAGE, POINTCLOUD2, bag_info
+
+    types: dict[str, str] = {}
+    for b in bags:
+        for t in bag_info(b).topics:
+            types.setdefault(t.topic, t.msgtype)
+        if all(t in types for t in topics):
+            break
+    lidars, cams = [], []
+    for t in topics:
+        if t not in types:
+            raise InputError(f"topic {t} is in none of the {len(bags)} bags ({bags[0]}, ...); "
+                             f"check --topics against `clcgraph show-bag`")
+        if types[t] == POINTCLOUD2:
+            lidars.append(t)
+        elif types[t] in (IMAGE, COMPRESSED_IMAGE):
+            cams.append(t)
+        else:
+            raise DataError(f"topic {t} has type {types[t]}: expected sensor_msgs/PointCloud2, Image or CompressedImage")
+    if not lidars:
+        raise InputError(f"none of the topics {', '.join(topics)} is a LIDAR (PointCloud2); lidar0 is the reference")
+    return lidars, cams
+
+
+def _tf_priors(bags, sensors: Sequence[Sensor], sigma: float) -> tuple[PosePrior, ...]:
+    """Nominal poses of every non-reference sensor from /tf_static, as priors of ``sigma`` (rad and m)."""
+    from .frontend.bag import frame_id, read_tf_static
+    from .geometry import rt_from_T
+
+    tf = read_tf_static(bags)
+    if not tf.frames:
+        raise InputError(f"--prior-from-tf-static: no /tf_static in {bags[0]} ...")
+    frames = [frame_id(bags[0], s.topic) for s in sensors]
+    ref = next(i for i, s in enumerate(sensors) if s.is_lidar)
+    priors = []
+    for i, s in enumerate(sensors):
+        if i == ref:
+            continue
+        try:
+            T = tf.lookup(frames[ref], frames[i])
+        except Exception as e:
+            raise InputError(f"--prior-from-tf-static: /tf_static has no path {frames[ref]} <- {frames[i]} "
+                             f"(sensor {s.topic}): {str(e).splitlines()[0] if str(e) else ''}") from None
+        priors.append(PosePrior(sensor=i, rt_lidar0_sensor=rt_from_T(T), sigma_rt=np.full(6, float(sigma))))
+    return tuple(priors)
+
+
+def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (), *, config=None) -> Problem:
+    """Bags -> Problem: snapshots, LIDAR board segmentation, chessboard detection.
+
+    ``topics``: LIDAR and camera topics in any order (the first LIDAR is lidar0);
+    ``models``: one .cameramodel per camera topic, in the cameras' order. A snapshot is
+    kept only if >= 2 sensors saw the board; everything dropped is in ``Problem.rejected``.
+    """
+    from . import cameras
+    from .frontend.camera_board import detect_corners
+    from .frontend.snapshots import assemble_snapshots
+
+    cfg = _config(config)
+    paths = expand_bags(bags)
+    topics = list(dict.fromkeys(t.strip() for t in topics if t.strip()))
+    lidar_topics, camera_topics = classify_topics(paths, topics)
+    if len(models) != len(camera_topics):
+        raise InputError(f"{len(models)} camera model(s) given for {len(camera_topics)} camera topic(s) "
+                         f"({', '.join(camera_topics) or 'none'}): give one .cameramodel per camera topic, in order")
+    sensors = [Sensor(topic=t, kind="lidar") for t in lidar_topics]
+    sensors += [cameras.load_camera(t, m) for t, m in zip(camera_topics, models)]
+    if len(sensors) < 2:
+        raise InputError(f"only one sensor ({sensors[0].topic}): calibration needs >= 2 sensors")
+
+    snaps, rejected = assemble_snapshots(paths, lidar_topics, camera_topics, cfg.snapshots)
+    rejected = list(rejected)
+    if not snaps:
+        raise DataError(f"no usable snapshot in {len(paths)} bag(s): "
+                        + (rejected[0].reason if rejected else "no messages on the topics"))
+    d = cfg.detection
+    board = BoardGeometry(corners_x=d.corners_x, corners_y=d.corners_y, spacing_m=d.spacing_m, margin_m=d.margin_m)
+
+    lidar_obs: list[LidarBoardObservation] = []
+    visibility: dict[int, np.ndarray] = {}
+    for t in lidar_topics:
+        scans = [s.scans[t] for s in snaps if t in s.scans]
+        if scans and not any(sc.valid.any() for sc in scans):
+            raise DataError(f"topic {t}: every point of all {len(scans)} scans is invalid (NaN, inf or zero); "
+                            "is this LIDAR's driver writing its points?")
+    for i, t in enumerate(lidar_topics):
+        scans = [(s.index, s.scans[t]) for s in snaps if t in s.scans]
+        for k, r in zip([k for k, _ in scans], segment([sc for _, sc in scans], config=cfg, sensor=i,
+                                                      snapshots=[k for k, _ in scans], board=board)):
+            (lidar_obs if isinstance(r, LidarBoardObservation) else rejected).append(r)
+        if scans:
+            pts = scans[0][1].points[scans[0][1].valid]
+            step = max(1, len(pts) // _VISIBILITY_POINTS)
+            visibility[i] = np.asarray(pts[::step], float)
+
+    camera_obs: list[CameraBoardObservation] = []
+    for j, t in enumerate(camera_topics):
+        i = len(lidar_topics) + j
+        ims = [(s.index, s.images[t]) for s in snaps if t in s.images]
+        w, h = sensors[i].imagersize
+        for k, im in ims:
+            if im.pixels.shape[:2] != (h, w):
+                raise DataError(f"topic {t}: images are {im.pixels.shape[1]}x{im.pixels.shape[0]} but its model "
+                                f"{models[j]} is {w}x{h}; give the model of this camera")
+        found = detect_corners([im for _, im in ims], d) if ims else []
+        for (k, _), r in zip(ims, found):
+            if isinstance(r, Rejected):
+                rejected.append(dataclasses.replace(r, sensor=i, snapshot=k))
+            else:
+                camera_obs.append(CameraBoardObservation(sensor=i, snapshot=k, corners_px=np.asarray(r, float)))
+
+    # The seed's rule: a snapshot counts only if >= 2 sensors saw the board.
+    seen: dict[int, int] = {}
+    for o in [*lidar_obs, *camera_obs]:
+        seen[o.snapshot] = seen.get(o.snapshot, 0) + 1
+    lonely = {k for k, n in seen.items() if n < 2}
+    for k in sorted(lonely):
+        rejected.append(Rejected("board seen by only one sensor", "snapshot", snapshot=k))
+    for k in sorted({s.index for s in snaps} - set(seen)):
+        rejected.append(Rejected("board seen by no sensor", "snapshot", snapshot=k))
+    lidar_obs = [o for o in lidar_obs if o.snapshot not in lonely]
+    camera_obs = [o for o in camera_obs if o.snapshot not in lonely]
+    n_used = len(set(seen) - lonely)
+    log.info("%d snapshots, %d with the board seen by >= 2 sensors; %d LIDAR and %d camera observations",
+             len(snaps), n_used, len(lidar_obs), len(camera_obs))
+    if n_used < 3:
+        raise DegenerateError(f"only {n_used} snapshot(s) with the board seen by >= 2 sensors (of {len(snaps)}); "
+                              "record more board poses (see `clcgraph segment` / `clcgraph detect` for why boards were missed)")
+
+    priors: tuple[PosePrior, ...] = ()
+    if cfg.solve.prior_from_tf_static_sigma is not None:
+        priors = _tf_priors(paths, sensors, cfg.solve.prior_from_tf_static_sigma)
+    return Problem(
+        sensors=tuple(sensors),
+        board=board,
+        lidar_observations=tuple(lidar_obs),
+        camera_observations=tuple(camera_obs),
+        snapshot_stamps_ns=np.array([s.stamp_ns for s in snaps], dtype=np.int64),
+        rejected=tuple(rejected),
+        priors=priors,
+        lidar_visibility_points=visibility,
+    )
+
+
+def segment(scans, *, config=None, sensor: int = 0, snapshots: Sequence[int] | None = None,
+            board: BoardGeometry | None = None) -> list:
+    """LIDAR board segmentation of many scans: LidarBoardObservation or Rejected per scan."""
+    from .frontend.lidar_board import segment_many
+
+    cfg = _config(config)
+    if board is None:
+        d = cfg.detection
+        board = BoardGeometry(corners_x=d.corners_x, corners_y=d.corners_y, spacing_m=d.spacing_m, margin_m=d.margin_m)
+    snapshots = list(range(len(scans))) if snapshots is None else list(snapshots)
+    return segment_many(scans, cfg.segmentation, cfg.lidar, board, sensor=sensor, snapshots=snapshots)
+
+
+def detect(images, *, config=None) -> list:
+    """Chessboard corners per image ((N,2) pixels in board order) or Rejected(reason)."""
+    from .frontend.camera_board import detect_corners
+
+    return detect_corners(list(images), _config(config).detection)
+
+
+# ---------------------------------------------------------------- solve
+
+
+def calibrate(problem: Problem, config=None) -> Result:
+    """Solve a Problem: seed, staged LM, noise re-estimation, outliers, covariance, sectors."""
+    from .backend.sectors import sector_report
+    from .backend.solve import calibrate as solve
+
+    cfg = _config(config)
+    result = solve(problem, cfg.solve)
+    return dataclasses.replace(result, sectors=sector_report(result, cfg.sectors))
+
+
+def write_outputs(result: Result, out_dir, config=None) -> dict[str, Path]:
+    """calibration.yaml, .cameramodels, problem.npz, config.resolved.yaml, report.html + plots, atomically."""
+    from .outputs.dump import save_problem
+    from .outputs.report import write_report
+    from .outputs.results import write_results
+
+    cfg = _config(config)
+    return write_results(
+        result, out_dir, config=cfg,
+        problem_dump=lambda problem, path: save_problem(path, problem, cfg),
+        extra_files={"report.html": lambda path: write_report(result, path.parent)},
+    )
+
+
+def calibrate_bags(bags, topics: Sequence[str], models: Sequence[str | Path] = (), *, out=None,
+                   config=None) -> Result:
+    """read_problem + calibrate (+ write_outputs when ``out`` is given): `clcgraph solve`."""
+    cfg = _config(config)
+    if out is not None:
+        _check_writable(Path(out))
+    result = calibrate(read_problem(bags, topics, models, config=cfg), cfg)
+    if out is not None:
+        write_outputs(result, out, cfg)
+    return result
+
+
+def _check_writable(out: Path) -> None:
+    """Fail before the work, not after it, when the output directory cannot be made."""
+    import os
+
+    parent = out.absolute().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not os.access(parent, os.W_OK | os.X_OK) or (out.exists() and not out.is_dir()):
+        raise InputError(f"{out}: cannot write the output directory here; choose another --out")
+
+
+def summary_table(result: Result) -> str:
+    """The final table `clcgraph solve` prints: pose, 1-sigma, observations and RMS per sensor."""
+    from .geometry import R_from_r
+
+    rows = [("sensor", "kind", "x [m]", "y [m]", "z [m]", "roll/pitch/yaw [deg]", "1-sigma [mm, deg]", "obs")]
+    p = result.problem
+    nobs = np.zeros(len(p.sensors), int)
+    for o in [*p.lidar_observations, *p.camera_observations]:
+        nobs[o.sensor] += 1
+    for i, s in enumerate(p.sensors):
+        rt = np.asarray(result.rt_lidar0_sensor[i], float)
+        ypr = _rpy_deg(R_from_r(rt[:3]))
+        sd = result.stdev_rt(i)
+        sigma = "reference" if i == p.reference else f"{1e3 * np.max(sd[3:]):.2f}, {np.degrees(np.max(sd[:3])):.3f}"
+        rows.append((s.topic, s.kind, *(f"{v:+.4f}" for v in rt[3:]), " ".join(f"{v:+.3f}" for v in ypr),
+                     sigma, str(nobs[i])))
+    widths = [max(len(r[k]) for r in rows) for k in range(len(rows[0]))]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
+    rms, noise = result.rms, result.noise
+    lines.append(f"RMS: normalized {rms.get('normalized', float('nan')):.3f}, LIDAR {1e3 * rms.get('lidar_m', float('nan')):.1f} mm, "
+                 f"camera {rms.get('camera_px', float('nan')):.3f} px; re-estimated noise: LIDAR "
+                 f"{1e3 * noise.get('lidar_m', float('nan')):.1f} mm, camera {noise.get('camera_px', float('nan')):.3f} px")
+    used = int(np.sum(np.all(np.isfinite(result.rt_lidar0_board), axis=1)))
+    lines.append(f"{used} of {p.n_snapshots} snapshots used; {len(result.rejected)} rejections (see calibration.yaml)")
+    return "\n".join(lines)
+
+
+def _rpy_deg(R: np.ndarray) -> np.ndarray:
+    """Roll, pitch, yaw (ZYX, degrees) of a rotation, for printing."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(R).as_euler("ZYX", degrees=True)[::-1]
+
+
+# ---------------------------------------------------------------- the rest of the public API
+
+
+def simulate(rig_yaml, out_dir, **kwargs):
+    """Simulate a capture session of a rig into bags (see clcgraph.sim.capture.simulate)."""
+    from .sim.capture import simulate as _simulate
+
+    return _simulate(rig_yaml, out_dir, **kwargs)
+
+
+def calibrate_targetless(bags, **kwargs):
+    """Targetless LIDAR-LIDAR (+ base_link) calibration from a drive (clcgraph.targetless.pipeline)."""
+    from .targetless.pipeline import calibrate_targetless as _targetless
+
+    return _targetless(expand_bags(bags), **kwargs)
+
+
+def load_result(out_dir) -> dict:
+    """Read a calibration written by `clcgraph solve` (calibration.yaml), schema-checked."""
+    from .outputs.results import load_result as _load
+
+    return _load(out_dir)
