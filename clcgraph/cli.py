@@ -297,7 +297,7 @@ def _add_config(sub):
     def run(args):
         cfg = _load_config(args)
         if args.action == "dump":
-            print(cfg.to_yaml(), end="")
+            print(cfg.to_yaml(comments=True), end="")
         else:
             print(f"{args.config or 'defaults'}: OK")
         return 0

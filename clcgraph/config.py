@@ -249,8 +249,20 @@ class Config:
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 
-    def to_yaml(self) -> str:
-        return yaml.safe_dump(self.to_dict(), sort_keys=False)
+    def to_yaml(self, *, comments: bool = False) -> str:
+        """YAML of every setting; ``comments`` adds each field's comment from this file above it."""
+        if not comments:
+            return yaml.safe_dump(self.to_dict(), sort_keys=False)
+        lines = ["# clcgraph settings (clcgraph config dump). Units: m, s, deg as named; unknown keys are errors."]
+        for f in dataclasses.fields(self):
+            section = getattr(self, f.name)
+            notes = _field_comments(type(section))
+            lines.append(f"{f.name}:")
+            for name, value in dataclasses.asdict(section).items():
+                lines += [f"  # {c}" for c in notes.get(name, [])]
+                text = yaml.safe_dump({name: value}, default_flow_style=True, width=1000).strip()
+                lines.append("  " + text[1:-1])  # drop the flow mapping's braces
+        return "\n".join(lines) + "\n"
 
     def replace(self, **sections: dict) -> "Config":
         """A copy with some fields of some sections changed, validated like a file."""
@@ -260,6 +272,25 @@ class Config:
                 raise ConfigError(f"unknown config section '{name}'")
             d[name].update(values)
         return Config.from_dict(d)
+
+
+def _field_comments(cls) -> dict[str, list[str]]:
+    """{field: the comment lines right above it in the class body} (the documentation of defaults)."""
+    import inspect
+
+    out, pending = {}, []
+    for line in inspect.getsource(cls).splitlines()[1:]:
+        s = line.strip()
+        if s.startswith("#"):
+            pending.append(s.lstrip("#").strip())
+        elif ":" in s and not s.startswith(("@", "def ", '"')):
+            name = s.split(":", 1)[0].strip()
+            tail = s.split("#", 1)[1].strip() if "#" in s else None
+            out[name] = pending + ([tail] if tail else [])
+            pending = []
+        else:
+            pending = []
+    return out
 
 
 def _build(cls, d: dict, prefix: str):

@@ -7,6 +7,16 @@ def test_defaults_round_trip(tmp_path):
     p = tmp_path / "c.yaml"
     p.write_text(Config().to_yaml())
     assert Config.from_yaml(p) == Config()
+    p.write_text(Config().to_yaml(comments=True))
+    assert Config.from_yaml(p) == Config()
+
+
+def test_commented_dump_documents_fields():
+    text = Config().to_yaml(comments=True)
+    # the comment above a field in config.py lands above its key
+    i = text.index("  outlier_sigma:")
+    assert "# Outliers" in text[text.rfind("\n", 0, i - 2) - 200 : i]
+    assert text.count("\n  #") > 30
 
 
 def test_unknown_key_is_named(tmp_path):
