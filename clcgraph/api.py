@@ -125,13 +125,16 @@ def _tf_priors(bags, sensors: Sequence[Sensor], sigma: float) -> tuple[PosePrior
     return tuple(priors)
 
 
-def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (), *, config=None) -> Problem:
+def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (), *, config=None,
+                 timings: dict | None = None) -> Problem:
     """Bags -> Problem: snapshots, LIDAR board segmentation, chessboard detection.
 
     ``topics``: LIDAR and camera topics in any order (the first LIDAR is lidar0);
     ``models``: one .cameramodel per camera topic, in the cameras' order. A snapshot is
     kept only if >= 2 sensors saw the board; everything dropped is in ``Problem.rejected``.
+    ``timings``: if given, filled with wall seconds per stage (read, segment, detect).
     """
+    clock = _Clock(timings)
     from . import cameras
     from .frontend.camera_board import detect_corners
     from .frontend.snapshots import assemble_snapshots
@@ -148,7 +151,8 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
     if len(sensors) < 2:
         raise InputError(f"only one sensor ({sensors[0].topic}): calibration needs >= 2 sensors")
 
-    snaps, rejected = assemble_snapshots(paths, lidar_topics, camera_topics, cfg.snapshots)
+    with clock("read"):
+        snaps, rejected = assemble_snapshots(paths, lidar_topics, camera_topics, cfg.snapshots)
     rejected = list(rejected)
     if not snaps:
         raise DataError(f"no usable snapshot in {len(paths)} bag(s): "
@@ -158,6 +162,7 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
 
     lidar_obs: list[LidarBoardObservation] = []
     visibility: dict[int, np.ndarray] = {}
+    clock.start("segment")
     for t in lidar_topics:
         scans = [s.scans[t] for s in snaps if t in s.scans]
         if scans and not any(sc.valid.any() for sc in scans):
@@ -173,7 +178,9 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
             step = max(1, len(pts) // _VISIBILITY_POINTS)
             visibility[i] = np.asarray(pts[::step], float)
 
+    clock.stop()
     camera_obs: list[CameraBoardObservation] = []
+    clock.start("detect")
     for j, t in enumerate(camera_topics):
         i = len(lidar_topics) + j
         ims = [(s.index, s.images[t]) for s in snaps if t in s.images]
@@ -189,6 +196,7 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
             else:
                 camera_obs.append(CameraBoardObservation(sensor=i, snapshot=k, corners_px=np.asarray(r, float)))
 
+    clock.stop()
     # The seed's rule: a snapshot counts only if >= 2 sensors saw the board.
     seen: dict[int, int] = {}
     for o in [*lidar_obs, *camera_obs]:
@@ -245,14 +253,18 @@ def detect(images, *, config=None) -> list:
 # ---------------------------------------------------------------- solve
 
 
-def calibrate(problem: Problem, config=None) -> Result:
+def calibrate(problem: Problem, config=None, *, timings: dict | None = None) -> Result:
     """Solve a Problem: seed, staged LM, noise re-estimation, outliers, covariance, sectors."""
     from .backend.sectors import sector_report
     from .backend.solve import calibrate as solve
 
     cfg = _config(config)
-    result = solve(problem, cfg.solve)
-    return dataclasses.replace(result, sectors=sector_report(result, cfg.sectors))
+    clock = _Clock(timings)
+    with clock("solve"):
+        result = solve(problem, cfg.solve)
+    with clock("uncertainty"):
+        sectors = sector_report(result, cfg.sectors)
+    return dataclasses.replace(result, sectors=sectors)
 
 
 def write_outputs(result: Result, out_dir, config=None) -> dict[str, Path]:
@@ -275,10 +287,45 @@ def calibrate_bags(bags, topics: Sequence[str], models: Sequence[str | Path] = (
     cfg = _config(config)
     if out is not None:
         _check_writable(Path(out))
-    result = calibrate(read_problem(bags, topics, models, config=cfg), cfg)
+    timings: dict[str, float] = {}
+    result = calibrate(read_problem(bags, topics, models, config=cfg, timings=timings), cfg, timings=timings)
+    result = dataclasses.replace(result, stats={**result.stats, "stage_time_s": timings})
     if out is not None:
-        write_outputs(result, out, cfg)
+        with _Clock(timings)("report"):
+            write_outputs(result, out, cfg)
     return result
+
+
+class _Clock:
+    """Adds wall seconds per stage into a dict (or does nothing without one)."""
+
+    def __init__(self, into: dict | None):
+        self.into, self._name, self._t0 = into, None, 0.0
+
+    def start(self, name: str) -> None:
+        import time
+
+        self._name, self._t0 = name, time.perf_counter()
+
+    def stop(self) -> None:
+        import time
+
+        if self.into is not None and self._name:
+            self.into[self._name] = self.into.get(self._name, 0.0) + time.perf_counter() - self._t0
+        self._name = None
+
+    def __call__(self, name: str):
+        import contextlib
+
+        @contextlib.contextmanager
+        def stage():
+            self.start(name)
+            try:
+                yield
+            finally:
+                self.stop()
+
+        return stage()
 
 
 def _check_writable(out: Path) -> None:
