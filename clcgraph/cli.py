@@ -33,9 +33,14 @@ def _command(add):
 def _add_show_bag(sub):
     p = sub.add_parser("show-bag", help="topics, types, counts, time spans and PointCloud2 layouts of bags")
     p.add_argument("bags", nargs="+", metavar="BAG", help="ROS1 .bag files or ROS2 bag directories")
+    p.add_argument("--png", default=None, metavar="DIR",
+                   help="also draw each LIDAR's first scan and each camera's first image into DIR")
 
     def run(args):
         from .frontend.bag import POINTCLOUD2, bag_info, first_raw_message
+
+        if args.png:
+            _bag_previews(args.bags, args.png)
 
         _DT = {1: "int8", 2: "uint8", 3: "int16", 4: "uint16", 5: "int32", 6: "uint32", 7: "float32", 8: "float64"}
         for path in args.bags:
@@ -65,6 +70,24 @@ def _add_show_bag(sub):
         return 0
 
     p.set_defaults(func=run)
+
+
+def _bag_previews(bags, out_dir) -> None:
+    from pathlib import Path
+
+    from .frontend.bag import DECODABLE, bag_info, first_messages
+    from .outputs.plots import plot_image_preview, plot_scan_preview
+    from .types import LidarScan
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    for path in bags:
+        topics = [t.topic for t in bag_info(path).topics if t.msgtype in DECODABLE and t.count]
+        for topic, m in first_messages(path, topics).items():
+            name = out / f"{Path(path).stem}{topic.replace('/', '_')}.png"
+            (plot_scan_preview if isinstance(m, LidarScan) else plot_image_preview)(
+                m, name, title=f"{Path(path).name} {topic}")
+            print(f"wrote {name}")
 
 
 @_command

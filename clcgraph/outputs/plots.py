@@ -367,3 +367,42 @@ def plot_all(result: Result, out_dir) -> dict[str, Path]:
             log.exception("could not draw %s", name)
             plt.close("all")
     return out
+
+
+def plot_scan_preview(scan, path, *, title: str = "") -> Path:
+    """One LIDAR scan: top view coloured by height, and a ring x azimuth range image."""
+    pts = np.asarray(scan.points, float)[np.asarray(scan.valid, bool)]
+    fig, (a, b) = plt.subplots(1, 2, figsize=(13, 5), gridspec_kw={"width_ratios": [1, 1.6]})
+    if len(pts):
+        s = a.scatter(pts[:, 0], pts[:, 1], c=pts[:, 2], s=0.3, cmap="viridis")
+        fig.colorbar(s, ax=a, label="z [m]")
+    a.set_aspect("equal")
+    a.set_xlabel("x [m]")
+    a.set_ylabel("y [m]")
+    a.set_title("top view")
+    if len(pts):
+        rng = np.linalg.norm(pts, axis=1)
+        az = np.degrees(np.arctan2(pts[:, 1], pts[:, 0]))
+        ring = (np.asarray(scan.ring)[np.asarray(scan.valid, bool)] if scan.ring is not None
+                else np.degrees(np.arctan2(pts[:, 2], np.hypot(pts[:, 0], pts[:, 1]))))
+        s = b.scatter(az, ring, c=rng, s=0.5, cmap="turbo", vmax=np.percentile(rng, 98))
+        fig.colorbar(s, ax=b, label="range [m]")
+    b.set_xlabel("azimuth [deg]")
+    b.set_ylabel("ring" if scan.ring is not None else "elevation [deg]")
+    b.set_title("range image")
+    fig.suptitle(title or f"{scan.topic}: {len(pts)} valid points")
+    return _save(fig, path)
+
+
+def plot_image_preview(image, path, *, title: str = "") -> Path:
+    """One camera image as it was decoded (mono shown in gray, colour as RGB)."""
+    px = np.asarray(image.pixels)
+    h, w = px.shape[:2]
+    fig, ax = plt.subplots(figsize=(8, 8 * h / max(w, 1) + 0.5))
+    if px.ndim == 3:
+        ax.imshow(px[..., ::-1])  # BGR -> RGB
+    else:
+        ax.imshow(px, cmap="gray")
+    ax.set_axis_off()
+    ax.set_title(title or f"{image.topic}: {w}x{h} {image.encoding}")
+    return _save(fig, path)
