@@ -46,6 +46,8 @@ log = logging.getLogger(__name__)
 
 # Visibility points kept per LIDAR for the sector report (a subsample of one scan).
 _VISIBILITY_POINTS = 20000
+# Images per mrgingham call: big enough for its --jobs, small enough for a live progress bar.
+_DETECT_BATCH = 16
 
 
 # ---------------------------------------------------------------- inputs
@@ -152,7 +154,8 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
         raise InputError(f"only one sensor ({sensors[0].topic}): calibration needs >= 2 sensors")
 
     with clock("read"):
-        snaps, rejected = assemble_snapshots(paths, lidar_topics, camera_topics, cfg.snapshots)
+        snaps, rejected = assemble_snapshots(paths, lidar_topics, camera_topics, cfg.snapshots,
+                                             progress=lambda it: progress(it, desc="reading bags", unit="bag"))
     rejected = list(rejected)
     if not snaps:
         raise DataError(f"no usable snapshot in {len(paths)} bag(s): "
@@ -189,7 +192,9 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
             if im.pixels.shape[:2] != (h, w):
                 raise DataError(f"topic {t}: images are {im.pixels.shape[1]}x{im.pixels.shape[0]} but its model "
                                 f"{models[j]} is {w}x{h}; give the model of this camera")
-        found = detect_corners([im for _, im in ims], d) if ims else []
+        batches = [ims[k:k + _DETECT_BATCH] for k in range(0, len(ims), _DETECT_BATCH)]
+        found = [r for batch in progress(batches, desc=f"detecting {t}", unit="batch")
+                 for r in detect_corners([im for _, im in batch], d)]
         for (k, _), r in zip(ims, found):
             if isinstance(r, Rejected):
                 rejected.append(dataclasses.replace(r, sensor=i, snapshot=k))

@@ -290,12 +290,14 @@ def group_periods(messages: Iterator, topics: Sequence[str], *, period_s: float,
 
 
 def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
-                       camera_topics: Sequence[str], options) -> tuple[list[Snapshot], list[Rejected]]:
+                       camera_topics: Sequence[str], options, *,
+                       progress=None) -> tuple[list[Snapshot], list[Rejected]]:
     """Snapshots from bags, and the candidate snapshots dropped (with reasons).
 
     options: ``config.SnapshotOptions``. Without ``decimation_period_s``, one snapshot
     per bag from the first message of each topic; with it, one per period of the
     (continuous) bags, streamed. Snapshot indices count the kept snapshots from 0.
+    ``progress``: optional wrapper of the iteration over bags (the API's progress bar).
     """
     from clcgraph.frontend.bag import first_messages, read_messages
 
@@ -310,8 +312,9 @@ def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
         else:
             kept_bags.append(b)
     snaps: list[Snapshot] = []
+    bag_iter = progress(kept_bags) if progress else kept_bags
     if options.decimation_period_s is None:
-        for b in kept_bags:
+        for b in bag_iter:
             first = first_messages(b, topics)
             chosen = {t: _Msg(t, d.stamp_ns, d) for t, d in first.items()}
             if not chosen:
@@ -330,7 +333,7 @@ def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
     else:
         if options.decimation_period_s <= 0:
             raise InputError(f"decimation_period_s must be > 0, got {options.decimation_period_s}")
-        for b in kept_bags:  # each continuous bag on its own time line
+        for b in bag_iter:  # each continuous bag on its own time line
             msgs = read_messages([b], topics, start_ns=tfilter.after_ns, stop_ns=tfilter.before_ns)
             for per in group_periods(msgs, topics, period_s=options.decimation_period_s,
                                      window_s=options.motion_window_s, tfilter=tfilter):
