@@ -1,0 +1,89 @@
+"""The factor contract: how a measurement becomes a GTSAM factor in clcgraph.
+
+A factor module provides two things:
+
+1. a pure-numpy residual function of the poses it touches,
+   ``residual_fn(poses: list[gtsam.Pose3], want_jacobians: bool) -> (err (m,), [J_k (m,6)] | None)``,
+   unwhitened, in the measurement's units (m, px, rad), with the Jacobians w.r.t. GTSAM's
+   right perturbation ``T * Exp([omega, v])`` of each pose (rotation first), vectorized
+   over all points of one (sensor, snapshot) observation;
+2. a constructor ``<name>_factor(keys..., measurement..., sigma...) -> gtsam.CustomFactor``
+   that binds the measurement and wraps the residual with ``make_factor`` and an isotropic
+   (or diagonal) noise model of the measurement's current sigma. The solver rebuilds
+   factors when it re-estimates sigmas or drops outlier points, so factors stay immutable.
+
+Every factor is tested with ``check_jacobians`` (central differences) at random poses,
+at zero residual at the truth, and through the ``H is None`` path.
+See docs/extending.md for a worked example (factors/pose_prior.py).
+
+SYNOPSIS
+    f = make_factor([key_a, key_b], gtsam.noiseModel.Isotropic.Sigma(m, sigma), residual_fn)
+    err = check_jacobians(residual_fn, [pose_a, pose_b])   # max relative Jacobian error
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+import numpy as np
+
+ResidualFn = Callable[[list, bool], tuple]
+
+
+def make_factor(keys: Sequence[int], noise_model, residual_fn: ResidualFn):
+    """A gtsam.CustomFactor on Pose3 ``keys`` whose unwhitened error is ``residual_fn``."""
+    import gtsam
+
+    keys = [int(k) for k in keys]
+
+    def error(this, values, H):
+        poses = [values.atPose3(k) for k in keys]
+        err, jac = residual_fn(poses, H is not None)
+        if H is not None:
+            for i, J in enumerate(jac):
+                H[i] = np.ascontiguousarray(J, dtype=float)
+        return np.asarray(err, dtype=float)
+
+    return gtsam.CustomFactor(noise_model, gtsam.KeyVector(keys), error)
+
+
+def isotropic(dim: int, sigma: float):
+    """An isotropic Gaussian noise model of ``dim`` rows and std ``sigma``."""
+    import gtsam
+
+    return gtsam.noiseModel.Isotropic.Sigma(int(dim), float(sigma))
+
+
+def perturb(pose, xi: np.ndarray):
+    """``pose * Exp(xi)``: GTSAM's right perturbation, xi = [omega, v]."""
+    import gtsam
+
+    return pose.compose(gtsam.Pose3.Expmap(np.asarray(xi, dtype=float)))
+
+
+def numerical_jacobians(residual_fn: ResidualFn, poses: list, eps: float = 1e-6) -> list[np.ndarray]:
+    """Central-difference Jacobians (m,6) of ``residual_fn`` w.r.t. each pose's right perturbation."""
+    out = []
+    for i in range(len(poses)):
+        cols = []
+        for j in range(6):
+            d = np.zeros(6)
+            d[j] = eps
+            plus = list(poses)
+            minus = list(poses)
+            plus[i] = perturb(poses[i], d)
+            minus[i] = perturb(poses[i], -d)
+            cols.append((residual_fn(plus, False)[0] - residual_fn(minus, False)[0]) / (2 * eps))
+        out.append(np.stack(cols, axis=-1))
+    return out
+
+
+def check_jacobians(residual_fn: ResidualFn, poses: list, eps: float = 1e-6) -> float:
+    """Max relative difference between analytic and central-difference Jacobians (all poses)."""
+    _, analytic = residual_fn(list(poses), True)
+    numeric = numerical_jacobians(residual_fn, list(poses), eps)
+    worst = 0.0
+    for A, N in zip(analytic, numeric):
+        scale = max(np.abs(N).max(), 1e-12)
+        worst = max(worst, float(np.abs(A - N).max() / scale))
+    return worst

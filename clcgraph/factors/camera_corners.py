@@ -1,0 +1,72 @@
+"""Chessboard-corner reprojection factor through any mrcal lens model.
+
+``err = q_observed - project(T_camera_board * corners)`` (2 per corner, pixels), with
+``T_camera_board = T_lidar0_camera^-1 T_lidar0_board`` and the projection and its gradient
+``dq/dp`` from mrcal (clcgraph.cameras), so every lens model (pinhole, OPENCVn,
+SPLINED_STEREOGRAPHIC, ...) works. Corners given as NaN (not detected) contribute a zero
+row. Points behind a camera are not special-cased: mrcal's projection decides; a seeded
+solve never gets there.
+
+SYNOPSIS
+    f = camera_corners_factor(S(2), B(7), corners_px, lensmodel, intrinsics, board, sigma_px=0.3)
+    r = camera_corners_residuals(T_lidar0_camera, T_lidar0_board, corners_px, lensmodel, intrinsics, board)  # (K,2)
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import cameras
+from ..geometry import skew
+from .base import isotropic, make_factor
+
+
+def _residual(T_cam, T_board, q_obs, ok, corners_b, lensmodel, intrinsics, want: bool):
+    R_c, t_c = T_cam.rotation().matrix(), T_cam.translation()
+    R_b, t_b = T_board.rotation().matrix(), T_board.translation()
+    R_cb = R_c.T @ R_b
+    p = corners_b @ R_cb.T + R_c.T @ (t_b - t_c)  # corners in the camera frame
+    if want:
+        q, dq_dp, _ = cameras.project(p, lensmodel, intrinsics, get_gradients=True)
+    else:
+        q = cameras.project(p, lensmodel, intrinsics)
+    err = np.where(ok[:, None], q_obs - q, 0.0).reshape(-1)
+    if not want:
+        return err, None
+    K = len(p)
+    dp_c = np.zeros((K, 3, 6))
+    dp_c[:, :, :3] = skew(p)  # d p / d omega_c = [p]x
+    dp_c[:, :, 3:] = -np.eye(3)
+    dp_b = np.zeros((K, 3, 6))
+    dp_b[:, :, :3] = -R_cb @ skew(corners_b)  # d p / d omega_b = -R_cb [c]x
+    dp_b[:, :, 3:] = R_cb
+    m = ok[:, None, None]
+    J_c = np.where(m, -dq_dp @ dp_c, 0.0).reshape(2 * K, 6)
+    J_b = np.where(m, -dq_dp @ dp_b, 0.0).reshape(2 * K, 6)
+    return err, [J_c, J_b]
+
+
+def _prepare(corners_px, board):
+    q = np.array(corners_px, dtype=float).reshape(-1, 2)
+    ok = np.all(np.isfinite(q), axis=1)
+    corners_b = board.corners()
+    if len(corners_b) != len(q):
+        raise ValueError(f"{len(q)} corners given for a {board.corners_x}x{board.corners_y} board")
+    return np.where(ok[:, None], q, 0.0), ok, corners_b
+
+
+def camera_corners_residuals(T_lidar0_camera, T_lidar0_board, corners_px, lensmodel: str,
+                             intrinsics, board) -> np.ndarray:
+    """(K,2) observed minus projected corners in px (zero rows where corners_px is NaN)."""
+    q, ok, c = _prepare(corners_px, board)
+    err, _ = _residual(T_lidar0_camera, T_lidar0_board, q, ok, c, lensmodel, np.asarray(intrinsics, float), False)
+    return err.reshape(-1, 2)
+
+
+def camera_corners_factor(sensor_key: int, board_key: int, corners_px, lensmodel: str, intrinsics,
+                          board, sigma_px: float):
+    """Reprojection factor of one camera's chessboard detection, whitened by ``sigma_px``."""
+    q, ok, c = _prepare(corners_px, board)
+    intr = np.array(intrinsics, dtype=float)
+    fn = lambda poses, want: _residual(poses[0], poses[1], q, ok, c, lensmodel, intr, want)  # noqa: E731
+    return make_factor([sensor_key, board_key], isotropic(2 * len(q), sigma_px), fn)

@@ -1,0 +1,62 @@
+"""LIDAR point-to-plane factor (the pre-solve cost of the clc seed).
+
+Board points ``p`` measured by a LIDAR, moved into lidar0, lie on the board plane:
+``err_k = n . (T_lidar0_sensor p_k - t_board)``, ``n = R_board[:, 2]``, in metres. Cheap and
+well-conditioned from a rough start; the range factor (lidar_range.py) replaces it for the
+maximum-likelihood solve. ``sensor_key=None`` is lidar0 itself (identity pose, unary factor).
+
+SYNOPSIS
+    f = lidar_plane_factor(S(1), B(7), points_sensor, sigma_m=0.02)
+    r = lidar_plane_residuals(T_lidar0_sensor, T_lidar0_board, points_sensor)   # (K,) m
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .base import isotropic, make_factor
+
+_E3 = np.array([0.0, 0.0, 1.0])
+
+
+def _residual(T_sensor, T_board, points: np.ndarray, want: bool):
+    if T_sensor is None:
+        R_s, t_s = np.eye(3), np.zeros(3)
+    else:
+        R_s, t_s = T_sensor.rotation().matrix(), T_sensor.translation()
+    R_b, t_b = T_board.rotation().matrix(), T_board.translation()
+    n = R_b[:, 2]
+    v = points @ R_s.T + t_s
+    err = (v - t_b) @ n
+    if not want:
+        return err, None
+    K = len(points)
+    q = (v - t_b) @ R_b  # points in the board frame
+    J_b = np.zeros((K, 6))
+    J_b[:, 0] = -q[:, 1]  # d/d omega_b = e3 x q
+    J_b[:, 1] = q[:, 0]
+    J_b[:, 5] = -1.0
+    if T_sensor is None:
+        return err, [J_b]
+    n_s = R_s.T @ n
+    J_s = np.empty((K, 6))
+    J_s[:, :3] = np.cross(points, n_s)  # d/d omega_s = p x (R_s^T n)
+    J_s[:, 3:] = n_s  # d/d v_s = (R_s^T n)^T
+    return err, [J_s, J_b]
+
+
+def lidar_plane_residuals(T_lidar0_sensor, T_lidar0_board, points_sensor) -> np.ndarray:
+    """(K,) signed point-to-plane distances in m (T_lidar0_sensor None = lidar0)."""
+    return _residual(T_lidar0_sensor, T_lidar0_board, np.asarray(points_sensor, float), False)[0]
+
+
+def lidar_plane_factor(sensor_key: int | None, board_key: int, points_sensor, sigma_m: float):
+    """Point-to-plane factor of one LIDAR observation of the board, whitened by ``sigma_m``."""
+    pts = np.array(points_sensor, dtype=float)
+    if sensor_key is None:
+        fn = lambda poses, want: _residual(None, poses[0], pts, want)  # noqa: E731
+        keys = [board_key]
+    else:
+        fn = lambda poses, want: _residual(poses[0], poses[1], pts, want)  # noqa: E731
+        keys = [sensor_key, board_key]
+    return make_factor(keys, isotropic(len(pts), sigma_m), fn)

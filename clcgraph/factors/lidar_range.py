@@ -1,0 +1,78 @@
+"""LIDAR range-difference factor: the maximum-likelihood LIDAR cost of the clc seed.
+
+A LIDAR measures range along known rays, so its noise is along the ray, not across the
+plane. For a board point ``p`` (sensor frame) the error is the measured range minus the
+range at which the ray ``p/|p|`` meets the board plane::
+
+    err = |p| - d_s |p| / (n_s . p) = |p| (1 - d_s / (n_s . p))
+
+with the board plane in the sensor frame ``n_s . x = d_s`` (``n_s = R_s^T n``,
+``d_s = n . (t_board - t_s)``; the seed writes it as ``|p| (1 + tbl[2] / <Rbl[2,:], p>)``).
+Rays nearly parallel to the plane would divide by ~0: ``|n_s . p|`` is clamped at
+``|p| cos(87 deg)`` (such points are rare, and the clamp keeps LM from jumping).
+
+SYNOPSIS
+    f = lidar_range_factor(S(1), B(7), points_sensor, sigma_m=0.015)
+    r = lidar_range_residuals(T_lidar0_sensor, T_lidar0_board, points_sensor)   # (K,) m
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .base import isotropic, make_factor
+
+_MIN_COS = np.cos(np.radians(87.0))
+
+
+def _residual(T_sensor, T_board, points: np.ndarray, want: bool):
+    if T_sensor is None:
+        R_s, t_s = np.eye(3), np.zeros(3)
+    else:
+        R_s, t_s = T_sensor.rotation().matrix(), T_sensor.translation()
+    R_b, t_b = T_board.rotation().matrix(), T_board.translation()
+    n = R_b[:, 2]
+    n_s = R_s.T @ n
+    rng = np.linalg.norm(points, axis=1)
+    a_raw = points @ n_s
+    floor = rng * _MIN_COS
+    clamped = np.abs(a_raw) < floor
+    a = np.where(clamped, np.where(a_raw < 0, -floor, floor), a_raw)
+    b = float(n @ (t_b - t_s))
+    err = rng * (1.0 - b / a)
+    if not want:
+        return err, None
+    # d err = |p| (b da - a db) / a^2
+    g_a = np.where(clamped, 0.0, rng * b / a**2)
+    g_b = -rng / a
+    K = len(points)
+    q = points @ (R_b.T @ R_s).T  # R_b^T R_s p
+    J_b = np.zeros((K, 6))
+    # da/d omega_b = e3 x q ; db/d omega_b = e3 x (R_b^T (t_b - t_s)) ; db/d v_b = e3
+    c = R_b.T @ (t_b - t_s)
+    J_b[:, 0] = g_a * -q[:, 1] + g_b * -c[1]
+    J_b[:, 1] = g_a * q[:, 0] + g_b * c[0]
+    J_b[:, 5] = g_b
+    if T_sensor is None:
+        return err, [J_b]
+    J_s = np.empty((K, 6))
+    J_s[:, :3] = g_a[:, None] * np.cross(points, n_s)  # da/d omega_s = p x n_s
+    J_s[:, 3:] = g_b[:, None] * -n_s  # db/d v_s = -n_s
+    return err, [J_s, J_b]
+
+
+def lidar_range_residuals(T_lidar0_sensor, T_lidar0_board, points_sensor) -> np.ndarray:
+    """(K,) measured minus predicted range in m (T_lidar0_sensor None = lidar0)."""
+    return _residual(T_lidar0_sensor, T_lidar0_board, np.asarray(points_sensor, float), False)[0]
+
+
+def lidar_range_factor(sensor_key: int | None, board_key: int, points_sensor, sigma_m: float):
+    """Range-difference factor of one LIDAR observation of the board, whitened by ``sigma_m``."""
+    pts = np.array(points_sensor, dtype=float)
+    if sensor_key is None:
+        fn = lambda poses, want: _residual(None, poses[0], pts, want)  # noqa: E731
+        keys = [board_key]
+    else:
+        fn = lambda poses, want: _residual(poses[0], poses[1], pts, want)  # noqa: E731
+        keys = [sensor_key, board_key]
+    return make_factor(keys, isotropic(len(pts), sigma_m), fn)
