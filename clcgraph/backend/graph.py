@@ -1,0 +1,122 @@
+"""The factor graph of a Problem: keys, factors for the active observations, initial values.
+
+Variables: ``sensor_key(i)`` = T_lidar0_sensor for every sensor but lidar0 (the reference
+has no variable), ``board_key(k)`` = T_lidar0_board for every snapshot still in use.
+Factors: one per (sensor, snapshot) observation (LIDAR plane or range over its active
+points; camera corners over its active corners), the in-plane prior on boards only LIDARs
+saw, and the nominal-pose priors of Problem.priors.
+
+SYNOPSIS
+    active = Active.all(problem)
+    g, v = build(problem, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=0.02,
+                 sigma_camera_px=0.3, options=solve_options)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..factors.board_prior import board_prior_factor
+from ..factors.camera_corners import camera_corners_factor, camera_corners_residuals
+from ..factors.lidar_plane import lidar_plane_factor, lidar_plane_residuals
+from ..factors.lidar_range import lidar_range_factor, lidar_range_residuals
+from ..factors.pose_prior import pose_prior_factor
+from ..geometry import pose3_from_rt
+from ..types import Problem
+
+
+def sensor_key(i: int) -> int:
+    import gtsam
+
+    return gtsam.symbol("s", i)
+
+
+def board_key(k: int) -> int:
+    import gtsam
+
+    return gtsam.symbol("b", k)
+
+
+@dataclass
+class Active:
+    """What the solve still uses: per observation index, a point/corner mask, or None if rejected."""
+
+    lidar: list = field(default_factory=list)  # [(K,) bool | None] per problem.lidar_observations
+    camera: list = field(default_factory=list)  # [(K,) bool | None] per problem.camera_observations
+
+    @classmethod
+    def all(cls, problem: Problem, dropped=frozenset()) -> "Active":
+        lid = [None if (o.sensor, o.snapshot) in dropped else np.ones(len(o.points), bool)
+               for o in problem.lidar_observations]
+        cam = [None if (o.sensor, o.snapshot) in dropped else np.all(np.isfinite(o.corners_px), axis=1)
+               for o in problem.camera_observations]
+        return cls(lid, cam)
+
+    def boards(self, problem: Problem) -> tuple[set, set]:
+        """(snapshots with any active observation, those with an active camera observation)."""
+        used = {o.snapshot for o, m in zip(problem.lidar_observations, self.lidar) if m is not None}
+        cam = {o.snapshot for o, m in zip(problem.camera_observations, self.camera) if m is not None}
+        return used | cam, cam
+
+
+def _key(problem: Problem, i: int):
+    return None if i == problem.reference else sensor_key(i)
+
+
+def build(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.ndarray, *, lidar: str,
+          sigma_lidar_m: float, sigma_camera_px: float, options, board_nominal: np.ndarray | None = None):
+    """(gtsam.NonlinearFactorGraph, gtsam.Values) for the active observations.
+
+    ``lidar``: "plane" (point-to-plane) or "range" (maximum likelihood).
+    ``board_nominal``: (Nsnapshots,6) the in-plane prior's targets (default: ``rt_board``).
+    """
+    import gtsam
+
+    make = lidar_plane_factor if lidar == "plane" else lidar_range_factor
+    g = gtsam.NonlinearFactorGraph()
+    for o, m in zip(problem.lidar_observations, active.lidar):
+        if m is not None and m.any():
+            g.add(make(_key(problem, o.sensor), board_key(o.snapshot), o.points[m], sigma_lidar_m))
+    for o, m in zip(problem.camera_observations, active.camera):
+        if m is not None and m.any():
+            s = problem.sensors[o.sensor]
+            q = np.where(m[:, None], o.corners_px, np.nan)
+            g.add(camera_corners_factor(sensor_key(o.sensor), board_key(o.snapshot), q, s.lensmodel,
+                                        s.intrinsics, problem.board, sigma_camera_px))
+    used, seen_by_camera = active.boards(problem)
+    nominal = rt_board if board_nominal is None else board_nominal
+    for k in sorted(used - seen_by_camera):
+        g.add(board_prior_factor(board_key(k), pose3_from_rt(nominal[k]), options.board_prior_sigma_rad,
+                                 options.board_prior_sigma_m))
+    for p in problem.priors:
+        if p.sensor != problem.reference:
+            g.add(pose_prior_factor(sensor_key(p.sensor), pose3_from_rt(p.rt_lidar0_sensor), p.sigma_rt))
+    v = gtsam.Values()
+    for i in range(len(problem.sensors)):
+        if i != problem.reference:
+            v.insert(sensor_key(i), pose3_from_rt(rt_sensor[i]))
+    for k in sorted(used):
+        v.insert(board_key(k), pose3_from_rt(rt_board[k]))
+    return g, v
+
+
+def residuals(problem: Problem, rt_sensor: np.ndarray, rt_board: np.ndarray, *, lidar: str = "range"):
+    """Unwhitened residuals of EVERY observation (active or not) at the given poses.
+
+    Returns (lidar: list of (K,) m or None where the board pose is unknown,
+             camera: list of (K,2) px or None).
+    """
+    poses = [None if i == problem.reference else pose3_from_rt(rt_sensor[i]) for i in range(len(problem.sensors))]
+    fn = lidar_plane_residuals if lidar == "plane" else lidar_range_residuals
+    lid, cam = [], []
+    for o in problem.lidar_observations:
+        b = rt_board[o.snapshot]
+        lid.append(fn(poses[o.sensor], pose3_from_rt(b), o.points) if np.all(np.isfinite(b)) else None)
+    for o in problem.camera_observations:
+        b = rt_board[o.snapshot]
+        s = problem.sensors[o.sensor]
+        cam.append(camera_corners_residuals(poses[o.sensor], pose3_from_rt(b), o.corners_px, s.lensmodel,
+                                            s.intrinsics, problem.board) if np.all(np.isfinite(b)) else None)
+    return lid, cam

@@ -1,0 +1,271 @@
+"""Initial estimate: every sensor's pose in lidar0 and every board pose, without iterating.
+
+1. Each observation gives the board in its sensor's frame: a LIDAR its plane (n, d) and
+   the centroid of its points; a camera the full board pose by PnP (on mrcal-unprojected
+   corners, so any lens model works).
+2. Each pair of sensors that saw >= ``min_shared_snapshots`` boards together gets a
+   relative pose: cameras-only pairs by averaging the board-pose ratios; any pair with a
+   LIDAR from the board planes (rotation by Procrustes on the normals, translation by least
+   squares on the plane offsets ``n_a . t = d_a - d_b``, which are unbiased, plus a weak pull
+   of the centroids, which hold the directions the normals leave open). Mismatched pairs
+   (normal > ``seed_max_normal_deg``, offset > ``seed_max_center_m``) are dropped and refit.
+3. A best-first spanning tree from lidar0 over the pairs (most shared boards first)
+   chains the pairs into poses; a sensor it cannot reach is a DegenerateError naming it.
+4. Board poses in lidar0: from a camera's PnP when a camera saw the board, else from a
+   LIDAR plane (its in-plane position from the points' centroid, in-plane rotation
+   arbitrary: the solve's board prior holds it). Observations that disagree with the board
+   pose (beyond the seed thresholds) are rejected with the numbers; a snapshot left with
+   fewer than 2 observations is dropped.
+
+SYNOPSIS
+    s = seed(problem, options)            # options: config.SolveOptions
+    s.rt_lidar0_sensor, s.rt_lidar0_board, s.rejected, s.dropped
+"""
+
+from __future__ import annotations
+
+import heapq
+import logging
+from typing import NamedTuple
+
+import numpy as np
+
+from .. import cameras
+from ..errors import DegenerateError
+from ..geometry import R_from_r, compose_rt, invert_rt, r_from_R, rt_from_R_t, transform
+from ..types import Problem, Rejected
+
+log = logging.getLogger(__name__)
+
+# Weight of the centroid equations relative to the plane offsets: centroids are biased when
+# a LIDAR saw part of the board, so they only fill the directions the normals leave open.
+_CENTROID_WEIGHT = 0.05
+
+
+class Seed(NamedTuple):
+    rt_lidar0_sensor: np.ndarray  # (Nsensors,6)
+    rt_lidar0_board: np.ndarray  # (Nsnapshots,6), NaN rows for snapshots not used
+    rejected: tuple  # Rejected(stage="seed") records
+    dropped: frozenset  # (sensor, snapshot) of the observations the seed rejected
+
+
+class _Obs(NamedTuple):
+    """One observation reduced to the board in its sensor's frame."""
+
+    sensor: int
+    snapshot: int
+    n: np.ndarray  # unit normal toward the sensor
+    d: float  # n . x = d
+    centroid: np.ndarray
+    rt_sensor_board: np.ndarray | None  # cameras only
+
+
+def _pnp(obs, sensor, board, max_px: float):
+    """rt_camera_board from one camera observation, or a reason string."""
+    import cv2
+
+    q = np.asarray(obs.corners_px, float)
+    ok = np.all(np.isfinite(q), axis=1)
+    v = cameras.unproject(q[ok], sensor.lensmodel, sensor.intrinsics, normalize=True)
+    front = v[:, 2] > 1e-3
+    if front.sum() < 6:
+        return "too few corners in front of the camera"
+    obj = board.corners()[ok][front]
+    img = v[front, :2] / v[front, 2:]
+    good, rvec, tvec = cv2.solvePnP(obj, img, np.eye(3), None, flags=cv2.SOLVEPNP_IPPE)
+    if not good:
+        return "PnP failed"
+    good, rvec, tvec = cv2.solvePnP(obj, img, np.eye(3), None, rvec, tvec, True, cv2.SOLVEPNP_ITERATIVE)
+    rt = np.r_[rvec.ravel(), tvec.ravel()]
+    pred = cameras.project(transform(rt, board.corners()[ok]), sensor.lensmodel, sensor.intrinsics)
+    err = np.linalg.norm(pred - q[ok], axis=1).max()
+    if not np.isfinite(err) or err > max_px:
+        return f"board pose from the corners reprojects {err:.1f} px off (> seed_max_corner_px {max_px:g})"
+    return rt
+
+
+def _board_centre(board) -> np.ndarray:
+    xmin, xmax, ymin, ymax = board.extent()
+    return np.array([(xmin + xmax) / 2, (ymin + ymax) / 2, 0.0])
+
+
+def _reduce(problem: Problem, options) -> tuple[list[_Obs], list[Rejected]]:
+    out, rejected = [], []
+    for o in problem.lidar_observations:
+        n, d = np.asarray(o.plane[:3], float), float(o.plane[3])
+        out.append(_Obs(o.sensor, o.snapshot, n, d, np.asarray(o.points, float).mean(axis=0), None))
+    centre = _board_centre(problem.board)
+    for o in problem.camera_observations:
+        s = problem.sensors[o.sensor]
+        rt = _pnp(o, s, problem.board, options.seed_max_corner_px)
+        if isinstance(rt, str):
+            rejected.append(Rejected(rt, "seed", o.sensor, o.snapshot))
+            continue
+        R, t = R_from_r(rt[:3]), rt[3:]
+        n = R[:, 2]
+        d = float(n @ t)
+        if d > 0:
+            n, d = -n, -d
+        out.append(_Obs(o.sensor, o.snapshot, n, d, transform(rt, centre[None])[0], rt))
+    return out, rejected
+
+
+def _mean_rotation(Rs: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(Rs.sum(axis=0))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def _procrustes(na: np.ndarray, nb: np.ndarray) -> np.ndarray:
+    """R minimizing sum |na - R nb|^2."""
+    U, _, Vt = np.linalg.svd(na.T @ nb)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def _pair(a_obs: list[_Obs], b_obs: list[_Obs], options):
+    """rt_a_b from observations of the same boards (paired lists), or None if undetermined."""
+    max_angle = np.radians(options.seed_max_normal_deg)
+    keep = np.ones(len(a_obs), bool)
+    for _ in range(3):
+        A = [o for o, k in zip(a_obs, keep) if k]
+        B = [o for o, k in zip(b_obs, keep) if k]
+        if len(A) < options.min_shared_snapshots:
+            return None
+        if all(o.rt_sensor_board is not None for o in A + B):
+            rts = np.array([compose_rt(x.rt_sensor_board, invert_rt(y.rt_sensor_board)) for x, y in zip(A, B)])
+            R = _mean_rotation(R_from_r(rts[:, :3]))
+            t = np.median(rts[:, 3:], axis=0)
+        else:
+            na, nb = np.array([o.n for o in A]), np.array([o.n for o in B])
+            sv = np.linalg.svd(nb, compute_uv=False)
+            if sv[1] < np.sin(np.radians(5.0)) * sv[0]:
+                return None  # all boards parallel: the rotation about their normal is unknown
+            R = _procrustes(na, nb)
+            da = np.array([o.d for o in A]) - np.array([o.d for o in B])
+            ca = np.array([o.centroid for o in A]) - np.array([o.centroid for o in B]) @ R.T
+            M = np.vstack([na, _CENTROID_WEIGHT * np.tile(np.eye(3), (len(A), 1))])
+            y = np.r_[da, _CENTROID_WEIGHT * ca.ravel()]
+            t = np.linalg.lstsq(M, y, rcond=None)[0]
+        # residuals of every shared observation under this estimate
+        ang = np.array([np.arccos(np.clip(x.n @ (R @ y.n), -1, 1)) for x, y in zip(a_obs, b_obs)])
+        off = np.array([abs(x.n @ t - (x.d - y.d)) for x, y in zip(a_obs, b_obs)])
+        new = (ang <= max_angle) & (off <= options.seed_max_center_m)
+        if np.array_equal(new, keep):
+            return rt_from_R_t(R, t), int(keep.sum())
+        keep = new
+    return (rt_from_R_t(R, t), int(keep.sum())) if keep.sum() >= options.min_shared_snapshots else None
+
+
+def _spanning_tree(problem: Problem, obs: list[_Obs], options) -> np.ndarray:
+    ns = len(problem.sensors)
+    ref = problem.reference
+    by = {}
+    for o in obs:
+        by.setdefault(o.sensor, {})[o.snapshot] = o
+    shared = {}
+    for a in range(ns):
+        for b in range(a + 1, ns):
+            ks = sorted(set(by.get(a, {})) & set(by.get(b, {})))
+            if len(ks) >= options.min_shared_snapshots:
+                shared[(a, b)] = ks
+    rts = np.full((ns, 6), np.nan)
+    rts[ref] = 0.0
+    done = {ref}
+    heap = [(-len(ks), a, b) for (a, b), ks in shared.items() if ref in (a, b)]
+    heapq.heapify(heap)
+    tried = set()
+    while heap:
+        _, a, b = heapq.heappop(heap)
+        src, dst = (a, b) if a in done else (b, a)
+        if dst in done or (src, dst) in tried:
+            continue
+        tried.add((src, dst))
+        ks = shared[(min(a, b), max(a, b))]
+        est = _pair([by[src][k] for k in ks], [by[dst][k] for k in ks], options)
+        if est is None:
+            continue
+        rts[dst] = compose_rt(rts[src], est[0])
+        done.add(dst)
+        log.debug("seed: %s from %s over %d boards", problem.sensors[dst].topic, problem.sensors[src].topic, est[1])
+        for (p, q), kk in shared.items():
+            if dst in (p, q) and (q if p == dst else p) not in done:
+                heapq.heappush(heap, (-len(kk), p, q))
+    missing = [i for i in range(ns) if i not in done]
+    if missing:
+        parts = []
+        for i in missing:
+            counts = [f"{problem.sensors[j].topic}: {len(set(by.get(i, {})) & set(by.get(j, {})))}"
+                      for j in sorted(done)]
+            parts.append(f"{problem.sensors[i].topic} (boards seen together with the solved sensors: "
+                         f"{', '.join(counts)}; need >= {options.min_shared_snapshots} with varied orientations)")
+        raise DegenerateError("cannot connect to lidar0 " + problem.sensors[ref].topic + ": " + "; ".join(parts))
+    return rts
+
+
+def _board_from_plane(o: _Obs, rt_sensor: np.ndarray, board) -> np.ndarray:
+    R_s = R_from_r(rt_sensor[:3])
+    z = -(R_s @ o.n)  # board z points away from the sensor
+    c = transform(rt_sensor, o.centroid[None])[0]
+    y = np.array([0.0, 0.0, -1.0])
+    y = y - (y @ z) * z
+    if np.linalg.norm(y) < 1e-3:
+        y = np.array([1.0, 0.0, 0.0]) - z[0] * z
+    y /= np.linalg.norm(y)
+    R = np.c_[np.cross(y, z), y, z]
+    return rt_from_R_t(R, c - R @ _board_centre(board))
+
+
+def _disagreement(o: _Obs, rt_board: np.ndarray, rt_sensor: np.ndarray, problem: Problem, options) -> str | None:
+    """Why observation ``o`` disagrees with the board pose rt_lidar0_board, or None."""
+    rt_sb = compose_rt(invert_rt(rt_sensor), rt_board)
+    R, t = R_from_r(rt_sb[:3]), rt_sb[3:]
+    n = R[:, 2]
+    ang = np.degrees(np.arccos(min(1.0, abs(float(n @ o.n)))))
+    if ang > options.seed_max_normal_deg:
+        return f"board normal {ang:.1f} deg off the other sensors' (> seed_max_normal_deg)"
+    off = abs(float(n @ (o.centroid - t)))
+    if off > options.seed_max_center_m:
+        return f"board plane {off:.2f} m off the other sensors' (> seed_max_center_m)"
+    if o.rt_sensor_board is not None:
+        s = problem.sensors[o.sensor]
+        c = problem.board.corners()
+        pred = cameras.project(transform(rt_sb, c), s.lensmodel, s.intrinsics)
+        obs = cameras.project(transform(o.rt_sensor_board, c), s.lensmodel, s.intrinsics)
+        err = float(np.nanmax(np.linalg.norm(pred - obs, axis=1)))
+        if not err <= options.seed_max_corner_px:
+            return f"corners {err:.1f} px off the other sensors' board pose (> seed_max_corner_px)"
+    return None
+
+
+def seed(problem: Problem, options) -> Seed:
+    """The initial estimate of every pose (module docstring); options: config.SolveOptions."""
+    obs, rejected = _reduce(problem, options)
+    rts = _spanning_tree(problem, obs, options)
+    boards = np.full((problem.n_snapshots, 6), np.nan)
+    by_snap: dict[int, list[_Obs]] = {}
+    for o in obs:
+        by_snap.setdefault(o.snapshot, []).append(o)
+    dropped = {(r.sensor, r.snapshot) for r in rejected}
+    for k, group in sorted(by_snap.items()):
+        # candidate board poses: every camera's PnP, then every LIDAR plane; keep the one
+        # most observations agree with (a wrong plane or a bad detection loses the vote)
+        cands = [compose_rt(rts[o.sensor], o.rt_sensor_board) for o in group if o.rt_sensor_board is not None]
+        cands += [_board_from_plane(o, rts[o.sensor], problem.board) for o in group if o.rt_sensor_board is None]
+        best, best_bad = None, None
+        for c in cands:
+            bad = [(o, _disagreement(o, c, rts[o.sensor], problem, options)) for o in group]
+            bad = [(o, why) for o, why in bad if why]
+            if best is None or len(bad) < len(best_bad):
+                best, best_bad = c, bad
+        keep = len(group) - len(best_bad)
+        if keep < 2:
+            for o in group:
+                rejected.append(Rejected("sensors disagree on this board's pose (seed)", "seed", o.sensor, k))
+                dropped.add((o.sensor, k))
+            continue
+        for o, why in best_bad:
+            rejected.append(Rejected(why, "seed", o.sensor, k))
+            dropped.add((o.sensor, k))
+        boards[k] = best
+    return Seed(rts, boards, tuple(rejected), frozenset(dropped))

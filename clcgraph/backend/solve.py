@@ -1,0 +1,261 @@
+"""The staged solve: seed -> LM (point-to-plane) -> LM (range + camera) -> noise
+re-estimation and outlier rejection until stable -> covariance from gtsam.Marginals.
+
+- **Noise**: the LIDAR range sigma and the camera pixel sigma are re-estimated from the
+  residuals each round (robustly, by the MAD, while outliers may still be present; by the
+  RMS with a degrees-of-freedom correction at the end), and the factors rebuilt with them,
+  so the reported covariance reflects the data's real noise (the seed hard-codes them).
+- **Outliers**: a whole observation whose RMS exceeds ``3 sigma`` (a wrong plane, a shifted
+  or mis-ordered detection) is rejected, the worst one per snapshot per round, then the
+  solve is redone; single points/corners beyond ``outlier_sigma`` are masked. Every
+  rejection is a Rejected(stage="outlier") with the numbers.
+- **Degeneracy**: a sensor whose pose the data do not determine (information singular, or a
+  1-sigma beyond 1 m / 0.5 rad, i.e. held by nothing) is a DegenerateError naming the sensor
+  and the direction, never a number.
+
+SYNOPSIS
+    result = calibrate(problem, Config().solve)      # -> types.Result
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from ..errors import DegenerateError, SolveError
+from ..geometry import drt_dxi, rt_from_pose3
+from ..types import Problem, Rejected, Result
+from . import graph as G
+from .seed import seed as make_seed
+
+log = logging.getLogger(__name__)
+
+_WHOLE_OBS_FACTOR = 3.0  # reject an observation whose RMS exceeds this many sigmas
+_MAX_ROUNDS = 8
+_UNOBSERVABLE_M, _UNOBSERVABLE_RAD = 1.0, 0.5
+
+
+def _lm(problem, active, rt_sensor, rt_board, lidar, sig_l, sig_c, options, nominal):
+    import gtsam
+
+    g, v = G.build(problem, active, rt_sensor, rt_board, lidar=lidar, sigma_lidar_m=sig_l,
+                   sigma_camera_px=sig_c, options=options, board_nominal=nominal)
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(options.max_iterations)
+    params.setRelativeErrorTol(1e-10)
+    params.setAbsoluteErrorTol(1e-15)
+    opt = gtsam.LevenbergMarquardtOptimizer(g, v, params)
+    try:
+        out = opt.optimize()
+    except RuntimeError as e:  # GTSAM's IndeterminantLinearSystemException and friends
+        raise DegenerateError(f"the {lidar} solve is singular: {str(e).splitlines()[0]}; "
+                              "some sensor or board is not determined by the data") from None
+    rt_sensor = rt_sensor.copy()
+    rt_board = np.full_like(rt_board, np.nan)
+    for i in range(len(problem.sensors)):
+        if i != problem.reference:
+            rt_sensor[i] = rt_from_pose3(out.atPose3(G.sensor_key(i)))
+    used, _ = active.boards(problem)
+    for k in used:
+        rt_board[k] = rt_from_pose3(out.atPose3(G.board_key(k)))
+    return rt_sensor, rt_board, opt.iterations(), (g, out)
+
+
+def _mad_sigma(r: np.ndarray) -> float:
+    return float(1.4826 * np.median(np.abs(r))) if len(r) else float("nan")
+
+
+def _dof(problem, active, n_l: int, n_c: int) -> tuple[float, float]:
+    """Parameters attributable to the LIDAR and camera residuals (for an unbiased sigma)."""
+    used, cam = active.boards(problem)
+    p = 6 * (len(problem.sensors) - 1) + 6 * len(used) - 3 * len(used - cam)
+    n = max(n_l + n_c, 1)
+    return p * n_l / n, p * n_c / n
+
+
+def _active_residuals(lid, cam, active):
+    rl = [r[m] for r, m in zip(lid, active.lidar) if m is not None and r is not None]
+    rc = [r[m].ravel() for r, m in zip(cam, active.camera) if m is not None and r is not None]
+    return (np.concatenate(rl) if rl else np.zeros(0)), (np.concatenate(rc) if rc else np.zeros(0))
+
+
+def _reject(problem, active, lid, cam, sig_l, sig_c, options) -> list[Rejected]:
+    """Mark outliers in ``active`` (in place); return the new rejections."""
+    new = []
+    # whole observations: the worst one per snapshot, if beyond the threshold
+    worst: dict[int, tuple] = {}
+    for kind, obs, res, masks, sig in (("lidar", problem.lidar_observations, lid, active.lidar, sig_l),
+                                       ("camera", problem.camera_observations, cam, active.camera, sig_c)):
+        for j, (o, r, m) in enumerate(zip(obs, res, masks)):
+            if m is None or r is None or not m.any():
+                continue
+            rr = r[m] if kind == "lidar" else r[m].ravel()
+            z = float(np.sqrt(np.mean(rr**2)) / sig)
+            if z > _WHOLE_OBS_FACTOR and z > worst.get(o.snapshot, (0,))[0]:
+                worst[o.snapshot] = (z, kind, j, float(np.sqrt(np.mean(rr**2))))
+    for k, (z, kind, j, rms) in worst.items():
+        o = (problem.lidar_observations if kind == "lidar" else problem.camera_observations)[j]
+        (active.lidar if kind == "lidar" else active.camera)[j] = None
+        unit = f"{1e3 * rms:.1f} mm" if kind == "lidar" else f"{rms:.2f} px"
+        new.append(Rejected(f"{kind} observation RMS {unit} = {z:.1f} sigma (> {_WHOLE_OBS_FACTOR:g}): "
+                            "wrong plane or bad detection", "outlier", o.sensor, k))
+    # single points / corners
+    lim_l, lim_c = options.outlier_sigma * sig_l, options.outlier_sigma * sig_c
+    for j, (r, m) in enumerate(zip(lid, active.lidar)):
+        if m is not None and r is not None:
+            m &= np.abs(r) <= lim_l
+    for j, (r, m) in enumerate(zip(cam, active.camera)):
+        if m is not None and r is not None:
+            m &= np.all(np.abs(r) <= lim_c, axis=1)
+    return new
+
+
+def _covariance(problem: Problem, g, values, rt_sensor) -> np.ndarray:
+    """Joint covariance of the non-reference sensors in rt coordinates; DegenerateError if undetermined."""
+    import gtsam
+
+    idx = [i for i in range(len(problem.sensors)) if i != problem.reference]
+    if not idx:
+        return np.zeros((0, 0))
+    keys = [G.sensor_key(i) for i in idx]
+    try:
+        marg = gtsam.Marginals(g, values)
+        singular = None
+    except RuntimeError as e:
+        singular = str(e).splitlines()[0]
+        g2 = gtsam.NonlinearFactorGraph(g)  # find the direction: weak priors make it finite
+        for k in keys:
+            g2.add(gtsam.PriorFactorPose3(k, values.atPose3(k), gtsam.noiseModel.Isotropic.Sigma(6, 1e3)))
+        marg = gtsam.Marginals(g2, values)
+    jm = marg.jointMarginalCovariance(gtsam.KeyVector(keys))
+    n = len(keys)
+    C = np.zeros((6 * n, 6 * n))
+    for a, ka in enumerate(keys):
+        for b, kb in enumerate(keys):
+            C[6 * a:6 * a + 6, 6 * b:6 * b + 6] = jm.at(ka, kb)
+    J = np.zeros_like(C)
+    for a, i in enumerate(idx):
+        J[6 * a:6 * a + 6, 6 * a:6 * a + 6] = drt_dxi(rt_sensor[i])
+    C = J @ C @ J.T
+    C = 0.5 * (C + C.T)
+    bad = []
+    for a, i in enumerate(idx):
+        blk = C[6 * a:6 * a + 6, 6 * a:6 * a + 6]
+        for part, lim, what in ((slice(0, 3), _UNOBSERVABLE_RAD, "rotation about"), (slice(3, 6), _UNOBSERVABLE_M, "translation along")):
+            w, V = np.linalg.eigh(blk[part, part])
+            if singular or np.sqrt(max(w[-1], 0)) > lim:
+                if np.sqrt(max(w[-1], 0)) > lim:
+                    ax = V[:, -1] * np.sign(V[np.argmax(np.abs(V[:, -1])), -1])
+                    bad.append(f"{problem.sensors[i].topic}: {what} lidar0 ({ax[0]:+.2f}, {ax[1]:+.2f}, {ax[2]:+.2f})")
+    if singular or bad:
+        raise DegenerateError("unobservable: " + ("; ".join(bad) or singular)
+                              + "; capture board poses that constrain it (tilt the board in different directions)")
+    return C
+
+
+def calibrate(problem: Problem, options) -> Result:
+    """Solve ``problem`` with config.SolveOptions ``options`` -> types.Result (module docstring)."""
+    t0 = time.perf_counter()
+    times, iters = {}, {}
+    s = make_seed(problem, options)
+    times["seed"] = time.perf_counter() - t0
+    rt_sensor, rt_board = s.rt_lidar0_sensor.copy(), s.rt_lidar0_board.copy()
+    nominal = s.rt_lidar0_board.copy()
+    active = G.Active.all(problem, s.dropped)
+    rejected = list(problem.rejected) + list(s.rejected)
+    sig_l, sig_c = float(options.sigma_lidar_m), float(options.sigma_camera_px)
+
+    t = time.perf_counter()
+    rt_sensor, rt_board, iters["plane"], _ = _lm(problem, active, rt_sensor, rt_board, "plane", sig_l, sig_c, options, nominal)
+    rt_sensor, rt_board, iters["range"], (g, values) = _lm(problem, active, rt_sensor, rt_board, "range", sig_l, sig_c,
+                                                          options, nominal)
+    times["lm"] = time.perf_counter() - t
+    t = time.perf_counter()
+    iters["rounds"] = 0
+    for rnd in range(_MAX_ROUNDS):
+        lid, cam = G.residuals(problem, rt_sensor, rt_board)
+        rl, rc = _active_residuals(lid, cam, active)
+        new = []
+        if options.reject_outliers:
+            robust_l = _mad_sigma(rl) if len(rl) else sig_l
+            robust_c = _mad_sigma(rc) if len(rc) else sig_c
+            new = _reject(problem, active, lid, cam, robust_l, robust_c, options)
+            rejected += new
+            rl, rc = _active_residuals(lid, cam, active)
+        old = (sig_l, sig_c)
+        if options.reestimate_noise:
+            p_l, p_c = _dof(problem, active, len(rl), len(rc))
+            if len(rl):
+                sig_l = float(np.sqrt(np.sum(rl**2) / max(len(rl) - p_l, 1)))
+            if len(rc):
+                sig_c = float(np.sqrt(np.sum(rc**2) / max(len(rc) - p_c, 1)))
+        stable = not new and abs(sig_l / old[0] - 1) < 0.01 and abs(sig_c / old[1] - 1) < 0.01
+        rt_sensor, rt_board, it, (g, values) = _lm(problem, active, rt_sensor, rt_board, "range", sig_l, sig_c,
+                                                  options, nominal)
+        iters["rounds"] += 1
+        iters[f"round{rnd}"] = it
+        if stable:
+            break
+    times["noise_and_outliers"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    cov = _covariance(problem, g, values, rt_sensor)
+    times["covariance"] = time.perf_counter() - t
+
+    lid, cam = G.residuals(problem, rt_sensor, rt_board)
+    rl, rc = _active_residuals(lid, cam, active)
+    for j, (o, m) in enumerate(zip(problem.lidar_observations, active.lidar)):
+        if m is not None and not m.all():
+            rejected.append(Rejected(f"{int((~m).sum())} of {len(m)} LIDAR points beyond "
+                                     f"{options.outlier_sigma:g} sigma", "outlier", o.sensor, o.snapshot))
+    for j, (o, m) in enumerate(zip(problem.camera_observations, active.camera)):
+        ok = np.all(np.isfinite(o.corners_px), axis=1)
+        if m is not None and not m[ok].all():
+            rejected.append(Rejected(f"{int((~m[ok]).sum())} of {int(ok.sum())} corners beyond "
+                                     f"{options.outlier_sigma:g} sigma", "outlier", o.sensor, o.snapshot))
+    total = g.error(values)
+    prior = sum(g.at(f).error(values) for f in range(g.size()) if "PriorFactor" in type(g.at(f)).__name__)
+    z = np.r_[rl / sig_l, rc / sig_c]
+    rms = {"normalized": float(np.sqrt(np.mean(z**2))) if len(z) else float("nan"),
+           "lidar_m": float(np.sqrt(np.mean(rl**2))) if len(rl) else float("nan"),
+           "camera_px": float(np.sqrt(np.mean(rc**2))) if len(rc) else float("nan")}
+    noise = {"lidar_m": sig_l if len(rl) else float("nan"), "camera_px": sig_c if len(rc) else float("nan")}
+    times["total"] = time.perf_counter() - t0
+    stats = {"stage": "solve", "iterations": iters, "time_s": times, "regularization_share": float(prior / max(total, 1e-300)),
+             "n_outlier_points": int(sum(int((~m).sum()) for m in active.lidar if m is not None)),
+             "n_rejected_observations": sum(1 for r in rejected if r.stage in ("outlier", "seed"))}
+    if not np.all(np.isfinite(rt_sensor)):
+        raise SolveError("the solve produced non-finite sensor poses")
+    log.info("solve: %d rounds, sigma LIDAR %.4f m, camera %.3f px, %.2f s", iters["rounds"], sig_l, sig_c, times["total"])
+    return Result(problem=problem, rt_lidar0_sensor=rt_sensor, covariance_rt=cov, rt_lidar0_board=rt_board,
+                  noise=noise, rms=rms, rejected=tuple(rejected), stats=stats,
+                  residuals=_residual_arrays(problem, lid, cam, active))
+
+
+def _residual_arrays(problem, lid, cam, active) -> dict:
+    """Flat residual arrays for the plots (outputs/plots.py)."""
+    L = {"lidar_m": [], "lidar_sensor": [], "lidar_snapshot": [], "lidar_outlier": []}
+    for o, r, m in zip(problem.lidar_observations, lid, active.lidar):
+        if r is None:
+            continue
+        L["lidar_m"].append(r)
+        L["lidar_sensor"].append(np.full(len(r), o.sensor))
+        L["lidar_snapshot"].append(np.full(len(r), o.snapshot))
+        L["lidar_outlier"].append(np.ones(len(r), bool) if m is None else ~m)
+    C = {"camera_px": [], "camera_sensor": [], "camera_snapshot": [], "camera_outlier": []}
+    for o, r, m in zip(problem.camera_observations, cam, active.camera):
+        if r is None:
+            continue
+        ok = np.all(np.isfinite(o.corners_px), axis=1)
+        rr = r[ok].ravel()
+        C["camera_px"].append(rr)
+        C["camera_sensor"].append(np.full(len(rr), o.sensor))
+        C["camera_snapshot"].append(np.full(len(rr), o.snapshot))
+        C["camera_outlier"].append(np.repeat(np.ones(ok.sum(), bool) if m is None else ~m[ok], 2))
+    out = {}
+    for d, dtypes in ((L, (float, int, int, bool)), (C, (float, int, int, bool))):
+        for (k, v), dt in zip(d.items(), dtypes):
+            out[k] = np.concatenate(v).astype(dt) if v else np.zeros(0, dt)
+    return out

@@ -1,0 +1,255 @@
+"""Observation-level simulator: board observations with known truth, no scene, no bags.
+
+Fast and exact, for the backend's tests and benchmarks (the full simulator, which ray
+casts a cluttered scene and writes bags, is clcgraph.sim.capture). LIDAR points are the
+intersections of each ring's rays with the board rectangle (margin included) plus
+Gaussian range noise along the ray; camera corners are mrcal projections plus Gaussian
+pixel noise, kept only when the whole board is in view.
+
+SYNOPSIS
+    rig = make_rig(n_lidars=2, n_cameras=3)
+    problem, truth = simulate_problem(rig=rig, n_snapshots=40, seed=1)
+    truth.rt_lidar0_sensor, truth.rt_lidar0_board, truth.corrupted
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .. import cameras
+from ..geometry import R_from_r, compose_rt, invert_rt, rt_from_R_t, transform
+from ..types import BoardGeometry, CameraBoardObservation, LidarBoardObservation, Problem, Sensor
+
+T0_NS = 1_700_000_000_000_000_000
+
+# Camera looking along lidar0's +x: camera axes right-down-forward are -y, -z, +x of lidar0.
+_R_FORWARD_CAMERA = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+@dataclass(frozen=True)
+class SimLidar:
+    elevations_rad: np.ndarray
+    npoints_per_rotation: int = 1800
+    max_range_m: float = 40.0
+
+
+@dataclass(frozen=True, eq=False)
+class Rig:
+    """Sensors (lidar0 first) with their true poses and, per LIDAR, its ring model."""
+
+    sensors: tuple[Sensor, ...]
+    rt_lidar0_sensor: np.ndarray  # (N,6)
+    lidars: dict = field(default_factory=dict)  # sensor index -> SimLidar
+
+
+@dataclass(frozen=True, eq=False)
+class Truth:
+    rt_lidar0_sensor: np.ndarray  # (N,6)
+    rt_lidar0_board: np.ndarray  # (Nsnapshots,6)
+    corrupted: tuple = ()  # (sensor, snapshot) of deliberately corrupted observations
+
+
+def _rt(yaw_deg=0.0, pitch_deg=0.0, roll_deg=0.0, xyz=(0.0, 0.0, 0.0), base=np.eye(3)):
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_euler("ZYX", [yaw_deg, pitch_deg, roll_deg], degrees=True).as_matrix() @ base
+    return rt_from_R_t(R, np.asarray(xyz, float))
+
+
+_LENSES = [
+    ("LENSMODEL_OPENCV8", [1000.0, 1000.0, 511.5, 383.5, -0.05, 0.01, 1e-4, -1e-4, 0.001, 0.0, 0.0, 0.0], (1024, 768)),
+    ("LENSMODEL_PINHOLE", [700.0, 700.0, 399.5, 299.5], (800, 600)),
+    ("LENSMODEL_OPENCV4", [800.0, 805.0, 639.5, 479.5, -0.1, 0.02, 1e-3, -1e-3], (1280, 960)),
+]
+
+
+def make_rig(n_lidars: int = 2, n_cameras: int = 3) -> Rig:
+    """A realistic front-facing rig: lidar0 level at the origin, the others offset and tilted
+    (a 32-ring one pitched down 12 deg first), cameras fanned across the front."""
+    if n_lidars < 1:
+        raise ValueError("a rig needs at least one LIDAR")
+    vlp16 = SimLidar(np.radians(np.linspace(-15, 15, 16)))
+    ring32 = SimLidar(np.radians(np.linspace(-25, 15, 32)))
+    sensors, rts, lidars = [], [], {}
+    lidar_poses = [_rt(), _rt(8, 12, -3, (0.15, 0.6, -0.2)), _rt(-10, -6, 4, (0.1, -0.7, 0.3)),
+                   _rt(20, 3, 2, (-0.2, 1.0, 0.1))]
+    for i in range(n_lidars):
+        sensors.append(Sensor(topic=f"/lidar{i}", kind="lidar"))
+        rts.append(lidar_poses[i % len(lidar_poses)] + (0 if i < len(lidar_poses) else 0.05 * i))
+        lidars[i] = vlp16 if i % 2 == 0 else ring32
+    yaws = np.linspace(-20, 20, n_cameras) if n_cameras > 1 else [0.0]
+    for j in range(n_cameras):
+        lens, intr, size = _LENSES[j % len(_LENSES)]
+        sensors.append(Sensor(topic=f"/cam{j}", kind="camera", lensmodel=lens,
+                              intrinsics=np.array(intr, float), imagersize=size))
+        rts.append(_rt(yaws[j], 2.0 * (j % 2), 0.0, (0.3, 0.25 * (j - (n_cameras - 1) / 2), 0.15 + 0.05 * j),
+                       base=_R_FORWARD_CAMERA))
+    return Rig(tuple(sensors), np.array(rts), lidars)
+
+
+def _board_pose(rng, board: BoardGeometry, range_m, tilt_max_deg, vertical_only, vertical_jitter_deg):
+    """rt_lidar0_board for a board facing lidar0 somewhere in front of the rig."""
+    rho = rng.uniform(*range_m)
+    az = rng.uniform(-0.45, 0.45)
+    c = np.array([rho * np.cos(az), rho * np.sin(az), rng.uniform(-0.4, 0.6)])
+    z = np.array([c[0], c[1], 0.0 if vertical_only else c[2]])
+    z /= np.linalg.norm(z)  # board normal pointing away from the rig (mrcal's board convention)
+    y = np.array([0.0, 0.0, -1.0]) - z[2] * -z
+    y -= (y @ z) * z
+    y /= np.linalg.norm(y)
+    x = np.cross(y, z)
+    R = np.c_[x, y, z]
+    if vertical_only:  # a person holding it upright: yaw freely, pitch only a little
+        tilt = _rt(rng.uniform(-tilt_max_deg, tilt_max_deg), rng.normal(0, vertical_jitter_deg), 0.0)[:3]
+        R = R_from_r(tilt) @ R
+    else:
+        axis = rng.normal(size=3)
+        axis -= (axis @ z) * z
+        axis /= np.linalg.norm(axis)
+        R = R_from_r(axis * np.radians(rng.uniform(0, tilt_max_deg))) @ R
+        R = R @ R_from_r(np.array([0, 0, np.radians(rng.uniform(-20, 20))]))  # roll in the board plane
+    xmin, xmax, ymin, ymax = board.extent()
+    centre_b = np.array([(xmin + xmax) / 2, (ymin + ymax) / 2, 0.0])
+    return rt_from_R_t(R, c - R @ centre_b)
+
+
+def _lidar_hits(model: SimLidar, rt_sensor_board: np.ndarray, board: BoardGeometry, rng, sigma_m: float):
+    """(points (K,3) in the sensor frame, rings (K,)) where the rays meet the board rectangle."""
+    R, t = R_from_r(rt_sensor_board[:3]), rt_sensor_board[3:]
+    n = R[:, 2]
+    d = n @ t
+    el = np.asarray(model.elevations_rad)[:, None]
+    az = np.linspace(-np.pi, np.pi, model.npoints_per_rotation, endpoint=False)[None, :]
+    u = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) * np.ones_like(az)], -1).reshape(-1, 3)
+    ring = np.repeat(np.arange(len(model.elevations_rad)), model.npoints_per_rotation)
+    cos = u @ n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = d / cos
+    ok = np.isfinite(rho) & (rho > 0.5) & (rho < model.max_range_m) & (np.abs(cos) > 0.05)
+    p = u[ok] * rho[ok, None]
+    q = (p - t) @ R  # board frame
+    xmin, xmax, ymin, ymax = board.extent()
+    inside = (q[:, 0] >= xmin) & (q[:, 0] <= xmax) & (q[:, 1] >= ymin) & (q[:, 1] <= ymax)
+    p, rr = p[inside], rho[ok][inside]
+    noisy = rr + rng.normal(0, sigma_m, len(rr)) if sigma_m > 0 else rr
+    return p * (noisy / rr)[:, None], ring[ok][inside]
+
+
+def plane_fit(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """(n, d) with n . x = d, n pointing at the sensor (origin), and the fit RMS."""
+    c = points.mean(axis=0)
+    _, s, vt = np.linalg.svd(points - c, full_matrices=False)
+    n = vt[2]
+    if n @ c > 0:
+        n = -n
+    return np.r_[n, n @ c], float(s[2] / np.sqrt(len(points)))
+
+
+def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 0, *,
+                     sigma_lidar_m: float = 0.015, sigma_camera_px: float = 0.3,
+                     board: BoardGeometry = BoardGeometry(), tilt_max_deg: float = 45.0,
+                     range_m: tuple[float, float] = (2.0, 8.0), vertical_only: bool = False,
+                     vertical_jitter_deg: float = 2.0, corrupt_fraction: float = 0.0,
+                     lidar_only: bool = False, min_rings: int = 3, min_points: int = 20):
+    """A Problem with noisy board observations of ``rig`` and its Truth (see module doc).
+
+    ``vertical_only``: the board is held upright (yaw up to ``tilt_max_deg``, pitch jitter
+    ``vertical_jitter_deg``, 0 = exactly vertical). ``corrupt_fraction``: that share of the
+    observations is corrupted (LIDAR: points of another surface 0.3 m off and 25 deg
+    turned; camera: every corner shifted by ~12 px), listed in ``truth.corrupted``.
+    ``lidar_only`` drops the rig's cameras. A snapshot is kept if >= 2 sensors saw it.
+    """
+    rig = rig or make_rig()
+    rng = np.random.default_rng(seed)
+    sensors = list(rig.sensors)
+    rts = np.array(rig.rt_lidar0_sensor, float)
+    if lidar_only:
+        keep = [i for i, s in enumerate(sensors) if s.is_lidar]
+        sensors = [sensors[i] for i in keep]
+        rts = rts[keep]
+        lidars = {keep.index(i): m for i, m in rig.lidars.items()}
+    else:
+        lidars = dict(rig.lidars)
+    lidar_obs, camera_obs, boards = [], [], []
+    k = 0
+    attempts = 0
+    while k < n_snapshots:
+        attempts += 1
+        if attempts > 50 * n_snapshots:
+            raise RuntimeError("the rig sees too few of the simulated board poses")
+        rt_b = _board_pose(rng, board, range_m, tilt_max_deg, vertical_only, vertical_jitter_deg)
+        lo, co = [], []
+        for i, s in enumerate(sensors):
+            rt_s_b = compose_rt(invert_rt(rts[i]), rt_b)
+            if s.is_lidar:
+                p, ring = _lidar_hits(lidars[i], rt_s_b, board, rng, sigma_lidar_m)
+                if len(p) >= min_points and len(np.unique(ring)) >= min_rings:
+                    plane, rms = plane_fit(p)
+                    lo.append(LidarBoardObservation(sensor=i, snapshot=k, points=p, plane=plane, rms_m=rms))
+            else:
+                pc = transform(rt_s_b, board.corners())
+                q = cameras.project(pc, s.lensmodel, s.intrinsics)
+                w, h = s.imagersize
+                if np.all(pc[:, 2] > 0.3) and np.all((q >= 0) & (q <= [w - 1, h - 1])):
+                    if sigma_camera_px > 0:
+                        q = q + rng.normal(0, sigma_camera_px, q.shape)
+                    co.append(CameraBoardObservation(sensor=i, snapshot=k, corners_px=q))
+        if len(lo) + len(co) < 2:
+            continue
+        lidar_obs += lo
+        camera_obs += co
+        boards.append(rt_b)
+        k += 1
+    corrupted = []
+    if corrupt_fraction > 0:
+        lidar_obs, camera_obs, corrupted = _corrupt(lidar_obs, camera_obs, corrupt_fraction, rng)
+    vis = {i: _visibility_points(m) for i, m in lidars.items()}
+    problem = Problem(
+        sensors=tuple(sensors), board=board, lidar_observations=tuple(lidar_obs),
+        camera_observations=tuple(camera_obs),
+        snapshot_stamps_ns=T0_NS + np.arange(n_snapshots, dtype=np.int64) * 1_000_000_000,
+        lidar_visibility_points=vis,
+    )
+    return problem, Truth(rts, np.array(boards), tuple(corrupted))
+
+
+def _corrupt(lidar_obs, camera_obs, fraction, rng):
+    """Corrupt ``fraction`` of all observations, never leaving a snapshot with only corrupted ones."""
+    allobs = [("l", i) for i in range(len(lidar_obs))] + [("c", i) for i in range(len(camera_obs))]
+    n = int(round(fraction * len(allobs)))
+    chosen = rng.choice(len(allobs), size=n, replace=False)
+    lidar_obs, camera_obs = list(lidar_obs), list(camera_obs)
+    corrupted, per_snap = [], {}
+    for idx in chosen:
+        kind, i = allobs[idx]
+        o = lidar_obs[i] if kind == "l" else camera_obs[i]
+        if per_snap.get(o.snapshot, 0) >= 1:
+            continue
+        per_snap[o.snapshot] = 1
+        if kind == "l":
+            # another surface: the points turned 25 deg about a vertical axis through their
+            # centroid and pushed 0.3 m back along the ray
+            c = o.points.mean(axis=0)
+            Rw = R_from_r(np.array([0.0, 0.0, np.radians(25.0)]))
+            p = (o.points - c) @ Rw.T + c * (1 + 0.3 / np.linalg.norm(c))
+            plane, rms = plane_fit(p)
+            lidar_obs[i] = LidarBoardObservation(o.sensor, o.snapshot, p, plane, rms)
+        else:
+            shift = rng.normal(0, 1, 2)
+            shift = 12.0 * shift / np.linalg.norm(shift)
+            camera_obs[i] = CameraBoardObservation(o.sensor, o.snapshot, o.corners_px + shift)
+        corrupted.append((o.sensor, o.snapshot))
+    return lidar_obs, camera_obs, corrupted
+
+
+def _visibility_points(model: SimLidar) -> np.ndarray:
+    """A LIDAR's rays meeting a 15 m cylinder (walls all around): what it can see, for sectors."""
+    el = np.asarray(model.elevations_rad)[:, None]
+    az = np.linspace(-np.pi, np.pi, 360, endpoint=False)[None, :]
+    return np.stack([15 * np.cos(az) * np.ones_like(el), 15 * np.sin(az) * np.ones_like(el),
+                     15 * np.tan(el) * np.ones_like(az)], -1).reshape(-1, 3)
+
+
+__all__ = ["Rig", "SimLidar", "Truth", "make_rig", "plane_fit", "simulate_problem"]
