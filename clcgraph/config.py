@@ -115,6 +115,10 @@ class SolveOptions:
     seed_max_corner_px: float = 50.0
     # Sigma of nominal-pose priors from /tf_static (rad and m); None = no priors.
     prior_from_tf_static_sigma: float | None = None
+    # A sensor whose 1-sigma exceeds these in some direction is not determined by the data:
+    # a DegenerateError names it and the direction instead of returning a useless number.
+    max_stdev_m: float = 0.1
+    max_stdev_deg: float = 3.0
 
 
 @dataclass(frozen=True)

@@ -56,8 +56,8 @@ class Active:
 
     def boards(self, problem: Problem) -> tuple[set, set]:
         """(snapshots with any active observation, those with an active camera observation)."""
-        used = {o.snapshot for o, m in zip(problem.lidar_observations, self.lidar) if m is not None}
-        cam = {o.snapshot for o, m in zip(problem.camera_observations, self.camera) if m is not None}
+        used = {o.snapshot for o, m in zip(problem.lidar_observations, self.lidar) if m is not None and m.any()}
+        cam = {o.snapshot for o, m in zip(problem.camera_observations, self.camera) if m is not None and m.any()}
         return used | cam, cam
 
 

@@ -7,11 +7,12 @@ re-estimation and outlier rejection until stable -> covariance from gtsam.Margin
   so the reported covariance reflects the data's real noise (the seed hard-codes them).
 - **Outliers**: a whole observation whose RMS exceeds ``3 sigma`` (a wrong plane, a shifted
   or mis-ordered detection) is rejected, the worst one per snapshot per round, then the
-  solve is redone; single points/corners beyond ``outlier_sigma`` are masked. Every
+  solve is redone; single points/corners beyond ``outlier_sigma`` are masked, and an
+  observation left with less than half of them is rejected whole. Every
   rejection is a Rejected(stage="outlier") with the numbers.
 - **Degeneracy**: a sensor whose pose the data do not determine (information singular, or a
-  1-sigma beyond 1 m / 0.5 rad, i.e. held by nothing) is a DegenerateError naming the sensor
-  and the direction, never a number.
+  1-sigma beyond ``max_stdev_m`` / ``max_stdev_deg`` in some direction) is a DegenerateError
+  naming the sensor and the direction, never a number.
 
 SYNOPSIS
     result = calibrate(problem, Config().solve)      # -> types.Result
@@ -34,7 +35,8 @@ log = logging.getLogger(__name__)
 
 _WHOLE_OBS_FACTOR = 3.0  # reject an observation whose RMS exceeds this many sigmas
 _MAX_ROUNDS = 8
-_UNOBSERVABLE_M, _UNOBSERVABLE_RAD = 1.0, 0.5
+_MIN_INLIER_SHARE = 0.5
+_TIE_RATIO = 1.5  # deleted residuals this close cannot tell the culprit apart  # ... or whose points/corners are mostly beyond outlier_sigma
 
 
 def _lm(problem, active, rt_sensor, rt_board, lidar, sig_l, sig_c, options, nominal):
@@ -81,38 +83,111 @@ def _active_residuals(lid, cam, active):
     return (np.concatenate(rl) if rl else np.zeros(0)), (np.concatenate(rc) if rc else np.zeros(0))
 
 
-def _reject(problem, active, lid, cam, sig_l, sig_c, options) -> list[Rejected]:
-    """Mark outliers in ``active`` (in place); return the new rejections."""
+def _reject(problem, active, lid, cam, sig_l, sig_c, options, rt_sensor, rt_board) -> list[Rejected]:
+    """Mark outliers in ``active`` (in place); return the new whole-observation rejections.
+
+    Whole observations first, the worst per snapshot, and nothing else that round: one bad
+    observation drags its board and so the residuals of the good ones. Only once no
+    observation stands out are single points/corners masked (recomputed from scratch each
+    round, so a point masked while the solution was still pulled comes back).
+    """
     new = []
-    # whole observations: the worst one per snapshot, if beyond the threshold
-    worst: dict[int, tuple] = {}
+    members: dict[int, list] = {}  # snapshot -> [(kind, j, joint z)]
     for kind, obs, res, masks, sig in (("lidar", problem.lidar_observations, lid, active.lidar, sig_l),
                                        ("camera", problem.camera_observations, cam, active.camera, sig_c)):
         for j, (o, r, m) in enumerate(zip(obs, res, masks)):
             if m is None or r is None or not m.any():
                 continue
             rr = r[m] if kind == "lidar" else r[m].ravel()
-            z = float(np.sqrt(np.mean(rr**2)) / sig)
-            if z > _WHOLE_OBS_FACTOR and z > worst.get(o.snapshot, (0,))[0]:
-                worst[o.snapshot] = (z, kind, j, float(np.sqrt(np.mean(rr**2))))
-    for k, (z, kind, j, rms) in worst.items():
-        o = (problem.lidar_observations if kind == "lidar" else problem.camera_observations)[j]
-        (active.lidar if kind == "lidar" else active.camera)[j] = None
-        unit = f"{1e3 * rms:.1f} mm" if kind == "lidar" else f"{rms:.2f} px"
-        new.append(Rejected(f"{kind} observation RMS {unit} = {z:.1f} sigma (> {_WHOLE_OBS_FACTOR:g}): "
-                            "wrong plane or bad detection", "outlier", o.sensor, k))
-    # single points / corners
+            members.setdefault(o.snapshot, []).append((kind, j, float(np.sqrt(np.mean(rr**2)) / (sig_l if kind == "lidar" else sig_c))))
+    for k, group in members.items():
+        if max(z for _, _, z in group) <= _WHOLE_OBS_FACTOR:
+            continue
+        if len(group) <= 2:  # two sensors disagree: nothing tells which one is wrong
+            for kind, j, z in group:
+                _deactivate(active, kind, j)
+                o = (problem.lidar_observations if kind == "lidar" else problem.camera_observations)[j]
+                new.append(Rejected(f"the {len(group)} observations of this board disagree ({kind} RMS {z:.1f} sigma)",
+                                    "outlier", o.sensor, k))
+            continue
+        # the culprit is the one the others predict worst (its "deleted residual")
+        scored = [(_deleted_z(problem, active, rt_sensor, rt_board, k, kind, j, sig_l, sig_c, options), kind, j)
+                  for kind, j, _ in group]
+        scored.sort(reverse=True)
+        z, kind, j = scored[0]
+        if z <= _WHOLE_OBS_FACTOR:
+            continue
+        # two observations that each contradict the rest about equally (two cameras that
+        # disagree on a board the LIDARs only see as a plane): nothing tells which is wrong
+        tied = [x for x in scored[1:] if x[0] > _WHOLE_OBS_FACTOR and x[0] > z / _TIE_RATIO]
+        for z_, kind_, j_ in [scored[0], *tied]:
+            _deactivate(active, kind_, j_)
+            o = (problem.lidar_observations if kind_ == "lidar" else problem.camera_observations)[j_]
+            why = "; another observation of this board is as far off, so both are dropped" if tied else ""
+            new.append(Rejected(f"{kind_} observation {z_:.1f} sigma off the board pose the other sensors see "
+                                f"(> {_WHOLE_OBS_FACTOR:g}): wrong plane or bad detection{why}", "outlier", o.sensor, k))
+    if new:
+        return new
     lim_l, lim_c = options.outlier_sigma * sig_l, options.outlier_sigma * sig_c
     for j, (r, m) in enumerate(zip(lid, active.lidar)):
         if m is not None and r is not None:
-            m &= np.abs(r) <= lim_l
-    for j, (r, m) in enumerate(zip(cam, active.camera)):
+            active.lidar[j] = np.abs(r) <= lim_l
+    for j, (o, r, m) in enumerate(zip(problem.camera_observations, cam, active.camera)):
         if m is not None and r is not None:
-            m &= np.all(np.abs(r) <= lim_c, axis=1)
+            active.camera[j] = np.all(np.isfinite(o.corners_px), axis=1) & np.all(np.abs(r) <= lim_c, axis=1)
+    # an observation that lost most of its points is wrong as a whole
+    for kind, obs, masks in (("lidar", problem.lidar_observations, active.lidar),
+                             ("camera", problem.camera_observations, active.camera)):
+        for j, (o, m) in enumerate(zip(obs, masks)):
+            if m is not None and m.mean() < _MIN_INLIER_SHARE:
+                masks[j] = None
+                new.append(Rejected(f"{kind} observation: {int((~m).sum())} of {len(m)} "
+                                    f"{'points' if kind == 'lidar' else 'corners'} beyond {options.outlier_sigma:g} sigma",
+                                    "outlier", o.sensor, o.snapshot))
     return new
 
 
-def _covariance(problem: Problem, g, values, rt_sensor) -> np.ndarray:
+def _mask_signature(active) -> int:
+    return hash(tuple(None if m is None else m.tobytes() for m in [*active.lidar, *active.camera]))
+
+
+def _deactivate(active, kind: str, j: int) -> None:
+    (active.lidar if kind == "lidar" else active.camera)[j] = None
+
+
+def _deleted_z(problem, active, rt_sensor, rt_board, k, kind, j, sig_l, sig_c, options) -> float:
+    """RMS/sigma of observation (kind, j) of snapshot k at the board pose fitted to the
+    snapshot's OTHER observations, with the sensor poses held."""
+    import gtsam
+
+    sub = G.Active([None] * len(active.lidar), [None] * len(active.camera))
+    for o_j, (o, m) in enumerate(zip(problem.lidar_observations, active.lidar)):
+        if o.snapshot == k and m is not None and not (kind == "lidar" and o_j == j):
+            sub.lidar[o_j] = m
+    for o_j, (o, m) in enumerate(zip(problem.camera_observations, active.camera)):
+        if o.snapshot == k and m is not None and not (kind == "camera" and o_j == j):
+            sub.camera[o_j] = m
+    g, v = G.build(problem, sub, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig_l, sigma_camera_px=sig_c,
+                   options=options)
+    held = gtsam.noiseModel.Isotropic.Sigma(6, 1e-9)
+    for i in range(len(problem.sensors)):
+        if i != problem.reference:
+            g.add(gtsam.PriorFactorPose3(G.sensor_key(i), v.atPose3(G.sensor_key(i)), held))
+    try:
+        out = gtsam.LevenbergMarquardtOptimizer(g, v).optimize()
+    except RuntimeError:
+        return float("inf")
+    b = rt_board.copy()
+    b[k] = rt_from_pose3(out.atPose3(G.board_key(k)))
+    lid, cam = G.residuals(problem, rt_sensor, b)
+    if kind == "lidar":
+        r = lid[j][active.lidar[j]]
+        return float(np.sqrt(np.mean(r**2)) / sig_l)
+    r = cam[j][active.camera[j]].ravel()
+    return float(np.sqrt(np.mean(r**2)) / sig_c)
+
+
+def _covariance(problem: Problem, g, values, rt_sensor, options) -> np.ndarray:
     """Joint covariance of the non-reference sensors in rt coordinates; DegenerateError if undetermined."""
     import gtsam
 
@@ -143,12 +218,15 @@ def _covariance(problem: Problem, g, values, rt_sensor) -> np.ndarray:
     bad = []
     for a, i in enumerate(idx):
         blk = C[6 * a:6 * a + 6, 6 * a:6 * a + 6]
-        for part, lim, what in ((slice(0, 3), _UNOBSERVABLE_RAD, "rotation about"), (slice(3, 6), _UNOBSERVABLE_M, "translation along")):
+        for part, lim, what in ((slice(0, 3), np.radians(options.max_stdev_deg), "rotation about"),
+                                (slice(3, 6), options.max_stdev_m, "translation along")):
             w, V = np.linalg.eigh(blk[part, part])
-            if singular or np.sqrt(max(w[-1], 0)) > lim:
-                if np.sqrt(max(w[-1], 0)) > lim:
-                    ax = V[:, -1] * np.sign(V[np.argmax(np.abs(V[:, -1])), -1])
-                    bad.append(f"{problem.sensors[i].topic}: {what} lidar0 ({ax[0]:+.2f}, {ax[1]:+.2f}, {ax[2]:+.2f})")
+            sd = np.sqrt(max(w[-1], 0.0))
+            if sd > lim:
+                ax = V[:, -1] * np.sign(V[np.argmax(np.abs(V[:, -1])), -1])
+                unit = f"{sd:.2g} m" if what.startswith("t") else f"{np.degrees(sd):.2g} deg"
+                bad.append(f"{problem.sensors[i].topic}: {what} lidar0 ({ax[0]:+.2f}, {ax[1]:+.2f}, {ax[2]:+.2f}), "
+                           f"1-sigma {unit}")
     if singular or bad:
         raise DegenerateError("unobservable: " + ("; ".join(bad) or singular)
                               + "; capture board poses that constrain it (tilt the board in different directions)")
@@ -177,11 +255,11 @@ def calibrate(problem: Problem, options) -> Result:
     for rnd in range(_MAX_ROUNDS):
         lid, cam = G.residuals(problem, rt_sensor, rt_board)
         rl, rc = _active_residuals(lid, cam, active)
-        new = []
+        new, before = [], _mask_signature(active)
         if options.reject_outliers:
             robust_l = _mad_sigma(rl) if len(rl) else sig_l
             robust_c = _mad_sigma(rc) if len(rc) else sig_c
-            new = _reject(problem, active, lid, cam, robust_l, robust_c, options)
+            new = _reject(problem, active, lid, cam, robust_l, robust_c, options, rt_sensor, rt_board)
             rejected += new
             rl, rc = _active_residuals(lid, cam, active)
         old = (sig_l, sig_c)
@@ -191,7 +269,8 @@ def calibrate(problem: Problem, options) -> Result:
                 sig_l = float(np.sqrt(np.sum(rl**2) / max(len(rl) - p_l, 1)))
             if len(rc):
                 sig_c = float(np.sqrt(np.sum(rc**2) / max(len(rc) - p_c, 1)))
-        stable = not new and abs(sig_l / old[0] - 1) < 0.01 and abs(sig_c / old[1] - 1) < 0.01
+        stable = (not new and _mask_signature(active) == before
+                  and abs(sig_l / old[0] - 1) < 0.01 and abs(sig_c / old[1] - 1) < 0.01)
         rt_sensor, rt_board, it, (g, values) = _lm(problem, active, rt_sensor, rt_board, "range", sig_l, sig_c,
                                                   options, nominal)
         iters["rounds"] += 1
@@ -201,7 +280,7 @@ def calibrate(problem: Problem, options) -> Result:
     times["noise_and_outliers"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    cov = _covariance(problem, g, values, rt_sensor)
+    cov = _covariance(problem, g, values, rt_sensor, options)
     times["covariance"] = time.perf_counter() - t
 
     lid, cam = G.residuals(problem, rt_sensor, rt_board)

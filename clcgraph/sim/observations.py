@@ -156,8 +156,8 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
     """A Problem with noisy board observations of ``rig`` and its Truth (see module doc).
 
     ``vertical_only``: the board is held upright (yaw up to ``tilt_max_deg``, pitch jitter
-    ``vertical_jitter_deg``, 0 = exactly vertical). ``corrupt_fraction``: that share of the
-    observations is corrupted (LIDAR: points of another surface 0.3 m off and 25 deg
+    ``vertical_jitter_deg``, 0 = exactly vertical). ``corrupt_fraction``: that share of each
+    sensor's observations is corrupted (LIDAR: points of another surface 0.3 m off and 25 deg
     turned; camera: every corner shifted by ~12 px), listed in ``truth.corrupted``.
     ``lidar_only`` drops the rig's cameras. A snapshot is kept if >= 2 sensors saw it.
     """
@@ -216,31 +216,37 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
 
 
 def _corrupt(lidar_obs, camera_obs, fraction, rng):
-    """Corrupt ``fraction`` of all observations, never leaving a snapshot with only corrupted ones."""
-    allobs = [("l", i) for i in range(len(lidar_obs))] + [("c", i) for i in range(len(camera_obs))]
-    n = int(round(fraction * len(allobs)))
-    chosen = rng.choice(len(allobs), size=n, replace=False)
+    """Corrupt ``fraction`` of every sensor's observations: at most one per snapshot, and only
+    in snapshots that >= 3 sensors saw (with two, nothing can tell which one is wrong)."""
+    count: dict[int, int] = {}
+    for o in [*lidar_obs, *camera_obs]:
+        count[o.snapshot] = count.get(o.snapshot, 0) + 1
     lidar_obs, camera_obs = list(lidar_obs), list(camera_obs)
-    corrupted, per_snap = [], {}
-    for idx in chosen:
-        kind, i = allobs[idx]
-        o = lidar_obs[i] if kind == "l" else camera_obs[i]
-        if per_snap.get(o.snapshot, 0) >= 1:
-            continue
-        per_snap[o.snapshot] = 1
-        if kind == "l":
-            # another surface: the points turned 25 deg about a vertical axis through their
-            # centroid and pushed 0.3 m back along the ray
-            c = o.points.mean(axis=0)
-            Rw = R_from_r(np.array([0.0, 0.0, np.radians(25.0)]))
-            p = (o.points - c) @ Rw.T + c * (1 + 0.3 / np.linalg.norm(c))
-            plane, rms = plane_fit(p)
-            lidar_obs[i] = LidarBoardObservation(o.sensor, o.snapshot, p, plane, rms)
-        else:
-            shift = rng.normal(0, 1, 2)
-            shift = 12.0 * shift / np.linalg.norm(shift)
-            camera_obs[i] = CameraBoardObservation(o.sensor, o.snapshot, o.corners_px + shift)
-        corrupted.append((o.sensor, o.snapshot))
+    allobs = [("l", i, o) for i, o in enumerate(lidar_obs)] + [("c", i, o) for i, o in enumerate(camera_obs)]
+    corrupted, taken = [], set()
+    for sensor in sorted({o.sensor for _, _, o in allobs}):
+        mine = [x for x in allobs if x[2].sensor == sensor]
+        want = int(round(fraction * len(mine)))
+        for idx in rng.permutation(len(mine)):
+            if want == 0:
+                break
+            kind, i, o = mine[idx]
+            if o.snapshot in taken or count[o.snapshot] < 3:
+                continue
+            taken.add(o.snapshot)
+            want -= 1
+            if kind == "l":
+                # another surface: the points turned 25 deg about a vertical axis through their
+                # centroid and pushed 0.3 m back along the ray
+                c = o.points.mean(axis=0)
+                Rw = R_from_r(np.array([0.0, 0.0, np.radians(25.0)]))
+                p = (o.points - c) @ Rw.T + c * (1 + 0.3 / np.linalg.norm(c))
+                plane, rms = plane_fit(p)
+                lidar_obs[i] = LidarBoardObservation(o.sensor, o.snapshot, p, plane, rms)
+            else:
+                shift = rng.normal(0, 1, 2)
+                camera_obs[i] = CameraBoardObservation(o.sensor, o.snapshot, o.corners_px + 12.0 * shift / np.linalg.norm(shift))
+            corrupted.append((o.sensor, o.snapshot))
     return lidar_obs, camera_obs, corrupted
 
 
