@@ -1,0 +1,251 @@
+"""Capture sessions: a person moves the chessboard in front of a simulated rig; bags + truth.
+
+Two schemes, as people record them:
+- one short bag per stationary board pose (clc's convention): each has /tf_static, two
+  scans per LIDAR (10 Hz) and two images per camera, stamps unsynchronised by a few ms;
+- ``continuous=True``: one bag; the board holds each pose ``hold_s`` and moves to the next
+  over ``move_s``; LIDARs at 10 Hz, cameras at ``camera_hz``.
+Board poses are drawn 2.5-9 m from a sensor (half of them in front of a camera), tilted up
+to ``tilt_max_deg``, and kept if >= 2 sensors see the board (>= 3 rings / the whole corner
+grid). /tf_static holds base_link -> every sensor frame, off the truth by ``tf_error``
+(deg, m) like a CAD drawing. ``truth.yaml`` next to the bags has the true poses.
+
+SYNOPSIS
+    summary = simulate("rig.yaml", "out/", n_poses=20, seed=0, format="ros1")
+    simulate_demo()            # data/synthetic/demo-rig.yaml -> data/synthetic/demo/
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from ..errors import InputError
+from ..geometry import R_from_r, rt_from_T
+from ..progress import progress
+from .bag_writer import FORMATS, BagWriter
+from .camera import render
+from .lidar import simulate_scan
+from .rig import Rig, load_rig
+from .scene import make_scene, static_meshes
+
+log = logging.getLogger(__name__)
+
+T0_NS = 1_700_000_000_000_000_000
+DEMO_RIG = Path(__file__).resolve().parents[2] / "data" / "synthetic" / "demo-rig.yaml"
+DEMO_DIR = DEMO_RIG.parent / "demo"
+
+
+def _board_pose(rng, rig: Rig, tilt_max_deg: float) -> np.ndarray:
+    """T_world_board: in front of a random camera (half the time) or anywhere around a LIDAR."""
+    xmin, xmax, ymin, ymax = rig.board.extent()
+    centre_b = np.array([(xmin + xmax) / 2, (ymin + ymax) / 2, 0.0])
+    if rig.cameras and rng.uniform() < 0.5:
+        cam = rig.cameras[rng.integers(len(rig.cameras))]
+        o = cam.T_base_sensor[:3, 3]
+        fwd = cam.T_base_sensor[:3, :3] @ R_from_r(rng.normal(0, 0.25, 3)) @ np.array([0.0, 0.0, 1.0])
+    else:
+        L = rig.lidars[rng.integers(len(rig.lidars))]
+        o = L.T_base_sensor[:3, 3]
+        az = rng.uniform(-np.pi, np.pi)
+        fwd = np.array([np.cos(az), np.sin(az), 0.0])
+    fwd[2] = 0.0
+    fwd /= np.linalg.norm(fwd)
+    c = o + fwd * rng.uniform(2.5, 9.0)
+    c[2] = rng.uniform(0.9, 1.9)
+    z = c - o  # board normal away from the sensor (mrcal's board convention)
+    z /= np.linalg.norm(z)
+    y = np.array([0.0, 0.0, -1.0]) - (np.array([0.0, 0.0, -1.0]) @ z) * z
+    y /= np.linalg.norm(y)
+    R = np.c_[np.cross(y, z), y, z]
+    axis = rng.normal(size=3)
+    axis -= (axis @ z) * z
+    R = R_from_r(axis / np.linalg.norm(axis) * np.radians(rng.uniform(0, tilt_max_deg))) @ R
+    R = R @ R_from_r(np.array([0.0, 0.0, np.radians(rng.uniform(-20, 20))]))
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, c - R @ centre_b
+    return T
+
+
+def _lowest_z(rig: Rig, T: np.ndarray) -> float:
+    xmin, xmax, ymin, ymax = rig.board.extent()
+    corners = np.array([[x, y, 0.0] for x in (xmin, xmax) for y in (ymin, ymax)])
+    return float((corners @ T[:3, :3].T + T[:3, 3])[:, 2].min())
+
+
+def _observe(rig: Rig, T_board, static, rng, stamps):
+    """Scans and images of one board pose, and how many sensors see the board."""
+    scene = make_scene(rig.board, T_board, rng, static=static)
+    seen = 0
+    scans = {}
+    for i, L in enumerate(rig.lidars):
+        scans[L.topic] = []
+        for m, t in enumerate(stamps["lidar"][i]):
+            scan, hit = simulate_scan(L.model, L.T_base_sensor, scene, rng, stamp_ns=t, topic=L.topic)
+            scans[L.topic].append(scan)
+            if m == 0 and len(np.unique(scan.ring[hit])) >= 3:
+                seen += 1
+    images, truth_corners = {}, {}
+    for j, C in enumerate(rig.cameras):
+        img, corners = render(C.sensor, C.T_base_sensor, scene, rig.board, T_board, rng, topic=C.topic,
+                              colour=C.encoding == "bgr8", noise_sigma=0.0)
+        w, h = C.sensor.imagersize
+        if corners is not None and np.all(np.isfinite(corners)) and np.all((corners >= 3) & (corners <= [w - 4, h - 4])):
+            seen += 1
+            truth_corners[C.topic] = corners
+        images[C.topic] = [_noisy(img, t, rng) for t in stamps["camera"][j]]
+    return scans, images, truth_corners, seen
+
+
+def _noisy(img, stamp_ns, rng, sigma=2.0):
+    from ..types import Image
+
+    px = np.clip(img.pixels + rng.normal(0, sigma, img.pixels.shape), 0, 255).astype(np.uint8)
+    return Image(img.topic, stamp_ns, px, img.encoding)
+
+
+def _tf_static(rig: Rig, rng, tf_error) -> list:
+    out = []
+    for s in (*rig.lidars, *rig.cameras):
+        E = np.eye(4)
+        E[:3, :3] = R_from_r(rng.normal(0, np.radians(tf_error[0]) / np.sqrt(3), 3))
+        E[:3, 3] = rng.normal(0, tf_error[1] / np.sqrt(3), 3)
+        out.append(("base_link", s.frame_id, s.T_base_sensor @ E))
+    return out
+
+
+def _write(w: BagWriter, rig: Rig, scans, images):
+    for L in rig.lidars:
+        for s in scans[L.topic]:
+            w.write_pointcloud(L.topic, s, frame_id=L.frame_id, layout=L.model.layout)
+    for C in rig.cameras:
+        for im in images[C.topic]:
+            w.write_image(C.topic, im, frame_id=C.frame_id, compressed=C.compressed)
+
+
+def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str = "ros1", continuous: bool = False,
+             tilt_max_deg: float = 40.0, tf_error=(1.0, 0.03), hold_s: float = 2.0, move_s: float = 1.0,
+             camera_hz: float = 5.0, clutter: bool = True) -> dict:
+    """Simulate a capture session of the rig in ``rig_yaml`` into ``out_dir`` (replaced atomically).
+
+    Returns the truth dict that is also written to ``out_dir/truth.yaml``.
+    """
+    if format not in FORMATS:
+        raise InputError(f"unknown bag format {format!r}; use one of {', '.join(FORMATS)}")
+    rig = rig_yaml if isinstance(rig_yaml, Rig) else load_rig(rig_yaml)
+    rng = np.random.default_rng(seed)
+    out_dir = Path(out_dir).absolute()
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=out_dir.parent))
+    try:
+        static = static_meshes(rng, clutter=clutter)
+        tf = _tf_static(rig, rng, tf_error)
+        ext = ".bag" if format == "ros1" else ""
+        snapshots = []
+        if continuous:
+            writer = BagWriter(tmp / f"session{ext}", format=format)
+            writer.__enter__()
+            writer.write_tf_static(tf, stamp_ns=T0_NS)
+        poses = []
+        t_ns = T0_NS
+        for k in progress(range(n_poses), desc="simulating board poses", unit="pose"):
+            for _ in range(200):
+                T_board = _board_pose(rng, rig, tilt_max_deg)
+                if _lowest_z(rig, T_board) < 0.15:
+                    continue
+                if continuous:
+                    stamps = _continuous_stamps(rig, t_ns, hold_s, camera_hz)
+                else:
+                    t_ns = T0_NS + k * 10_000_000_000
+                    stamps = {"lidar": [[t_ns + 13_000_000 * i + m * 100_000_000 for m in range(2)]
+                                        for i in range(len(rig.lidars))],
+                              "camera": [[t_ns + 21_000_000 + 11_000_000 * j + m * 100_000_000 for m in range(2)]
+                                         for j in range(len(rig.cameras))]}
+                scans, images, corners, seen = _observe(rig, T_board, static, rng, stamps)
+                if seen >= 2:
+                    break
+            else:
+                raise InputError(f"{rig.path}: could not place a board that >= 2 sensors see; check the sensor poses")
+            rt_l0_b = rt_from_T(np.linalg.inv(rig.lidars[0].T_base_sensor) @ T_board)
+            if continuous:
+                if poses:  # the move from the previous pose: scans and images while the board travels
+                    _write_move(writer, rig, poses[-1], T_board, static, rng, t_ns - int(move_s * 1e9), move_s,
+                                camera_hz)
+                _write(writer, rig, scans, images)
+                snapshots.append({"start_ns": int(t_ns), "end_ns": int(t_ns + hold_s * 1e9),
+                                  "rt_lidar0_board": rt_l0_b.tolist(), "seen_by": int(seen)})
+                t_ns += int((hold_s + move_s) * 1e9)
+            else:
+                name = f"pose{k:03d}{ext}"
+                with BagWriter(tmp / name, format=format) as w:
+                    w.write_tf_static(tf, stamp_ns=t_ns)
+                    _write(w, rig, scans, images)
+                snapshots.append({"bag": name, "stamp_ns": int(t_ns), "rt_lidar0_board": rt_l0_b.tolist(),
+                                  "seen_by": int(seen),
+                                  "corners_px": {t: c.tolist() for t, c in corners.items()}})
+            poses.append(T_board)
+        if continuous:
+            writer.__exit__(None, None, None)
+        truth = _truth(rig, tf, snapshots, format, continuous, seed)
+        (tmp / "truth.yaml").write_text(yaml.safe_dump(truth, sort_keys=False, default_flow_style=None, width=200))
+        if out_dir.exists():
+            shutil.rmtree(out_dir)
+        tmp.rename(out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return truth
+
+
+def _continuous_stamps(rig, t_ns, hold_s, camera_hz):
+    n_l = int(hold_s * 10)
+    n_c = max(1, int(hold_s * camera_hz))
+    return {"lidar": [[t_ns + 13_000_000 * i + m * 100_000_000 for m in range(n_l)] for i in range(len(rig.lidars))],
+            "camera": [[t_ns + 21_000_000 + 11_000_000 * j + int(m * 1e9 / camera_hz) for m in range(n_c)]
+                       for j in range(len(rig.cameras))]}
+
+
+def _write_move(w, rig, T_a, T_b, static, rng, t0_ns, move_s, camera_hz):
+    """Scans (10 Hz) and images (camera_hz) while the board moves from T_a to T_b."""
+    from ..geometry import T_from_rt
+
+    rt_a, rt_b = rt_from_T(T_a), rt_from_T(T_b)
+    for m in range(int(move_s * 10)):
+        t = t0_ns + m * 100_000_000
+        f = (m + 0.5) / (move_s * 10)
+        scene = make_scene(rig.board, T_from_rt((1 - f) * rt_a + f * rt_b), rng, static=static)
+        for i, L in enumerate(rig.lidars):
+            scan, _ = simulate_scan(L.model, L.T_base_sensor, scene, rng, stamp_ns=t + 13_000_000 * i, topic=L.topic)
+            w.write_pointcloud(L.topic, scan, frame_id=L.frame_id, layout=L.model.layout)
+        if camera_hz > 0 and m % max(1, int(round(10 / camera_hz))) == 0:
+            for j, C in enumerate(rig.cameras):
+                Tm = T_from_rt((1 - f) * rt_a + f * rt_b)
+                img, _ = render(C.sensor, C.T_base_sensor, scene, rig.board, Tm, rng, topic=C.topic,
+                                stamp_ns=t + 21_000_000 + 11_000_000 * j, colour=C.encoding == "bgr8")
+                w.write_image(C.topic, img, frame_id=C.frame_id, compressed=C.compressed)
+
+
+def _truth(rig: Rig, tf, snapshots, format, continuous, seed) -> dict:
+    sensors = []
+    for s in (*rig.lidars, *rig.cameras):
+        sensors.append({"topic": s.topic, "kind": "lidar" if s in rig.lidars else "camera", "frame_id": s.frame_id,
+                        "rt_lidar0_sensor": rt_from_T(rig.T_lidar0_sensor(s.topic)).tolist(),
+                        "T_base_sensor": s.T_base_sensor.tolist(),
+                        **({"model": str(s.model_path)} if s in rig.cameras else {})})
+    return {"rig": str(rig.path), "format": format, "continuous": continuous, "seed": seed,
+            "reference": rig.lidars[0].topic, "topics": rig.topics,
+            "board": {"corners_x": rig.board.corners_x, "corners_y": rig.board.corners_y,
+                      "spacing_m": rig.board.spacing_m, "margin_m": rig.board.margin_m},
+            "sensors": sensors,
+            "tf_static": [{"parent": p, "child": c, "T": T.tolist()} for p, c, T in tf],
+            "snapshots": snapshots}
+
+
+def simulate_demo(out_dir=None, *, seed: int = 0, n_poses: int = 20) -> dict:
+    """The demo session: data/synthetic/demo-rig.yaml, 20 bag-per-pose ROS1 bags."""
+    return simulate(DEMO_RIG, out_dir or DEMO_DIR, n_poses=n_poses, seed=seed)

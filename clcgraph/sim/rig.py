@@ -1,0 +1,177 @@
+"""A rig to simulate, from YAML: LIDARs and cameras with their poses on the vehicle.
+
+    lidars:
+      - topic: /lidar/front/points
+        model: vlp16                 # preset (vlp16, hdl32, os1-64, os1-128) ...
+        # elevations_deg: [...]      # ... or an explicit ring table
+        # npoints_per_rotation: 1800
+        layout: velodyne             # velodyne (unorganised) | ouster (organised, padded)
+        frame_id: lidar_front
+        xyz: [1.2, 0.0, 1.8]         # pose in base_link: position (m) ...
+        rpy_deg: [0, 0, 0]           # ... and roll, pitch, yaw (deg) of the front-left-up frame
+        range_noise_m: 0.01
+        dropout: 0.005
+    cameras:
+      - topic: /cam/left/image
+        model: left.cameramodel      # mrcal model, relative to this file
+        encoding: mono8              # mono8 | bgr8
+        compressed: null             # null | png | jpeg
+        frame_id: cam_left
+        xyz: [1.3, 0.3, 1.6]
+        rpy_deg: [0, 5, 10]          # of a front-left-up frame; the optical axes follow mrcal
+    board: {corners_x: 10, corners_y: 10, spacing_m: 0.1, margin_m: 0.1}
+
+The first LIDAR is lidar0. Errors name the file and the key.
+
+SYNOPSIS
+    rig = load_rig("data/synthetic/demo-rig.yaml")
+    rig.lidars[0].T_base_sensor, rig.cameras[0].sensor.lensmodel
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from .. import cameras
+from ..errors import InputError
+from ..types import BoardGeometry, Sensor
+from .lidar import LidarModel
+
+# camera optical axes (right-down-forward) in a front-left-up frame
+R_FLU_CAMERA = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def T_from_xyz_rpy(xyz, rpy_deg) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("ZYX", np.asarray(rpy_deg, float)[::-1], degrees=True).as_matrix()
+    T[:3, 3] = np.asarray(xyz, float)
+    return T
+
+
+@dataclass(frozen=True, eq=False)
+class RigLidar:
+    topic: str
+    frame_id: str
+    model: LidarModel
+    T_base_sensor: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class RigCamera:
+    topic: str
+    frame_id: str
+    sensor: Sensor
+    model_path: Path
+    T_base_sensor: np.ndarray  # base_link <- camera (optical axes)
+    encoding: str = "mono8"
+    compressed: str | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class Rig:
+    path: Path
+    lidars: tuple[RigLidar, ...]
+    cameras: tuple[RigCamera, ...]
+    board: BoardGeometry
+
+    @property
+    def topics(self) -> list[str]:
+        return [x.topic for x in self.lidars] + [c.topic for c in self.cameras]
+
+    def T_lidar0_sensor(self, topic: str) -> np.ndarray:
+        sensors = {x.topic: x.T_base_sensor for x in (*self.lidars, *self.cameras)}
+        return np.linalg.inv(self.lidars[0].T_base_sensor) @ sensors[topic]
+
+
+def _need(d: dict, key: str, where: str, path: Path):
+    if not isinstance(d, dict) or key not in d:
+        raise InputError(f"{path}: {where} needs '{key}'")
+    return d[key]
+
+
+def _pose(d, where, path) -> np.ndarray:
+    try:
+        xyz = np.asarray(_need(d, "xyz", where, path), float).reshape(3)
+        rpy = np.asarray(d.get("rpy_deg", [0, 0, 0]), float).reshape(3)
+    except (ValueError, TypeError):
+        raise InputError(f"{path}: {where}: xyz and rpy_deg must be 3 numbers each") from None
+    return T_from_xyz_rpy(xyz, rpy)
+
+
+_LIDAR_KEYS = {"topic", "model", "elevations_deg", "npoints_per_rotation", "layout", "frame_id", "xyz", "rpy_deg",
+               "range_noise_m", "dropout", "max_range_m"}
+_CAMERA_KEYS = {"topic", "model", "encoding", "compressed", "frame_id", "xyz", "rpy_deg"}
+
+
+def _unknown(d: dict, known: set, where: str, path: Path):
+    extra = sorted(set(d) - known)
+    if extra:
+        raise InputError(f"{path}: {where}: unknown key '{extra[0]}' (known: {', '.join(sorted(known))})")
+
+
+def load_rig(path) -> Rig:
+    """Parse and validate a rig YAML (module docstring)."""
+    path = Path(path)
+    try:
+        d = yaml.safe_load(path.read_text())
+    except OSError as e:
+        raise InputError(f"{path}: cannot read the rig file ({e.strerror})") from None
+    except yaml.YAMLError as e:
+        raise InputError(f"{path}: not valid YAML: {str(e).splitlines()[0]}") from None
+    if not isinstance(d, dict):
+        raise InputError(f"{path}: a rig file is a mapping with 'lidars' (and 'cameras', 'board')")
+    _unknown(d, {"lidars", "cameras", "board"}, "top level", path)
+    lidars = []
+    for k, L in enumerate(_need(d, "lidars", "top level", path) or []):
+        where = f"lidars[{k}]"
+        _unknown(L, _LIDAR_KEYS, where, path)
+        topic = str(_need(L, "topic", where, path))
+        try:
+            if "elevations_deg" in L:
+                model = LidarModel("custom", tuple(float(e) for e in L["elevations_deg"]),
+                                   int(_need(L, "npoints_per_rotation", where, path)))
+            else:
+                model = LidarModel.preset(str(_need(L, "model", where, path)))
+        except KeyError as e:
+            raise InputError(f"{path}: {where}.model: {e.args[0]}") from None
+        over = {k2: L[k2] for k2 in ("layout", "range_noise_m", "dropout", "max_range_m", "npoints_per_rotation")
+                if k2 in L}
+        if over.get("layout", model.layout) not in ("velodyne", "ouster"):
+            raise InputError(f"{path}: {where}.layout must be velodyne or ouster")
+        model = replace(model, **over)
+        lidars.append(RigLidar(topic, str(L.get("frame_id", topic.strip("/").replace("/", "_"))), model,
+                               _pose(L, where, path)))
+    if not lidars:
+        raise InputError(f"{path}: 'lidars' must list at least one LIDAR (lidar0 is the reference)")
+    cams = []
+    for k, C in enumerate(d.get("cameras") or []):
+        where = f"cameras[{k}]"
+        _unknown(C, _CAMERA_KEYS, where, path)
+        topic = str(_need(C, "topic", where, path))
+        model_path = (path.parent / str(_need(C, "model", where, path))).resolve()
+        sensor = cameras.load_camera(topic, model_path)
+        enc = str(C.get("encoding", "mono8"))
+        if enc not in ("mono8", "bgr8"):
+            raise InputError(f"{path}: {where}.encoding must be mono8 or bgr8")
+        comp = C.get("compressed")
+        if comp not in (None, "png", "jpeg"):
+            raise InputError(f"{path}: {where}.compressed must be null, png or jpeg")
+        T = _pose(C, where, path)
+        T[:3, :3] = T[:3, :3] @ R_FLU_CAMERA
+        cams.append(RigCamera(topic, str(C.get("frame_id", topic.strip("/").replace("/", "_"))), sensor, model_path,
+                              T, enc, comp))
+    b = d.get("board") or {}
+    if not isinstance(b, dict):
+        raise InputError(f"{path}: 'board' must be a mapping")
+    _unknown(b, {"corners_x", "corners_y", "spacing_m", "margin_m"}, "board", path)
+    board = BoardGeometry(**b)
+    topics = [x.topic for x in lidars] + [c.topic for c in cams]
+    if len(set(topics)) != len(topics):
+        raise InputError(f"{path}: a topic is listed twice")
+    return Rig(path, tuple(lidars), tuple(cams), board)

@@ -1,0 +1,122 @@
+"""The calibration scene: ground, walls, clutter, a person and the chessboard, for ray casting.
+
+World frame: z up, ground at z = 0; the rig stands near the origin. The board is a thin
+box of its physical size (margin included); a person-sized box stands half a metre behind
+and beside it (someone holding it). Clutter: walls 12-25 m away, parked cars, poles and
+boxes whose faces are not board-sized (the segmentation must still never take them).
+
+SYNOPSIS
+    scene = make_scene(board, T_world_board, rng)        # open3d RaycastingScene inside
+    hits = scene.cast(rays_world (N,6) float32)          # t_hit (N,), geometry ids (N,)
+    scene.board_id                                       # geometry id of the board
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry import R_from_r
+from ..types import BoardGeometry
+
+BOARD_THICKNESS_M = 0.01
+
+
+def _box(sx, sy, sz, x, y, z, yaw=0.0):
+    """Legacy open3d box of size (sx, sy, sz), centred at (x, y) in xy, bottom at z."""
+    import open3d as o3d
+
+    m = o3d.geometry.TriangleMesh.create_box(sx, sy, sz)
+    m.translate((-sx / 2, -sy / 2, 0))
+    m.rotate(R_from_r(np.array([0.0, 0.0, yaw])), center=(0, 0, 0))
+    m.translate((x, y, z))
+    return m
+
+
+def _cylinder(r, h, x, y):
+    import open3d as o3d
+
+    m = o3d.geometry.TriangleMesh.create_cylinder(r, h, resolution=16)
+    m.translate((x, y, h / 2))
+    return m
+
+
+def static_meshes(rng, *, clutter: bool = True, walls_m=(12.0, 25.0)) -> list:
+    """Ground, walls and clutter (legacy open3d meshes) of one calibration site."""
+    meshes = [_box(200, 200, 0.1, 0, 0, -0.1)]  # ground, top at z = 0
+    if not clutter:
+        return meshes
+    n_walls = 8
+    for k in range(n_walls):  # an irregular room of walls at 12-25 m
+        az = 2 * np.pi * (k + rng.uniform(-0.2, 0.2)) / n_walls
+        d = rng.uniform(*walls_m)
+        w = 2 * d * np.tan(np.pi / n_walls) + 2.0
+        meshes.append(_box(0.3, w, rng.uniform(3, 8), d * np.cos(az), d * np.sin(az), 0, az))
+    for _ in range(3):  # parked cars: body + cabin, 6-11 m away
+        az, d = rng.uniform(0, 2 * np.pi), rng.uniform(6, 11)
+        x, y, yaw = d * np.cos(az), d * np.sin(az), rng.uniform(0, np.pi)
+        meshes += [_box(4.4, 1.8, 0.9, x, y, 0.25, yaw), _box(2.3, 1.6, 0.6, x, y, 1.15, yaw)]
+    for _ in range(6):  # poles and posts
+        az, d = rng.uniform(0, 2 * np.pi), rng.uniform(3, 12)
+        meshes.append(_cylinder(rng.uniform(0.05, 0.15), rng.uniform(1.0, 4.0), d * np.cos(az), d * np.sin(az)))
+    for _ in range(6):  # small boxes, bins, crates (faces well below board size)
+        az, d = rng.uniform(0, 2 * np.pi), rng.uniform(2.5, 11)
+        s = rng.uniform(0.25, 0.55, 3)
+        meshes.append(_box(*s, d * np.cos(az), d * np.sin(az), 0, rng.uniform(0, np.pi)))
+    return meshes
+
+
+def board_mesh(board: BoardGeometry, T_world_board: np.ndarray):
+    """The board as a thin box: its front face is the board plane z = 0 (facing -z of the board)."""
+    import open3d as o3d
+
+    xmin, xmax, ymin, ymax = board.extent()
+    m = o3d.geometry.TriangleMesh.create_box(xmax - xmin, ymax - ymin, BOARD_THICKNESS_M)
+    m.translate((xmin, ymin, 0.0))  # board frame: z from 0 (front) to +thickness (back)
+    m.transform(T_world_board)
+    return m
+
+
+def person_mesh(board: BoardGeometry, T_world_board: np.ndarray, rng):
+    """Someone holding the board: a 0.5 x 0.3 x 1.75 m box behind one edge of it."""
+    xmin, xmax, ymin, ymax = board.extent()
+    side = rng.choice([xmin - 0.15, xmax + 0.15])
+    p = T_world_board[:3, :3] @ np.array([side, (ymin + ymax) / 2, 0.45]) + T_world_board[:3, 3]
+    yaw = np.arctan2(T_world_board[1, 2], T_world_board[0, 2])
+    return _box(0.3, 0.5, 1.75, p[0], p[1], 0.0, yaw)
+
+
+@dataclass
+class Scene:
+    """A RaycastingScene of static meshes + (optionally) the board and a person."""
+
+    raycasting: object
+    board_id: int  # -1 without a board
+    person_id: int
+
+    def cast(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(t_hit (N,) inf where nothing is hit, geometry id (N,)) for rays (N,6) origin+direction."""
+        import open3d as o3d
+
+        hit = self.raycasting.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays, dtype=np.float32)))
+        return hit["t_hit"].numpy().astype(float), hit["geometry_ids"].numpy().astype(np.int64)
+
+
+def make_scene(board: BoardGeometry, T_world_board: np.ndarray | None, rng, *, clutter: bool = True,
+               person: bool = True, walls_m=(12.0, 25.0), static: list | None = None) -> Scene:
+    """The scene with the board at T_world_board (None: no board). ``static``: reuse meshes
+    from static_meshes() (the same site for every board pose)."""
+    import open3d as o3d
+
+    meshes = static if static is not None else static_meshes(rng, clutter=clutter, walls_m=walls_m)
+    rc = o3d.t.geometry.RaycastingScene()
+    for m in meshes:
+        rc.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(m))
+    board_id = person_id = -1
+    if T_world_board is not None:
+        board_id = int(rc.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(board_mesh(board, T_world_board))))
+        if person:
+            person_id = int(rc.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(
+                person_mesh(board, T_world_board, rng))))
+    return Scene(rc, board_id, person_id)
