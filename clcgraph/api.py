@@ -245,7 +245,8 @@ def segment(scans, *, config=None, sensor: int = 0, snapshots: Sequence[int] | N
         d = cfg.detection
         board = BoardGeometry(corners_x=d.corners_x, corners_y=d.corners_y, spacing_m=d.spacing_m, margin_m=d.margin_m)
     snapshots = list(range(len(scans))) if snapshots is None else list(snapshots)
-    return segment_many(scans, cfg.segmentation, cfg.lidar, board, sensor=sensor, snapshots=snapshots)
+    bar = lambda it, n: progress(it, desc=f"segmenting LIDAR {sensor}", total=n, unit="scan")  # noqa: E731
+    return segment_many(scans, cfg.segmentation, cfg.lidar, board, sensor=sensor, snapshots=snapshots, progress=bar)
 
 
 def detect(images, *, config=None) -> list:

@@ -196,6 +196,99 @@ def _add_detect(sub):
     p.set_defaults(func=run)
 
 
+@_command
+def _add_segment(sub):
+    from .config import SegmentationOptions
+
+    p = sub.add_parser("segment", help="LIDAR board segmentation of a topic: the board's plane or why not, per scan")
+    p.add_argument("bags", nargs="+", metavar="BAG", help="bag files/dirs (one scan per bag unless --every)")
+    p.add_argument("--topic", required=True, help="the PointCloud2 topic")
+    p.add_argument("--every", action="store_true", help="every scan, not just the first of each bag")
+    p.add_argument("--dump", default=None, metavar="FILE.npz",
+                   help="intermediate stages: segments, clusters, candidate planes with verdicts, accepted points")
+    p.add_argument("--png", default=None, metavar="DIR", help="a picture of each scan's segmentation here")
+    p.add_argument("--config", default=None, metavar="FILE.yaml", help="settings (sections 'lidar', 'segmentation')")
+    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one config key (repeatable)")
+    seg_flags = _section_flags(p, SegmentationOptions, "segmentation", "LIDAR segmentation")
+
+    def run(args):
+        from pathlib import Path
+
+        import numpy as np
+
+        from .api import expand_bags
+        from .frontend.bag import first_messages, read_messages
+        from .frontend.lidar_board import Debug, segment_board
+        from .frontend.lidar_preprocess import infer_lidar_spacing, static_masks
+        from .outputs.plots import plot_segmentation
+        from .types import BoardGeometry, LidarBoardObservation
+
+        cfg = _load_config(args)
+        paths = expand_bags(args.bags)
+        if args.every:
+            scans = [m.data for m in read_messages(paths, [args.topic])]
+        else:
+            scans = [first_messages(b, [args.topic])[args.topic] for b in paths]
+        d = cfg.detection
+        board = BoardGeometry(corners_x=d.corners_x, corners_y=d.corners_y, spacing_m=d.spacing_m, margin_m=d.margin_m)
+        npoints = cfg.lidar.npoints_per_rotation or infer_lidar_spacing(scans[:5])[1] or None
+        static = (static_masks(scans, npoints_per_rotation=npoints, quantum_m=cfg.lidar.static_range_quantum_m)
+                  if cfg.lidar.suppress_static and npoints else [None] * len(scans))
+        outdir = Path(args.png) if args.png else None
+        if outdir:
+            outdir.mkdir(parents=True, exist_ok=True)
+        dump, nfound = {}, 0
+        for k, (scan, ex) in enumerate(zip(scans, static)):
+            dbg = Debug()
+            r = segment_board(scan, cfg.segmentation, cfg.lidar, board, snapshot=k, exclude=ex,
+                              npoints_per_rotation=npoints, debug=dbg)
+            t = f"{scan.stamp_ns * 1e-9:.6f}"
+            if isinstance(r, LidarBoardObservation):
+                nfound += 1
+                c = r.points.mean(axis=0)
+                print(f"{t} board: {len(r.indices)} points at {np.linalg.norm(c):.2f} m, normal "
+                      f"{np.round(r.plane[:3], 3).tolist()}, RMS {r.rms_m * 1e3:.1f} mm")
+            else:
+                print(f"{t} rejected: {r.reason}")
+            if args.dump:
+                dump[f"scan{k}_segments"] = dbg.segments if dbg.segments is not None else np.zeros((0, 2, 3))
+                dump[f"scan{k}_segment_ring"] = dbg.segment_rank if dbg.segment_rank is not None else np.zeros(0)
+                for j, ids in enumerate(dbg.clusters):
+                    dump[f"scan{k}_cluster{j}_segments"] = ids
+                for j, (idx, verdict) in enumerate(dbg.candidates):
+                    dump[f"scan{k}_candidate{j}_points"] = idx
+                    dump[f"scan{k}_candidate{j}_verdict"] = np.array(verdict)
+                dump[f"scan{k}_accepted"] = dbg.accepted if dbg.accepted is not None else np.zeros(0, int)
+            if outdir:
+                plot_segmentation(scan, dbg, r, outdir / f"{k:05d}_{scan.stamp_ns}.png")
+        if args.dump:
+            np.savez_compressed(args.dump, **dump)
+        print(f"{nfound}/{len(scans)} scans with a board")
+        return 0
+
+    p.set_defaults(func=run, overrides=lambda a: [(s_, k_, getattr(a, d_)) for d_, s_, k_ in seg_flags
+                                                  if getattr(a, d_) is not None])
+
+
+@_command
+def _add_infer_lidar_spacing(sub):
+    p = sub.add_parser("infer-lidar-spacing", help="number of rings and Npoints_per_rotation of a LIDAR topic")
+    p.add_argument("bags", nargs="+", metavar="BAG", help="bag files/dirs")
+    p.add_argument("--topic", required=True, help="the PointCloud2 topic")
+
+    def run(args):
+        from .api import expand_bags
+        from .frontend.bag import first_messages
+        from .frontend.lidar_preprocess import infer_lidar_spacing
+
+        scans = [first_messages(b, [args.topic])[args.topic] for b in expand_bags(args.bags)[:5]]
+        n_rings, npoints = infer_lidar_spacing(scans)
+        print(f"{args.topic}: {n_rings} rings, Npoints_per_rotation {npoints}")
+        return 0
+
+    p.set_defaults(func=run)
+
+
 def _load_config(args):
     """Config from --config, then the command's own flags, then --set KEY=VALUE (last wins)."""
     import yaml

@@ -48,14 +48,14 @@ class SnapshotOptions:
 
 @dataclass(frozen=True)
 class LidarOptions:
-    # Points closer/further than this are ignored by segmentation.
+    # Points closer/further than this are ignored by segmentation (boards are held 2-12 m away).
     min_range_m: float = 0.5
-    max_range_m: float = 9.0
+    max_range_m: float = 15.0
     # Inferred from the data when None (rounded to a power of 2, like the seed).
     npoints_per_rotation: int | None = None
     # Zero points at the per-(ring, azimuth) mode range over the session (walls, ground).
     suppress_static: bool = True
-    static_range_quantum_m: float = 0.2
+    static_range_quantum_m: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -63,19 +63,32 @@ class SegmentationOptions:
     # Stage 1: flat segments along each ring.
     points_per_segment: int = 8
     max_gap_points_stage1: int = 2
-    max_rms_segment_m: float = 0.02
+    # Straightness of a segment: RMS distance of its points from their line (a few range sigmas).
+    max_rms_segment_m: float = 0.03
     # Stage 2: clustering segments across rings.
     min_rings: int = 3
     min_segments_per_cluster: int = 4
-    max_segments_per_cluster: int = 250
+    max_segments_per_cluster: int = 5000
+    # Planes seen more than this far off head-on are ignored (the ground is seen at grazing angles).
     max_tilt_deg: float = 60.0
     # Stage 3: accumulate points near the plane.
     point_plane_tolerance_m: float = 0.05
     max_gap_points_stage3: int = 5
     # Post-processing checks.
+    # A plane with more than this share of its points outside a board-sized rectangle continues
+    # past the board (a wall, a car); a smaller share touching it (a hand) is cut off.
+    max_outside_fraction: float = 0.1
+    # ...and no board is larger than this across.
     max_plane_size_m: float = 1.8
-    max_plane_rms_m: float = 0.02
-    edge_isolation_m: float = 0.3
+    # ...smaller than this fraction of the board's diagonal is something else (a crate, a sign).
+    min_plane_size_fraction: float = 0.5
+    # ...narrower than this fraction of the board's short side is a sliver (seed: 2nd dimension check).
+    min_width_fraction: float = 0.2
+    # ...and some ring must cross at least this fraction of the board's short side.
+    min_chord_fraction: float = 0.45
+    max_plane_rms_m: float = 0.03
+    # ...and at most this many times the range noise seen along the scan's straight segments.
+    max_plane_rms_sigmas: float = 1.5
     # A scan counts only if exactly one board plane is found.
     require_unique: bool = True
 

@@ -406,3 +406,43 @@ def plot_image_preview(image, path, *, title: str = "") -> Path:
     ax.set_axis_off()
     ax.set_title(title or f"{image.topic}: {w}x{h} {image.encoding}")
     return _save(fig, path)
+
+
+def plot_segmentation(scan, debug, result, path) -> Path:
+    """A scan's board segmentation: top view with the straight segments, candidate planes and
+    the accepted board, and a zoom on the board (or the best candidate) from the sensor."""
+    pts = np.asarray(scan.points, float)
+    ok = np.asarray(scan.valid, bool)
+    fig, (a, b) = plt.subplots(1, 2, figsize=(14, 6))
+    a.scatter(pts[ok, 0], pts[ok, 1], s=0.2, c="0.75")
+    if debug.segments is not None and len(debug.segments):
+        s = debug.segments
+        a.plot(s[:, :, 0].T, s[:, :, 1].T, "-", color="tab:blue", lw=0.6)
+    focus = None
+    for idx, verdict in debug.candidates:
+        accepted = verdict == "accepted"
+        a.scatter(pts[idx, 0], pts[idx, 1], s=2, c="tab:green" if accepted else "tab:red")
+        if focus is None or accepted:
+            focus = idx
+    if getattr(result, "indices", None) is not None:
+        focus = result.indices
+        a.scatter(pts[focus, 0], pts[focus, 1], s=3, c="tab:green", label="board")
+    a.set_aspect("equal")
+    a.set_xlabel("x [m]")
+    a.set_ylabel("y [m]")
+    a.set_title("segments (blue), rejected planes (red), board (green)")
+    if focus is not None and len(focus):
+        c = pts[focus].mean(axis=0)
+        near = ok & (np.linalg.norm(pts - c, axis=1) < 2.0)
+        az = np.degrees(np.arctan2(pts[:, 1], pts[:, 0]))
+        el = np.degrees(np.arctan2(pts[:, 2], np.hypot(pts[:, 0], pts[:, 1])))
+        b.scatter(az[near], el[near], s=4, c="0.6")
+        b.scatter(az[focus], el[focus], s=6, c="tab:green" if getattr(result, "indices", None) is not None else "tab:red")
+        b.invert_xaxis()
+        b.set_xlabel("azimuth [deg]")
+        b.set_ylabel("elevation [deg]")
+        b.set_title("around the board, from the sensor")
+    reason = getattr(result, "reason", None)
+    fig.suptitle(reason if reason else f"board: {len(result.indices)} points, RMS {result.rms_m * 1e3:.1f} mm",
+                 fontsize=9)
+    return _save(fig, path)

@@ -32,7 +32,7 @@ from .bag_writer import FORMATS, BagWriter
 from .camera import render
 from .lidar import simulate_scan
 from .rig import Rig, load_rig
-from .scene import make_scene, static_meshes
+from .scene import make_scene, random_board_pose, static_meshes
 
 log = logging.getLogger(__name__)
 
@@ -43,33 +43,12 @@ DEMO_DIR = DEMO_RIG.parent / "demo"
 
 def _board_pose(rng, rig: Rig, tilt_max_deg: float) -> np.ndarray:
     """T_world_board: in front of a random camera (half the time) or anywhere around a LIDAR."""
-    xmin, xmax, ymin, ymax = rig.board.extent()
-    centre_b = np.array([(xmin + xmax) / 2, (ymin + ymax) / 2, 0.0])
     if rig.cameras and rng.uniform() < 0.5:
         cam = rig.cameras[rng.integers(len(rig.cameras))]
-        o = cam.T_base_sensor[:3, 3]
         fwd = cam.T_base_sensor[:3, :3] @ R_from_r(rng.normal(0, 0.25, 3)) @ np.array([0.0, 0.0, 1.0])
-    else:
-        L = rig.lidars[rng.integers(len(rig.lidars))]
-        o = L.T_base_sensor[:3, 3]
-        az = rng.uniform(-np.pi, np.pi)
-        fwd = np.array([np.cos(az), np.sin(az), 0.0])
-    fwd[2] = 0.0
-    fwd /= np.linalg.norm(fwd)
-    c = o + fwd * rng.uniform(2.5, 9.0)
-    c[2] = rng.uniform(0.9, 1.9)
-    z = c - o  # board normal away from the sensor (mrcal's board convention)
-    z /= np.linalg.norm(z)
-    y = np.array([0.0, 0.0, -1.0]) - (np.array([0.0, 0.0, -1.0]) @ z) * z
-    y /= np.linalg.norm(y)
-    R = np.c_[np.cross(y, z), y, z]
-    axis = rng.normal(size=3)
-    axis -= (axis @ z) * z
-    R = R_from_r(axis / np.linalg.norm(axis) * np.radians(rng.uniform(0, tilt_max_deg))) @ R
-    R = R @ R_from_r(np.array([0.0, 0.0, np.radians(rng.uniform(-20, 20))]))
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, c - R @ centre_b
-    return T
+        return random_board_pose(rng, rig.board, cam.T_base_sensor[:3, 3], tilt_max_deg=tilt_max_deg, forward=fwd)
+    L = rig.lidars[rng.integers(len(rig.lidars))]
+    return random_board_pose(rng, rig.board, L.T_base_sensor[:3, 3], tilt_max_deg=tilt_max_deg)
 
 
 def _lowest_z(rig: Rig, T: np.ndarray) -> float:

@@ -1,8 +1,8 @@
 """The calibration scene: ground, walls, clutter, a person and the chessboard, for ray casting.
 
 World frame: z up, ground at z = 0; the rig stands near the origin. The board is a thin
-box of its physical size (margin included); a person-sized box stands half a metre behind
-and beside it (someone holding it). Clutter: walls 12-25 m away, parked cars, poles and
+box of its physical size (margin included); a person (a round body) stands half a metre behind
+one edge of it (someone holding it). Clutter: walls 12-25 m away, parked cars, poles and
 boxes whose faces are not board-sized (the segmentation must still never take them).
 
 SYNOPSIS
@@ -79,12 +79,43 @@ def board_mesh(board: BoardGeometry, T_world_board: np.ndarray):
 
 
 def person_mesh(board: BoardGeometry, T_world_board: np.ndarray, rng):
-    """Someone holding the board: a 0.5 x 0.3 x 1.75 m box behind one edge of it."""
+    """Someone holding the board: a 1.75 m body (a 0.2 m radius cylinder, round like a torso)
+    half a metre behind one edge of it."""
     xmin, xmax, ymin, ymax = board.extent()
-    side = rng.choice([xmin - 0.15, xmax + 0.15])
-    p = T_world_board[:3, :3] @ np.array([side, (ymin + ymax) / 2, 0.45]) + T_world_board[:3, 3]
-    yaw = np.arctan2(T_world_board[1, 2], T_world_board[0, 2])
-    return _box(0.3, 0.5, 1.75, p[0], p[1], 0.0, yaw)
+    side = rng.choice([xmin - 0.05, xmax + 0.05])
+    p = T_world_board[:3, :3] @ np.array([side, (ymin + ymax) / 2, 0.0]) + T_world_board[:3, 3]
+    behind = T_world_board[:3, 2] * np.array([1.0, 1.0, 0.0])
+    p = p + 0.5 * behind / max(np.linalg.norm(behind), 1e-9)
+    body = _cylinder(0.2, 1.75, p[0], p[1])
+    return body
+
+
+def random_board_pose(rng, board: BoardGeometry, origin, *, tilt_max_deg: float = 45.0, distance_m=(2.5, 9.0),
+                      height_m=(0.9, 1.9), forward=None) -> np.ndarray:
+    """T_world_board: held ``distance_m`` from ``origin`` (toward ``forward``, else a random azimuth),
+    facing it, tilted up to ``tilt_max_deg`` about a random in-plane axis and rolled +-20 deg."""
+    xmin, xmax, ymin, ymax = board.extent()
+    centre_b = np.array([(xmin + xmax) / 2, (ymin + ymax) / 2, 0.0])
+    o = np.asarray(origin, float)
+    if forward is None:
+        az = rng.uniform(-np.pi, np.pi)
+        forward = np.array([np.cos(az), np.sin(az), 0.0])
+    fwd = np.array([forward[0], forward[1], 0.0])
+    fwd /= np.linalg.norm(fwd)
+    c = o + fwd * rng.uniform(*distance_m)
+    c[2] = rng.uniform(*height_m)
+    z = c - o  # board normal away from the sensor (mrcal's board convention)
+    z /= np.linalg.norm(z)
+    y = np.array([0.0, 0.0, -1.0]) - (np.array([0.0, 0.0, -1.0]) @ z) * z
+    y /= np.linalg.norm(y)
+    R = np.c_[np.cross(y, z), y, z]
+    axis = rng.normal(size=3)
+    axis -= (axis @ z) * z
+    R = R_from_r(axis / np.linalg.norm(axis) * np.radians(rng.uniform(0, tilt_max_deg))) @ R
+    R = R @ R_from_r(np.array([0.0, 0.0, np.radians(rng.uniform(-20, 20))]))
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, c - R @ centre_b
+    return T
 
 
 @dataclass

@@ -1,0 +1,526 @@
+"""Find the chessboard plane in a full LIDAR rotation, among ground, walls, poles, cars and people.
+
+Three stages, as in the clc seed, vectorized per scan:
+
+1. Segments: each ring is cut into runs of neighbouring returns (no azimuth gap longer than
+   ``max_gap_points_stage1`` points, no range jump), runs into windows of ``points_per_segment``
+   points; windows that are straight lines (RMS <= ``max_rms_segment_m``) are segments.
+2. Clusters: segments of nearby rings that overlap in azimuth, run nearly parallel, lie a ring
+   spacing apart, and whose common plane faces the sensor (<= ``max_tilt_deg`` off head-on) are
+   linked; the ground (seen at grazing angles) falls out here. Connected components that are not
+   one plane are split by RANSAC; a plane needs segments from >= ``min_rings`` rings.
+3. Points: each candidate plane collects the contiguous coplanar returns of its rings and the
+   rings next to it (gaps < ``max_gap_points_stage3``). A plane that continues past the board's
+   size (a wall, a car side) is then too big; a small flat thing is too small; a plane that is
+   not flat is rejected. Exactly one board-sized plane must remain (``require_unique``).
+
+Static-scene suppression (``LidarOptions.suppress_static``) runs over a session before this:
+walls and parked cars that never move are removed, the board (which moves) stays.
+
+SYNOPSIS
+    obs = segment_board(scan, SegmentationOptions(), LidarOptions(), BoardGeometry())
+    obs -> LidarBoardObservation(points, plane, rms_m, indices) or Rejected(reason)
+    results = segment_many(scans, seg, lidar, board, sensor=1, snapshots=[0, 1, ...])
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..types import BoardGeometry, LidarBoardObservation, LidarScan, Rejected
+from .lidar_preprocess import Rings, infer_lidar_spacing, prepare, static_masks
+
+STAGE = "segmentation"
+# Neighbouring segments must run within this angle of each other (same ring / across rings).
+_MAX_ANGLE_SAME_RING_DEG = 15.0
+_MAX_ANGLE_CROSS_RING_DEG = 30.0
+# Segments this many rings apart may link (one ring can miss the board through dropouts).
+_MAX_RING_STEP = 2
+# A segment counts in a RANSAC plane when this share of its points are inliers.
+_SEGMENT_INLIER_SHARE = 0.6
+
+
+@dataclass
+class _Segments:
+    center: np.ndarray  # (S,3)
+    direction: np.ndarray  # (S,3) unit
+    rank: np.ndarray  # (S,) ring rank by elevation
+    azimuth: np.ndarray  # (S,2) first and last point azimuth
+    first: np.ndarray  # (S,) index into the Rings arrays of the first point
+    run: np.ndarray  # (S,)
+    window: np.ndarray  # (S,) window number within its run
+
+
+@dataclass
+class Debug:
+    """What each stage found, for ``clcgraph segment --dump`` and pictures."""
+
+    segments: np.ndarray | None = None  # (S,2,3) segment end points
+    segment_rank: np.ndarray | None = None
+    clusters: list = field(default_factory=list)  # per cluster: segment indices
+    candidates: list = field(default_factory=list)  # (points indices into the scan, verdict)
+    accepted: np.ndarray | None = None
+
+
+def _ring_ranks(R: Rings) -> tuple[np.ndarray, np.ndarray]:
+    """Per point the ring's rank by elevation (ring numbers need not be ordered), and the
+    elevation (rad) of each rank."""
+    el = np.arcsin(np.clip(R.points[:, 2] / np.maximum(R.range, 1e-9), -1, 1))
+    med = np.array([np.median(el[a:b]) for a, b in zip(R.starts[:-1], R.starts[1:])])
+    order = np.argsort(med)
+    rank_of_slice = np.empty(len(med), np.int64)
+    rank_of_slice[order] = np.arange(len(med))
+    per_point = np.repeat(rank_of_slice, np.diff(R.starts))
+    return per_point, med[order]
+
+
+def _azimuth_step(R: Rings, npoints_per_rotation: int | None) -> float:
+    if npoints_per_rotation:
+        return 2 * np.pi / npoints_per_rotation
+    d = np.diff(R.azimuth)
+    d = d[(d > 1e-6) & (np.diff(R.ring) == 0)]
+    return float(np.median(d[d < 3 * np.percentile(d, 25)])) if len(d) else 2 * np.pi / 1800
+
+
+def _stage1(R: Rings, rank: np.ndarray, step: float, o) -> tuple[_Segments, np.ndarray, float]:
+    """Straight windows of ``points_per_segment`` neighbouring returns along each ring: the
+    segments, their points, and the range noise they show."""
+    k = o.points_per_segment
+    p = R.points
+    same_ring = R.ring[1:] == R.ring[:-1]
+    daz = np.diff(R.azimuth)
+    jump = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    # a 60-deg tilted plane spaces returns 2 r daz apart; allow for range noise on top
+    max_jump = 0.05 + 3.0 * R.range[:-1] * np.maximum(daz, step)
+    linked = same_ring & (daz <= (o.max_gap_points_stage1 + 1.5) * step) & (jump <= max_jump)
+    run = np.r_[0, np.cumsum(~linked)]
+    run_start = np.r_[0, np.flatnonzero(~linked) + 1]
+    pos = np.arange(len(p)) - run_start[run]
+    run_len = np.diff(np.r_[run_start, len(p)])
+    window = pos // k
+    full = (window + 1) * k <= run_len[run]
+    first = np.flatnonzero(full & (pos % k == 0))
+    W = p[first[:, None] + np.arange(k)]  # (S,k,3)
+    c = W.mean(axis=1)
+    X = W - c[:, None]
+    cov = np.einsum("ski,skj->sij", X, X) / k
+    lam, vec = np.linalg.eigh(cov)
+    rms = np.sqrt(np.maximum(lam[:, 0] + lam[:, 1], 0))
+    ok = rms <= o.max_rms_segment_m
+    # this LIDAR's range noise, from its straight segments (2 of k dof go to the line fit)
+    noise = float(np.median(rms[ok]) * np.sqrt(k / (k - 2))) if ok.any() else o.max_plane_rms_m
+    first = first[ok]
+    seg = _Segments(
+        center=c[ok], direction=vec[ok, :, 2], rank=rank[first],
+        azimuth=np.c_[R.azimuth[first], R.azimuth[first + k - 1]],
+        first=first, run=run[first], window=window[first],
+    )
+    return seg, W[ok], noise
+
+
+def _links(seg: _Segments, rank_elevation: np.ndarray, o) -> np.ndarray:
+    """(L,2) pairs of segments that plausibly lie on one plane facing the sensor."""
+    pairs = []
+    # same ring: consecutive windows of one run, nearly collinear
+    a = np.flatnonzero((seg.run[1:] == seg.run[:-1]) & (seg.window[1:] == seg.window[:-1] + 1))
+    cos_same = np.abs(np.einsum("ij,ij->i", seg.direction[a], seg.direction[a + 1]))
+    pairs.append(np.c_[a, a + 1][cos_same >= np.cos(np.radians(_MAX_ANGLE_SAME_RING_DEG))])
+    # across rings: overlapping azimuth intervals in a ring 1-2 ranks away
+    by_rank = {r: np.flatnonzero(seg.rank == r) for r in np.unique(seg.rank)}
+    lo_az = seg.azimuth.min(axis=1)
+    hi_az = seg.azimuth.max(axis=1)
+    for r, A in by_rank.items():
+        for dr in range(1, _MAX_RING_STEP + 1):
+            B = by_rank.get(r + dr)
+            if B is None:
+                continue
+            B = B[np.argsort(lo_az[B])]
+            # B's intervals are disjoint and sorted, so their ends are sorted too
+            lo = np.searchsorted(hi_az[B], lo_az[A])
+            hi = np.searchsorted(lo_az[B], hi_az[A], side="right")
+            n = np.maximum(hi - lo, 0)
+            if not n.sum():
+                continue
+            ia = np.repeat(A, n)
+            ib = B[np.concatenate([np.arange(l, h) for l, h in zip(lo[n > 0], hi[n > 0])])]
+            pairs.append(np.c_[ia, ib])
+    P = np.concatenate(pairs) if pairs else np.zeros((0, 2), np.int64)
+    if not len(P):
+        return P
+    ca, cb = seg.center[P[:, 0]], seg.center[P[:, 1]]
+    va, vb = seg.direction[P[:, 0]], seg.direction[P[:, 1]]
+    cross = seg.rank[P[:, 0]] != seg.rank[P[:, 1]]
+    d = cb - ca
+    d_perp = d - np.einsum("ij,ij->i", d, va)[:, None] * va
+    dist_perp = np.linalg.norm(d_perp, axis=1)
+    r = np.linalg.norm(ca, axis=1)
+    del_el = np.abs(rank_elevation[seg.rank[P[:, 0]]] - rank_elevation[seg.rank[P[:, 1]]])
+    # ring lines on a plane <= max_tilt off head-on are r*del_el/cos(tilt) apart
+    max_perp = 0.05 + 1.25 * r * del_el / np.cos(np.radians(o.max_tilt_deg))
+    parallel = np.abs(np.einsum("ij,ij->i", va, vb)) >= np.cos(np.radians(_MAX_ANGLE_CROSS_RING_DEG))
+    n = np.cross(va, d_perp)
+    n /= np.maximum(np.linalg.norm(n, axis=1), 1e-12)[:, None]
+    facing = np.abs(np.einsum("ij,ij->i", n, ca / r[:, None])) >= np.cos(np.radians(o.max_tilt_deg))
+    keep = ~cross | (parallel & (dist_perp <= max_perp) & (dist_perp > 1e-3) & facing)
+    return P[keep]
+
+
+def _components(n: int, links: np.ndarray) -> np.ndarray:
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    g = coo_matrix((np.ones(len(links)), (links[:, 0], links[:, 1])), shape=(n, n))
+    return connected_components(g, directed=False)[1]
+
+
+def fit_plane(points: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Least-squares plane: (unit normal n, offset d with n.x = d, RMS distance)."""
+    c = points.mean(axis=0)
+    _, s, vt = np.linalg.svd(points - c, full_matrices=False)
+    n = vt[2]
+    return n, float(n @ c), float(s[2] / np.sqrt(len(points)))
+
+
+def _ransac_plane(points: np.ndarray, tol: float, iterations: int = 256) -> np.ndarray:
+    """(N,) inlier mask of the plane with most points within ``tol``, refined by least squares.
+    Seeded numpy, not Open3D's segment_plane: that one runs its iterations in threads and
+    returns different planes for the same scan from run to run."""
+    rng = np.random.default_rng(0)
+    tri = points[rng.integers(0, len(points), (iterations, 3))]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norm = np.linalg.norm(n, axis=1)
+    ok = norm > 1e-9
+    n = n[ok] / norm[ok, None]
+    d = np.einsum("ij,ij->i", n, tri[ok, 0])
+    count = (np.abs(points @ n.T - d) <= tol).sum(axis=0)
+    best = int(np.argmax(count))
+    inl = np.abs(points @ n[best] - d[best]) <= tol
+    n2, d2, _ = fit_plane(points[inl])
+    return np.abs(points @ n2 - d2) <= tol
+
+
+def _ransac_planes(points: np.ndarray, owner: np.ndarray, tol: float, min_points: int, max_planes: int = 4):
+    """Split a cluster's segment points into planes; yields the segment ids of each plane."""
+    remaining = np.arange(len(points))
+    for _ in range(max_planes):
+        if len(remaining) < min_points:
+            return
+        inl = remaining[_ransac_plane(points[remaining], tol)]
+        ids, counts = np.unique(owner[inl], return_counts=True)
+        total = np.bincount(owner[remaining], minlength=owner.max() + 1)[ids]
+        segs = ids[counts >= _SEGMENT_INLIER_SHARE * total]
+        if not len(segs):
+            return
+        yield segs
+        remaining = remaining[~np.isin(owner[remaining], segs)]
+
+
+def _stage3(R: Rings, rank: np.ndarray, rank_el: np.ndarray, members: np.ndarray, n: np.ndarray, d: float,
+            step: float, o) -> np.ndarray:
+    """Rows of R on the plane, contiguous along their ring (no range jump, gaps shorter than
+    ``max_gap_points_stage3``) with the cluster's points; in the rings next to the cluster, runs
+    one ring spacing from it (partly covered rings at the board's edges)."""
+    from scipy.spatial import cKDTree
+
+    tol = o.point_plane_tolerance_m
+    mrank = rank[members]
+    lo_r, hi_r = mrank.min() - _MAX_RING_STEP, mrank.max() + _MAX_RING_STEP
+    az0 = np.arctan2(*np.mean(np.c_[np.sin(R.azimuth[members]), np.cos(R.azimuth[members])], axis=0))
+    rel = lambda az: (az - az0 + np.pi) % (2 * np.pi) - np.pi  # noqa: E731  azimuth around the cluster
+    out, pending = [], []
+    for a, b in zip(R.starts[:-1], R.starts[1:]):
+        rk = rank[a]
+        if not lo_r <= rk <= hi_r:
+            continue
+        az = rel(R.azimuth[a:b])
+        order = np.argsort(az)
+        rows = (a + order)[np.abs(R.points[a + order] @ n - d) <= tol]
+        if not len(rows):
+            continue
+        pos = np.searchsorted(az[order], rel(R.azimuth[rows]))  # position along the ring
+        jump = np.linalg.norm(np.diff(R.points[rows], axis=0), axis=1)
+        max_jump = 0.05 + 3.0 * R.range[rows[:-1]] * step * np.clip(np.diff(pos), 1, 2)
+        brk = np.flatnonzero((np.diff(pos) > o.max_gap_points_stage3) | (jump > max_jump))
+        mine = members[mrank == rk]
+        for run in np.split(rows, brk + 1):
+            if len(mine):
+                if np.isin(run, mine).any():
+                    out.append(run)
+            elif len(run) >= 2:
+                pending.append((rk, run))
+    rows = np.concatenate(out)
+    if pending:
+        tree = cKDTree(R.points[rows])
+        m_az = rel(R.azimuth[members])
+        lo_az, hi_az = m_az.min() - 2 * step, m_az.max() + 2 * step
+        for rk, run in pending:
+            run = run[(rel(R.azimuth[run]) >= lo_az) & (rel(R.azimuth[run]) <= hi_az)]
+            if len(run) < 2:
+                continue
+            gap = abs(rank_el[rk] - rank_el[np.clip(rk, mrank.min(), mrank.max())])
+            reach = 0.05 + 1.25 * R.range[run].mean() * gap / np.cos(np.radians(o.max_tilt_deg))
+            if tree.query(R.points[run], distance_upper_bound=reach)[0].min() <= reach:
+                out.append(run)
+    return np.concatenate(out)
+
+
+def _in_plane(points: np.ndarray, n: np.ndarray) -> np.ndarray:
+    u = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0])
+    u /= np.linalg.norm(u)
+    return np.c_[points @ u, points @ np.cross(n, u)]
+
+
+def _board_window(points: np.ndarray, n: np.ndarray, sx: float, sy: float, slack: float) -> np.ndarray:
+    """(N,) mask of the points inside the board-sized rectangle (in-plane, any rotation) that
+    holds the most of them: coplanar things touching the board (a hand, a body at the plane's
+    crossing line) stay outside it."""
+    q = _in_plane(points, n)
+    ang = np.radians(np.arange(0, 180, 3.0))
+    best, best_mask = -1, None
+    for lx, ly in {(sx, sy), (sy, sx)}:
+        e1 = np.sort(q @ np.stack([np.cos(ang), np.sin(ang)]), axis=0)
+        e2 = np.sort(q @ np.stack([-np.sin(ang), np.cos(ang)]), axis=0)
+
+        def window(e, length):
+            # per angle: the start of the length-long interval holding the most points
+            j = np.stack([np.searchsorted(e[:, k], e[:, k] + length, side="right") for k in range(e.shape[1])], 1)
+            i = np.argmax(j - np.arange(len(e))[:, None], axis=0)
+            return e[i, np.arange(e.shape[1])]
+
+        s1, s2 = window(e1, lx + slack), window(e2, ly + slack)
+        p1 = q @ np.stack([np.cos(ang), np.sin(ang)])
+        p2 = q @ np.stack([-np.sin(ang), np.cos(ang)])
+        inside = (p1 >= s1) & (p1 <= s1 + lx + slack) & (p2 >= s2) & (p2 <= s2 + ly + slack)
+        k = int(np.argmax(inside.sum(axis=0)))
+        if inside[:, k].sum() > best:
+            best, best_mask = inside[:, k].sum(), inside[:, k]
+    return best_mask
+
+
+def _extents(points: np.ndarray, n: np.ndarray) -> tuple[float, float]:
+    """(diameter, width): the largest in-plane extent over 36 directions, and the smallest."""
+    u = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    q = np.c_[points @ u, points @ v]
+    ang = np.linspace(0, np.pi, 36, endpoint=False)
+    proj = q @ np.stack([np.cos(ang), np.sin(ang)])
+    span = proj.max(axis=0) - proj.min(axis=0)
+    return float(span.max()), float(span.min())
+
+
+def _chord_and_height(pts: np.ndarray, ring: np.ndarray, n: np.ndarray) -> tuple[float, float]:
+    """The longest extent of one ring's points across the plane (rings cut planes nearly level),
+    and the in-plane extent across the rings."""
+    h = np.cross(n, [0.0, 0.0, 1.0])
+    h = h / np.linalg.norm(h) if np.linalg.norm(h) > 1e-6 else np.array([1.0, 0.0, 0.0])
+    x = pts @ h
+    y = pts @ np.cross(n, h)
+    order = np.lexsort((x, ring))
+    x, ring = x[order], ring[order]
+    starts = np.r_[0, np.flatnonzero(np.diff(ring)) + 1]
+    ends = np.r_[starts[1:], len(x)] - 1
+    return float((x[ends] - x[starts]).max()), float(np.ptp(y))
+
+
+def _main_piece_per_ring(pts: np.ndarray, ring: np.ndarray, step: float) -> np.ndarray:
+    """(N,) mask keeping, in each ring, the longest piece unbroken by a 3D jump of more than
+    three point spacings: a body or post beside the board, crossing its plane, falls away."""
+    az = np.arctan2(pts[:, 1], pts[:, 0])
+    az0 = np.arctan2(np.sin(az).mean(), np.cos(az).mean())
+    az = (az - az0 + np.pi) % (2 * np.pi) - np.pi
+    order = np.lexsort((az, ring))
+    p, r = pts[order], ring[order]
+    jump = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    limit = 0.05 + 3.0 * np.linalg.norm(p[:-1], axis=1) * step
+    piece = np.r_[0, np.cumsum((jump > limit) | (r[1:] != r[:-1]))]
+    size = np.bincount(piece)
+    ring_of_piece = np.zeros(len(size), r.dtype)
+    ring_of_piece[piece] = r
+    best = {}
+    for k in np.argsort(size):  # ascending: the largest piece of each ring is written last
+        best[ring_of_piece[k]] = k
+    keep = np.empty(len(pts), bool)
+    keep[order] = np.isin(piece, list(best.values()))
+    return keep
+
+
+def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: float, noise_m: float, o):
+    """Whether ``pts`` (with their ring ranks) are the board: (None or why not, the refit plane
+    (n, d, rms), the mask of the points kept)."""
+    keep = np.ones(len(pts), bool)
+    n, d, rms = fit_plane(pts)
+    c = pts.mean(axis=0)
+    at = f"plane at {np.linalg.norm(c):.1f} m"
+    sx, sy = board.size_m
+    # edges bloom by about one point spacing and the range noise
+    spacing_m = float(np.linalg.norm(pts, axis=1).mean() * step)
+    slack = 0.05 + 2.0 * spacing_m
+    keep = _board_window(pts, n, sx, sy, slack)
+    if (~keep).mean() > o.max_outside_fraction:
+        return (f"{at} is {_extents(pts, n)[0]:.2f} m across, {(~keep).mean():.0%} of it outside any "
+                f"{sx:.2f} x {sy:.2f} m rectangle: a wall, car, person or the board touching something"), (n, d, rms), keep
+    # coplanar things crossing the board plane (a body, a hand) drift off it away from the crossing
+    for _ in range(2):
+        n, d, _ = fit_plane(pts[keep])
+        res = np.abs(pts @ n - d)
+        sigma = 1.4826 * np.median(res[keep])
+        keep &= res <= max(3.0 * sigma, 0.01)
+    keep[keep] = _main_piece_per_ring(pts[keep], ring[keep], step)
+    pts, ring = pts[keep], ring[keep]
+    n, d, rms = fit_plane(pts)
+    if d > 0:
+        n, d = -n, -d  # normal toward the sensor at the origin
+    plane = (n, d, rms)
+    tilt = np.degrees(np.arccos(min(1.0, abs(n @ c) / np.linalg.norm(c))))
+    n_rings = len(np.unique(ring))
+    diameter, width = _extents(pts, n)
+    diag = float(np.hypot(sx, sy))
+    chord, height = _chord_and_height(pts, ring, n)
+    need_chord = max(o.min_chord_fraction * min(sx, sy), 0.6 * min(height, sx, sy))
+    if n_rings < o.min_rings:
+        why = f"{at} crosses {n_rings} rings < min_rings {o.min_rings}"
+    elif rms > min(o.max_plane_rms_m, o.max_plane_rms_sigmas * noise_m):
+        why = (f"{at} not flat: RMS {rms * 1e3:.0f} mm > max_plane_rms_m or {o.max_plane_rms_sigmas:g} x "
+               f"the scan's {noise_m * 1e3:.0f} mm range noise")
+    elif tilt > o.max_tilt_deg:
+        why = f"{at} tilted {tilt:.0f} deg from head-on > max_tilt_deg"
+    elif diameter > o.max_plane_size_m:
+        why = f"{at} is {diameter:.2f} m across > max_plane_size_m"
+    elif diameter < o.min_plane_size_fraction * diag:
+        why = f"{at} is {diameter:.2f} m across, smaller than {o.min_plane_size_fraction:g} of the board diagonal"
+    elif width < o.min_width_fraction * min(sx, sy):
+        why = f"{at} is a {width:.2f} m wide sliver"
+    elif chord < need_chord - slack:
+        # a ring crosses a square board's middle once its rings span most of its height; and near
+        # a corner (any roll) the crossing is at least as long as the height seen
+        why = (f"{at}: its longest ring crossing is {chord:.2f} m, less than {need_chord:.2f} m for a board "
+               f"seen {height:.2f} m high (a person, a post?)")
+    else:
+        why = None
+    return why, plane, keep
+
+
+def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry, *, sensor: int = 0,
+                  snapshot: int = 0, exclude: np.ndarray | None = None, npoints_per_rotation: int | None = None,
+                  debug: Debug | None = None) -> LidarBoardObservation | Rejected:
+    """The board in one scan, or Rejected(reason). ``exclude``: (N,) rows to ignore (static scene)."""
+    o = options
+
+    def rejected(why):
+        return Rejected(f"{scan.topic} at {scan.stamp_ns} ns: {why}", STAGE, sensor, snapshot)
+
+    R = prepare(scan, min_range_m=lidar_options.min_range_m, max_range_m=lidar_options.max_range_m, exclude=exclude)
+    if len(R.index) < o.points_per_segment * o.min_rings:
+        return rejected(f"only {len(R.index)} points within {lidar_options.min_range_m}-"
+                        f"{lidar_options.max_range_m} m")
+    rank, rank_el = _ring_ranks(R)
+    step = _azimuth_step(R, npoints_per_rotation or lidar_options.npoints_per_rotation)
+    seg, seg_pts, noise = _stage1(R, rank, step, o)
+    if debug is not None:
+        k = o.points_per_segment
+        debug.segments = np.stack([R.points[seg.first], R.points[seg.first + k - 1]], axis=1)
+        debug.segment_rank = seg.rank
+    if len(seg.first) < o.min_segments_per_cluster:
+        return rejected(f"only {len(seg.first)} straight segments along the rings")
+    links = _links(seg, rank_el, o)
+    comp = _components(len(seg.first), links)
+    k = o.points_per_segment
+    pieces, reasons = [], []
+    for cid in np.flatnonzero(np.bincount(comp) >= o.min_segments_per_cluster):
+        ids = np.flatnonzero(comp == cid)
+        if len(np.unique(seg.rank[ids])) < o.min_rings:
+            continue
+        if debug is not None:
+            debug.clusters.append(ids)
+        pts = seg_pts[ids].reshape(-1, 3)
+        owner = np.repeat(ids, k)
+        _, _, rms = fit_plane(pts)
+        planes = [ids] if rms <= o.point_plane_tolerance_m / 2 and len(ids) <= o.max_segments_per_cluster \
+            else _ransac_planes(pts, owner, o.point_plane_tolerance_m, k * o.min_segments_per_cluster)
+        for segs in planes:
+            if len(segs) < o.min_segments_per_cluster or len(np.unique(seg.rank[segs])) < o.min_rings:
+                continue
+            if len(segs) > o.max_segments_per_cluster:
+                reasons.append(f"plane of {len(segs)} segments > max_segments_per_cluster")
+                continue
+            n, d, _ = fit_plane(seg_pts[segs].reshape(-1, 3))
+            members = (seg.first[segs, None] + np.arange(k)).ravel()
+            rows = _stage3(R, rank, rank_el, members, n, d, step, o)
+            if len(rows) >= len(members) // 2:
+                pieces.append((rows, n, d))
+    found = []
+    for rows in _merge(pieces, R.points, o.point_plane_tolerance_m, float(np.hypot(*board.size_m))):
+        why, plane, keep = _verdict(R.points[rows], rank[rows], board, step, noise, o)
+        rows = rows[keep]
+        if debug is not None:
+            debug.candidates.append((R.index[rows], why or "accepted"))
+        if why is None:
+            found.append((rows, plane))
+        else:
+            reasons.append(why)
+    if not found:
+        if not reasons:
+            return rejected(f"no flat cluster of >= {o.min_segments_per_cluster} segments over "
+                            f">= {o.min_rings} rings facing the sensor")
+        return rejected("no board-like plane; " + "; ".join(sorted(set(reasons))[:3]))
+    if len(found) > 1 and o.require_unique:
+        where = ", ".join(f"{np.linalg.norm(R.points[r].mean(axis=0)):.1f} m" for r, _ in found)
+        return rejected(f"{len(found)} board-like planes (at {where}); require_unique")
+    rows, (n, d, rms) = max(found, key=lambda f: len(f[0]))
+    idx = np.sort(R.index[rows])
+    if debug is not None:
+        debug.accepted = idx
+    return LidarBoardObservation(sensor=sensor, snapshot=snapshot, points=np.asarray(scan.points, float)[idx],
+                                 plane=np.r_[n, d], rms_m=rms, indices=idx)
+
+
+def _merge(pieces: list, points: np.ndarray, tol: float, reach: float) -> list:
+    """Rows per physical plane: coplanar pieces within ``reach`` of each other (a board split by
+    the azimuth wrap, a dropout or RANSAC) join up."""
+    groups: list = []  # [rows, n, d]
+    for rows, n, d in pieces:
+        c = points[rows].mean(axis=0)
+        for g in groups:
+            c2 = points[g[0]].mean(axis=0)
+            same = (abs(n @ g[1]) > np.cos(np.radians(10)) and abs(c @ g[1] - g[2]) < tol
+                    and abs(c2 @ n - d) < tol and np.linalg.norm(c - c2) < reach)
+            if same:
+                g[0] = np.union1d(g[0], rows)
+                break
+        else:
+            groups.append([rows, n, d])
+    return [g[0] for g in groups]
+
+
+def _one(args):
+    scan, o, lo, board, sensor, snapshot, exclude, npoints = args
+    return segment_board(scan, o, lo, board, sensor=sensor, snapshot=snapshot, exclude=exclude,
+                         npoints_per_rotation=npoints)
+
+
+def segment_many(scans, options, lidar_options, board: BoardGeometry, *, sensor: int = 0,
+                 snapshots=None, jobs: int | None = None, progress=None) -> list:
+    """segment_board over a session of one LIDAR (static scene removed when suppress_static),
+    in a process pool. ``progress``: optional wrapper of the result iteration (a progress bar)."""
+    scans = list(scans)
+    snapshots = list(range(len(scans))) if snapshots is None else list(snapshots)
+    if not scans:
+        return []
+    npoints = lidar_options.npoints_per_rotation or infer_lidar_spacing(scans[:5])[1] or None
+    if lidar_options.suppress_static and npoints:
+        static = static_masks(scans, npoints_per_rotation=npoints, quantum_m=lidar_options.static_range_quantum_m)
+    else:
+        static = [None] * len(scans)
+    args = [(s, options, lidar_options, board, sensor, k, ex, npoints) for s, k, ex in zip(scans, snapshots, static)]
+    jobs = jobs or min(2, os.cpu_count() or 1)
+    if jobs <= 1 or len(scans) < 4:
+        it = map(_one, args)
+        return list(progress(it, len(args)) if progress else it)
+    with ProcessPoolExecutor(max_workers=jobs) as ex:
+        it = ex.map(_one, args, chunksize=1)
+        return list(progress(it, len(args)) if progress else it)

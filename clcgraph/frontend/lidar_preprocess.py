@@ -1,0 +1,129 @@
+"""LIDAR scans made regular: valid points in range, rings (derived when the cloud has none),
+azimuths, per-ring azimuth order; the ring count and Npoints_per_rotation inferred from data;
+and static-scene suppression over a session.
+
+SYNOPSIS
+    r = prepare(scan, min_range_m=0.5, max_range_m=9.0)   # Rings: per-ring sorted indices
+    n_rings, npoints = infer_lidar_spacing(scans)
+    static = static_masks(scans, npoints_per_rotation=1800)  # per scan: points at the session's mode range
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..types import LidarScan
+
+# Npoints_per_rotation values real LIDARs use; an estimate within 3% snaps to one of these.
+COMMON_NPOINTS = (360, 440, 512, 900, 1024, 1800, 2000, 2048, 3600, 4096)
+
+
+def ring_of(scan: LidarScan) -> np.ndarray:
+    """(N,) ring index per point: the ring field, or clusters of the elevation angle."""
+    if scan.ring is not None:
+        return np.asarray(scan.ring).astype(np.int64)
+    p = np.asarray(scan.points, float)
+    el = np.degrees(np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1])))
+    ok = np.asarray(scan.valid, bool) & np.isfinite(el)
+    ring = np.full(len(p), -1, np.int64)
+    if not ok.any():
+        return ring
+    e = np.sort(el[ok])
+    gaps = np.diff(e)
+    # a new ring where the sorted elevations jump well beyond their within-ring spread
+    big = gaps > max(0.08, 5.0 * np.median(gaps))
+    edges = e[1:][big]
+    ring[ok] = np.searchsorted(edges, el[ok], side="right")
+    return ring
+
+
+@dataclass(frozen=True)
+class Rings:
+    """A scan's usable points: ``index`` into the scan rows, sorted by (ring, azimuth)."""
+
+    index: np.ndarray  # (M,) rows of the scan
+    ring: np.ndarray  # (M,)
+    azimuth: np.ndarray  # (M,) rad in [-pi, pi)
+    range: np.ndarray  # (M,)
+    points: np.ndarray  # (M,3)
+    starts: np.ndarray  # (Nrings+1,) slice bounds of each ring in the sorted arrays
+    ring_ids: np.ndarray  # (Nrings,) the ring number of each slice
+
+
+def prepare(scan: LidarScan, *, min_range_m: float, max_range_m: float, exclude: np.ndarray | None = None) -> Rings:
+    """Valid, finite points within [min, max] range (minus ``exclude``), sorted by ring then azimuth."""
+    p = np.asarray(scan.points, float)
+    rng = np.linalg.norm(p, axis=1)
+    ok = np.asarray(scan.valid, bool) & np.all(np.isfinite(p), axis=1) & (rng >= min_range_m) & (rng <= max_range_m)
+    if exclude is not None:
+        ok &= ~exclude
+    ring = ring_of(scan)
+    ok &= ring >= 0
+    idx = np.flatnonzero(ok)
+    az = np.arctan2(p[idx, 1], p[idx, 0])
+    order = np.lexsort((az, ring[idx]))
+    idx = idx[order]
+    r = ring[idx]
+    ring_ids, starts = np.unique(r, return_index=True)
+    return Rings(idx, r, az[order], rng[idx], p[idx], np.r_[starts, len(idx)], ring_ids)
+
+
+def infer_lidar_spacing(scans) -> tuple[int, int]:
+    """(number of rings, Npoints_per_rotation) from the angular spacing of neighbouring returns."""
+    n_rings, steps = 0, []
+    for scan in scans:
+        R = prepare(scan, min_range_m=0.0, max_range_m=np.inf)
+        n_rings = max(n_rings, len(R.ring_ids))
+        for a, b in zip(R.starts[:-1], R.starts[1:]):
+            d = np.diff(R.azimuth[a:b])
+            steps.append(d[d > 1e-6])
+    if not steps or not np.concatenate(steps).size:
+        return n_rings, 0
+    d = np.concatenate(steps)
+    step = np.median(d[d < 3 * np.percentile(d, 25)])  # neighbours, not gaps over missing returns
+    n = 2 * np.pi / step
+    best = min(COMMON_NPOINTS, key=lambda c: abs(c - n))
+    return n_rings, int(best if abs(best - n) < 0.03 * n else round(n))
+
+
+def static_masks(scans, *, npoints_per_rotation: int, quantum_m: float = 0.2, min_share: float = 0.5) -> list[np.ndarray]:
+    """Per scan, the points at their (ring, azimuth) cell's most common range over the session.
+
+    The board (and whoever holds it) moves between snapshots, walls and the ground do not:
+    removing the static points leaves the board standing out. A cell counts as static only
+    if its mode range holds in >= ``min_share`` of the scans. Works for bags per pose and for
+    the snapshots of one continuous bag alike. Fewer than 4 scans: nothing is static.
+    """
+    if len(scans) < 4:
+        return [np.zeros(len(s.points), bool) for s in scans]
+    keys, qs = [], []
+    for s in scans:
+        p = np.asarray(s.points, float)
+        ring = ring_of(s)
+        az = np.arctan2(p[:, 1], p[:, 0])
+        cell = ring * npoints_per_rotation + np.floor((az + np.pi) / (2 * np.pi) * npoints_per_rotation).astype(np.int64) % npoints_per_rotation
+        r = np.linalg.norm(p, axis=1)
+        ok = np.asarray(s.valid, bool) & np.isfinite(r) & (ring >= 0)
+        keys.append(np.where(ok, cell, -1))
+        qs.append(np.where(ok, np.floor(np.nan_to_num(r) / quantum_m), -1).astype(np.int64))
+    K = np.concatenate(keys)
+    Q = np.concatenate(qs)
+    good = K >= 0
+    kq, counts = np.unique(np.c_[K[good], Q[good]], axis=0, return_counts=True)
+    # the most common range bin of each cell
+    order = np.lexsort((-counts, kq[:, 0]))
+    kq, counts = kq[order], counts[order]
+    first = np.r_[True, kq[1:, 0] != kq[:-1, 0]]
+    cells, mq, mc = kq[first, 0], kq[first, 1], counts[first]
+    n = len(scans)
+    out = []
+    for k, q in zip(keys, qs):
+        m = np.zeros(len(k), bool)
+        j = np.searchsorted(cells, k)
+        j = np.clip(j, 0, len(cells) - 1)
+        hit = (k >= 0) & (cells[j] == k)
+        m[hit] = (np.abs(q[hit] - mq[j[hit]]) <= 1) & (mc[j[hit]] >= min_share * n)
+        out.append(m)
+    return out
