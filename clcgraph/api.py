@@ -396,6 +396,41 @@ def calibrate_targetless(bags, **kwargs):
     return _targetless(expand_bags(bags), **kwargs)
 
 
+def compare_to_truth(result: Result, truth: dict) -> list[dict]:
+    """Per sensor: rotation error (deg), translation error (mm) and their 1-sigmas against a
+    simulator truth.yaml (``truth``: its parsed dict)."""
+    from .geometry import R_from_r, T_from_rt
+
+    want = {s["topic"]: np.asarray(s["rt_lidar0_sensor"], float) for s in truth["sensors"]}
+    rows = []
+    for i, sensor in enumerate(result.problem.sensors):
+        if sensor.topic not in want:
+            continue
+        T_err = np.linalg.inv(T_from_rt(want[sensor.topic])) @ T_from_rt(result.rt_lidar0_sensor[i])
+        rot = np.degrees(np.arccos(np.clip((np.trace(T_err[:3, :3]) - 1) / 2, -1, 1)))
+        sd = result.stdev_rt(i)
+        rows.append({"topic": sensor.topic, "rotation_deg": float(rot),
+                     "translation_mm": float(np.linalg.norm(result.rt_lidar0_sensor[i][3:] - want[sensor.topic][3:]) * 1e3),
+                     "sigma_deg": float(np.degrees(np.linalg.norm(sd[:3]))), "sigma_mm": float(np.linalg.norm(sd[3:]) * 1e3)})
+    return rows
+
+
+def run_demo(out=None, *, config=None, seed: int = 0) -> tuple[Result, list[dict]]:
+    """`clcgraph demo`: simulate data/synthetic/demo if missing, calibrate it, compare to truth."""
+    import yaml
+
+    from .sim.capture import DEMO_DIR, DEMO_RIG, simulate_demo
+
+    if not (DEMO_DIR / "truth.yaml").exists():
+        simulate_demo(seed=seed)
+    truth = yaml.safe_load((DEMO_DIR / "truth.yaml").read_text())
+    topics = [s["topic"] for s in truth["sensors"]]
+    models = [DEMO_RIG.parent / s["model"] for s in truth["sensors"] if s["kind"] == "camera"]
+    result = calibrate_bags([DEMO_DIR / "*.bag"], topics, models, out=out or DEMO_DIR.parent / "demo-out",
+                            config=config)
+    return result, compare_to_truth(result, truth)
+
+
 def load_result(out_dir) -> dict:
     """Read a calibration written by `clcgraph solve` (calibration.yaml), schema-checked."""
     from .outputs.results import load_result as _load

@@ -289,6 +289,53 @@ def _add_infer_lidar_spacing(sub):
     p.set_defaults(func=run)
 
 
+@_command
+def _add_demo(sub):
+    p = sub.add_parser("demo", help="calibrate the shipped synthetic demo rig (simulated on first use) and "
+                                    "compare with the simulator's truth")
+    p.add_argument("--out", default=None, metavar="DIR", help="output directory (default data/synthetic/demo-out)")
+    p.add_argument("--config", default=None, metavar="FILE.yaml", help="settings (see `clcgraph config dump`)")
+    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one config key (repeatable)")
+
+    def run(args):
+        from . import api
+        from .sim.capture import DEMO_DIR
+
+        result, errors = api.run_demo(args.out, config=_load_config(args))
+        print(api.summary_table(result))
+        print(f"\nagainst the simulator's truth ({DEMO_DIR}/truth.yaml):")
+        print(f"{'sensor':34s} {'rotation [deg]':>15s} {'1-sigma':>8s} {'translation [mm]':>17s} {'1-sigma':>8s}")
+        for e in errors:
+            print(f"{e['topic']:34s} {e['rotation_deg']:15.3f} {e['sigma_deg']:8.3f} {e['translation_mm']:17.1f} "
+                  f"{e['sigma_mm']:8.1f}")
+        print(f"wrote {args.out or DEMO_DIR.parent / 'demo-out'}/calibration.yaml and report.html")
+        return 0
+
+    p.set_defaults(func=run)
+
+
+@_command
+def _add_simulate(sub):
+    p = sub.add_parser("simulate", help="simulate a capture session of a rig (YAML) into bags, with truth.yaml")
+    p.add_argument("rig", metavar="RIG.yaml", help="the rig: LIDARs, cameras, board (see data/synthetic/demo-rig.yaml)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory (replaced atomically)")
+    p.add_argument("--poses", type=int, default=20, help="number of board poses")
+    p.add_argument("--format", default="ros1", choices=["ros1", "ros2-sqlite3", "ros2-mcap"], help="bag format")
+    p.add_argument("--continuous", action="store_true", help="one continuous bag (the board moves between poses)")
+    p.add_argument("--seed", type=int, default=0)
+
+    def run(args):
+        from . import api
+
+        truth = api.simulate(args.rig, args.out, n_poses=args.poses, format=args.format,
+                             continuous=args.continuous, seed=args.seed)
+        print(f"wrote {len(truth['snapshots'])} board poses of {len(truth['sensors'])} sensors into {args.out} "
+              f"(truth in {args.out}/truth.yaml)")
+        return 0
+
+    p.set_defaults(func=run)
+
+
 def _load_config(args):
     """Config from --config, then the command's own flags, then --set KEY=VALUE (last wins)."""
     import yaml

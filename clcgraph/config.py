@@ -96,6 +96,8 @@ class SegmentationOptions:
 @dataclass(frozen=True)
 class DetectionOptions:
     detector: str = "mrgingham"  # or "opencv"
+    # With mrgingham: try OpenCV on the images where mrgingham found nothing (small boards).
+    fallback_opencv: bool = True
     corners_x: int = 10
     corners_y: int = 10
     spacing_m: float = 0.1

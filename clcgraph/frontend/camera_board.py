@@ -30,6 +30,7 @@ import os
 import shutil
 import subprocess
 import tempfile
+import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -248,7 +249,8 @@ def _run_opencv(grays: list[np.ndarray], options) -> list[np.ndarray | None]:
     args = [(g, nx, ny) for g in grays]
     if options.jobs <= 1 or len(grays) < 4:
         return [_opencv_one(a) for a in args]
-    with ProcessPoolExecutor(max_workers=options.jobs) as ex:
+    # forkserver: forking a process that runs open3d/BLAS threads can deadlock the children
+    with ProcessPoolExecutor(max_workers=options.jobs, mp_context=multiprocessing.get_context("forkserver")) as ex:
         return list(ex.map(_opencv_one, args, chunksize=max(1, len(args) // (4 * options.jobs))))
 
 
@@ -271,13 +273,17 @@ def detect_corners(images: list[Image], options) -> list[np.ndarray | Rejected]:
     grays = [to_gray8(im.pixels) for im in images]
     nx, ny = options.corners_x, options.corners_y
     if options.detector == "mrgingham":
-        raw = _run_mrgingham(grays, options)
+        raw = [None if c is None else c + _OFFSET_PX["mrgingham"] for c in _run_mrgingham(grays, options)]
+        # mrgingham misses small boards (squares of a few pixels); OpenCV's sector-based detector
+        # finds them, and its grid passes the same checks
+        missed = [k for k, c in enumerate(raw) if c is None]
+        if missed and options.fallback_opencv:
+            for k, c in zip(missed, _run_opencv([grays[k] for k in missed], options)):
+                raw[k] = None if c is None else c + _OFFSET_PX["opencv"]
     else:
-        raw = _run_opencv(grays, options)
+        raw = [None if c is None else c + _OFFSET_PX["opencv"] for c in _run_opencv(grays, options)]
     out = []
     for im, g, c in zip(images, grays, raw):
-        if c is not None:
-            c = c + _OFFSET_PX[options.detector]
         r = _validate(c, g, nx, ny, options, f"no full {nx}x{ny} chessboard found")
         if isinstance(r, Rejected):
             log.debug("%s @%d: %s", im.topic, im.stamp_ns, r.reason)

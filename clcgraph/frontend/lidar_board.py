@@ -26,6 +26,7 @@ SYNOPSIS
 from __future__ import annotations
 
 import os
+import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 
@@ -521,6 +522,7 @@ def segment_many(scans, options, lidar_options, board: BoardGeometry, *, sensor:
     if jobs <= 1 or len(scans) < 4:
         it = map(_one, args)
         return list(progress(it, len(args)) if progress else it)
-    with ProcessPoolExecutor(max_workers=jobs) as ex:
+    # forkserver: forking a process that runs open3d/BLAS threads can deadlock the children
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("forkserver")) as ex:
         it = ex.map(_one, args, chunksize=1)
         return list(progress(it, len(args)) if progress else it)

@@ -56,7 +56,8 @@ def render(camera: Sensor, T_world_camera: np.ndarray, scene, board: BoardGeomet
                                             background=img[near], t_first=t_hit[near])
         T_cb = np.linalg.inv(T_world_camera) @ T_world_board
         pc = board.corners() @ T_cb[:3, :3].T + T_cb[:3, 3]
-        corners = cameras.project(pc, camera.lensmodel, camera.intrinsics)
+        # corners behind the camera project to plausible-looking pixels: they are not seen
+        corners = cameras.project(pc, camera.lensmodel, camera.intrinsics) if np.all(pc[:, 2] > 0.05) else None
     img = img.reshape(h, w)
     if blur_sigma_px > 0:
         import cv2

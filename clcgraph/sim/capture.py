@@ -74,11 +74,22 @@ def _observe(rig: Rig, T_board, static, rng, stamps):
         img, corners = render(C.sensor, C.T_base_sensor, scene, rig.board, T_board, rng, topic=C.topic,
                               colour=C.encoding == "bgr8", noise_sigma=0.0)
         w, h = C.sensor.imagersize
-        if corners is not None and np.all(np.isfinite(corners)) and np.all((corners >= 3) & (corners <= [w - 4, h - 4])):
+        if corners is not None and np.all(np.isfinite(corners)) and np.all((corners >= 3) & (corners <= [w - 4, h - 4])) \
+                and _corners_unoccluded(scene, rig.board, T_board, C.T_base_sensor):
             seen += 1
             truth_corners[C.topic] = corners
         images[C.topic] = [_noisy(img, t, rng) for t in stamps["camera"][j]]
     return scans, images, truth_corners, seen
+
+
+def _corners_unoccluded(scene, board, T_board, T_camera) -> bool:
+    """Whether the camera has a clear line of sight to every chessboard corner."""
+    pw = board.corners() @ T_board[:3, :3].T + T_board[:3, 3]
+    o = T_camera[:3, 3]
+    d = pw - o
+    dist = np.linalg.norm(d, axis=1)
+    t_hit, gid = scene.cast(np.c_[np.broadcast_to(o, d.shape), d / dist[:, None]])
+    return bool(np.all((gid == scene.board_id) | (t_hit >= dist - 0.02)))
 
 
 def _noisy(img, stamp_ns, rng, sigma=2.0):

@@ -1,0 +1,53 @@
+"""`clcgraph simulate` -> `clcgraph solve` on small sessions: poses against the simulator's
+truth, output files that load; and the too-few-snapshots contract case."""
+
+import numpy as np
+import pytest
+import yaml
+
+from clcgraph.api import load_result
+from clcgraph.cli import main
+from clcgraph.geometry import T_from_rt
+
+RIG = """
+lidars:
+  - {topic: /lidar/a, model: vlp16, layout: velodyne, frame_id: a, xyz: [0, 0, 1.9], rpy_deg: [0, 0, 0]}
+  - {topic: /lidar/b, model: hdl32, layout: ouster, frame_id: b, xyz: [1.2, 0.5, 1.2], rpy_deg: [1, 5, 20]}
+  - {topic: /lidar/c, model: vlp16, layout: velodyne, frame_id: c, xyz: [-1.0, -0.4, 1.5], rpy_deg: [0, -3, 170]}
+cameras: []
+board: {corners_x: 10, corners_y: 10, spacing_m: 0.1, margin_m: 0.1}
+"""
+
+
+def _errors(out, truth):
+    got = {s["topic"]: np.asarray(s["rt_lidar0_sensor"]) for s in load_result(out)["sensors"]}
+    for s in truth["sensors"]:
+        T = np.linalg.inv(T_from_rt(np.asarray(s["rt_lidar0_sensor"]))) @ T_from_rt(got[s["topic"]])
+        yield s["topic"], np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1))), np.linalg.norm(T[:3, 3])
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "ros2-mcap"])
+def test_three_lidars_bag_per_pose(tmp_path, fmt):
+    rig = tmp_path / "rig.yaml"
+    rig.write_text(RIG)
+    assert main(["simulate", str(rig), "--out", str(tmp_path / "bags"), "--poses", "12", "--format", fmt,
+                 "--seed", "2"]) == 0
+    truth = yaml.safe_load((tmp_path / "bags" / "truth.yaml").read_text())
+    bags = str(tmp_path / "bags" / ("*.bag" if fmt == "ros1" else "pose*"))
+    assert main(["solve", "--bag", bags, "--topics", "/lidar/a,/lidar/b,/lidar/c", "--out", str(tmp_path / "out")]) == 0
+    for topic, rot_deg, t_m in _errors(tmp_path / "out", truth):
+        assert rot_deg < 0.1 and t_m < 0.01, (topic, rot_deg, t_m)
+    assert (tmp_path / "out" / "report.html").exists()
+
+
+def test_too_few_snapshots(tmp_path, capsys):
+    rig = tmp_path / "rig.yaml"
+    rig.write_text(RIG)
+    assert main(["simulate", str(rig), "--out", str(tmp_path / "bags"), "--poses", "2", "--seed", "1"]) == 0
+    capsys.readouterr()
+    rc = main(["solve", "--bag", str(tmp_path / "bags" / "*.bag"), "--topics", "/lidar/a,/lidar/b",
+               "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and "Traceback" not in "\n".join(err)
+    assert "snapshot" in err[-1] and "clcgraph solve: error" in err[-1]
+    assert not (tmp_path / "out").exists()
