@@ -42,8 +42,9 @@ class SnapshotOptions:
     max_board_motion_m: float = 0.03
     # Motion check: compare the chosen scan with the scans this long before and after it.
     motion_window_s: float = 0.5
-    # ... and call it motion if at least this many (ring, azimuth) cells changed (in runs).
-    min_moving_cells: int = 4
+    # ... and call it motion if at least this many (ring, azimuth) cells changed (in runs; a
+    # moving board changes ~100 or more, range noise a few at random).
+    min_moving_cells: int = 20
 
 
 @dataclass(frozen=True)

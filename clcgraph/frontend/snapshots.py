@@ -175,7 +175,8 @@ def scene_motion(a: LidarScan, b: LidarScan, *, threshold_m: float, min_cells: i
                  azimuth_bins: int = AZIMUTH_BINS) -> tuple[bool, float, int]:
     """Did something move between two scans of the same LIDAR?
 
-    Cells (ring, azimuth) whose range changed by more than max(threshold_m, 4 x the
+    Cells (ring, azimuth) whose range changed (to the closest of the cell and its azimuth
+    neighbours in the other scan) by more than max(threshold_m, 4 x the
     robust noise of the differences) count as changed if a ring neighbour changed too
     (isolated noise hits do not); motion if at least ``min_cells`` such cells.
     Returns (moved, median |change| of those cells in m, their count).
@@ -183,12 +184,21 @@ def scene_motion(a: LidarScan, b: LidarScan, *, threshold_m: float, min_cells: i
     ra, ia = range_image(a, azimuth_bins=azimuth_bins)
     rb, ib = range_image(b, azimuth_bins=azimuth_bins)
     common, ka, kb = np.intersect1d(ra, rb, return_indices=True)
-    d = ia[ka] - ib[kb]  # (R, A)
+    A, B = ia[ka], ib[kb]  # (R, A)
+    # the change to the closest of the cell and its azimuth neighbours in the other scan:
+    # returns near a bin edge land in either bin from one rotation to the next (encoder
+    # jitter), which at a depth edge would otherwise look like motion
+    with np.errstate(invalid="ignore"):
+        cand = np.stack([A - np.roll(B, s, axis=1) for s in (-1, 0, 1)])
+        cand = np.where(np.isfinite(cand), cand, np.inf)
+        k = np.argmin(np.abs(cand), axis=0)
+        d = np.take_along_axis(cand, k[None], axis=0)[0]
+    d[~np.isfinite(d) | ~np.isfinite(A) | ~np.isfinite(B)] = np.nan
     fin = np.isfinite(d)
     if not np.any(fin):
         return False, 0.0, 0
-    ad = np.abs(d[fin])
-    noise = 1.4826 * np.median(ad)
+    same = A - B  # the noise from the cells themselves (the closest-of-3 would underestimate it)
+    noise = 1.4826 * np.median(np.abs(same[np.isfinite(same)]))
     thr = max(threshold_m, 4.0 * noise)
     ch = np.zeros(d.shape, bool)
     ch[fin] = np.abs(d[fin]) > thr

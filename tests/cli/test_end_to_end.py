@@ -51,3 +51,21 @@ def test_too_few_snapshots(tmp_path, capsys):
     assert rc == 2 and "Traceback" not in "\n".join(err)
     assert "snapshot" in err[-1] and "clcgraph solve: error" in err[-1]
     assert not (tmp_path / "out").exists()
+
+
+def test_continuous_ros2_bag_with_decimation(tmp_path, capsys):
+    """One continuous ROS2 bag: the board holds 2 s at each pose and moves for 1 s between
+    them; snapshots of 1 s periods while it moved are dropped (reported), the rest calibrate."""
+    rig = tmp_path / "rig.yaml"
+    rig.write_text(RIG)
+    assert main(["simulate", str(rig), "--out", str(tmp_path / "bags"), "--poses", "10", "--format",
+                 "ros2-sqlite3", "--continuous", "--seed", "4"]) == 0
+    truth = yaml.safe_load((tmp_path / "bags" / "truth.yaml").read_text())
+    capsys.readouterr()
+    assert main(["solve", "--bag", str(tmp_path / "bags" / "session"), "--topics", "/lidar/a,/lidar/b,/lidar/c",
+                 "--decimation-period", "1.0", "--out", str(tmp_path / "out")]) == 0
+    cal = load_result(tmp_path / "out")
+    rejected = cal["snapshots"]["rejected"]
+    assert any("mov" in r["reason"] for r in rejected), rejected
+    for topic, rot_deg, t_m in _errors(tmp_path / "out", truth):
+        assert rot_deg < 0.1 and t_m < 0.01, (topic, rot_deg, t_m)
