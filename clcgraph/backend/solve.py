@@ -33,6 +33,10 @@ from .seed import seed as make_seed
 
 log = logging.getLogger(__name__)
 
+# No sensor is better than this: noise-free (simulated, or duplicated) observations would
+# otherwise get infinite weight and an indeterminate covariance.
+_MIN_SIGMA_LIDAR_M = 1e-3
+_MIN_SIGMA_CAMERA_PX = 1e-2
 _WHOLE_OBS_FACTOR = 3.0  # reject an observation whose RMS exceeds this many sigmas
 _MAX_ROUNDS = 8
 _MIN_INLIER_SHARE = 0.5
@@ -266,9 +270,9 @@ def calibrate(problem: Problem, options) -> Result:
         if options.reestimate_noise:
             p_l, p_c = _dof(problem, active, len(rl), len(rc))
             if len(rl):
-                sig_l = float(np.sqrt(np.sum(rl**2) / max(len(rl) - p_l, 1)))
+                sig_l = max(float(np.sqrt(np.sum(rl**2) / max(len(rl) - p_l, 1))), _MIN_SIGMA_LIDAR_M)
             if len(rc):
-                sig_c = float(np.sqrt(np.sum(rc**2) / max(len(rc) - p_c, 1)))
+                sig_c = max(float(np.sqrt(np.sum(rc**2) / max(len(rc) - p_c, 1))), _MIN_SIGMA_CAMERA_PX)
         stable = (not new and _mask_signature(active) == before
                   and abs(sig_l / old[0] - 1) < 0.01 and abs(sig_c / old[1] - 1) < 0.01)
         rt_sensor, rt_board, it, (g, values) = _lm(problem, active, rt_sensor, rt_board, "range", sig_l, sig_c,
