@@ -50,7 +50,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--small", action="store_true", help="test-sized LIDARs (32/16 rings x 512)")
-    a = ap.parse_args(argv)
+    a = ap.parse_args([] if argv is None else argv)  # under `python -m bench`, sys.argv holds the filters
     rows = run(a.duration, a.small)
     print(f"targetless benchmark: {a.duration:.0f} s drive ({'small' if a.small else 'full'} LIDARs)")
     print(f"{'stage':<40} {'wall [s]':>9} {'x real time':>12} {'peak RSS [MB]':>14}")
@@ -63,4 +63,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    import sys
+
+    raise SystemExit(main(sys.argv[1:]))

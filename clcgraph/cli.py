@@ -209,6 +209,8 @@ def _add_segment(sub):
     p.add_argument("--png", default=None, metavar="DIR", help="a picture of each scan's segmentation here")
     p.add_argument("--config", default=None, metavar="FILE.yaml", help="settings (sections 'lidar', 'segmentation')")
     p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one config key (repeatable)")
+    p.add_argument("--debug-region", default=None, metavar="XMIN,XMAX,YMIN,YMAX",
+                   help="report every candidate board plane in this region of the LIDAR's frame, with its verdict")
     seg_flags = _section_flags(p, SegmentationOptions, "segmentation", "LIDAR segmentation")
 
     def run(args):
@@ -266,8 +268,13 @@ def _add_segment(sub):
         print(f"{nfound}/{len(scans)} scans with a board")
         return 0
 
-    p.set_defaults(func=run, overrides=lambda a: [(s_, k_, getattr(a, d_)) for d_, s_, k_ in seg_flags
-                                                  if getattr(a, d_) is not None])
+    def overrides(a):
+        o = [(s_, k_, getattr(a, d_)) for d_, s_, k_ in seg_flags if getattr(a, d_) is not None]
+        if a.debug_region is not None:
+            o.append(("segmentation", "debug_region", _floats(a.debug_region, 4, "--debug-region")))
+        return o
+
+    p.set_defaults(func=run, overrides=overrides)
 
 
 @_command
@@ -381,9 +388,9 @@ def _section_flags(p, section_cls, section: str, group_title: str):
     flags = []
     for f in dataclasses.fields(section_cls):
         tp = hints[f.name]
-        if tp is bool or typing.get_origin(tp) is list or tp is list:
-            continue
         base = next((a for a in typing.get_args(tp) if a is not type(None)), tp)
+        if base is bool or base is list or typing.get_origin(base) is list:
+            continue
         dest = f"{section}__{f.name}"
         g.add_argument("--" + f.name.replace("_", "-"), dest=dest, type=base, default=None, metavar=f.name.upper())
         flags.append((dest, section, f.name))
@@ -419,6 +426,8 @@ def _add_solve(sub):
     p.add_argument("--prior-from-tf-static", type=float, default=None, metavar="SIGMA",
                    help="nominal poses from the bags' /tf_static as priors with this sigma (rad and m)")
     p.add_argument("--detector", choices=["mrgingham", "opencv"], default=None, help="chessboard detector")
+    p.add_argument("--debug-region", default=None, metavar="XMIN,XMAX,YMIN,YMAX",
+                   help="report every candidate board plane in this region of a LIDAR's frame, with its verdict")
     seg_flags = _section_flags(p, SegmentationOptions, "segmentation", "LIDAR segmentation")
 
     def overrides(args):
@@ -434,6 +443,8 @@ def _add_solve(sub):
              ("detection", "detector", args.detector)]
         if args.rt_vehicle_lidar0 is not None:
             o.append(("sectors", "rt_vehicle_lidar0", _floats(args.rt_vehicle_lidar0, 6, "--rt-vehicle-lidar0")))
+        if args.debug_region is not None:
+            o.append(("segmentation", "debug_region", _floats(args.debug_region, 4, "--debug-region")))
         o += [(section, key, getattr(args, dest)) for dest, section, key in seg_flags]
         return [x for x in o if x[2] is not None]
 

@@ -66,7 +66,17 @@ class SegmentationOptions:
     max_gap_points_stage1: int = 2
     # Straightness of a segment: RMS distance of its points from their line (a few range sigmas).
     max_rms_segment_m: float = 0.03
-    # Stage 2: clustering segments across rings.
+    # Stage 2: clustering segments across rings. Neighbouring segments link when they run
+    # within these angles of each other (same ring / across rings; seed: min_cos_angle_error_*),
+    max_angle_same_ring_deg: float = 15.0
+    max_angle_cross_ring_deg: float = 30.0
+    # ... are at most this many rings apart (a ring may miss the board through dropouts),
+    max_ring_step: int = 2
+    # ... and lie at most this multiple of the ring spacing apart (seed: max_distance_across_rings,
+    # here relative: ring spacing x range / cos(max_tilt)).
+    ring_spacing_tolerance: float = 1.25
+    # A segment belongs to a RANSAC plane of a mixed cluster when this share of its points fit.
+    segment_inlier_share: float = 0.6
     min_rings: int = 3
     min_segments_per_cluster: int = 4
     max_segments_per_cluster: int = 5000
@@ -92,6 +102,9 @@ class SegmentationOptions:
     max_plane_rms_sigmas: float = 1.5
     # A scan counts only if exactly one board plane is found.
     require_unique: bool = True
+    # [xmin, xmax, ymin, ymax] in the LIDAR frame (m): report every cluster and candidate plane
+    # there, with its verdict, on stderr (the seed's --debug-xmin ... --debug-ymax).
+    debug_region: list | None = None
 
 
 @dataclass(frozen=True)

@@ -25,8 +25,9 @@ SYNOPSIS
 
 from __future__ import annotations
 
-import os
+import logging
 import multiprocessing
+import os
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 
@@ -36,13 +37,7 @@ from ..types import BoardGeometry, LidarBoardObservation, LidarScan, Rejected
 from .lidar_preprocess import Rings, infer_lidar_spacing, prepare, static_masks
 
 STAGE = "segmentation"
-# Neighbouring segments must run within this angle of each other (same ring / across rings).
-_MAX_ANGLE_SAME_RING_DEG = 15.0
-_MAX_ANGLE_CROSS_RING_DEG = 30.0
-# Segments this many rings apart may link (one ring can miss the board through dropouts).
-_MAX_RING_STEP = 2
-# A segment counts in a RANSAC plane when this share of its points are inliers.
-_SEGMENT_INLIER_SHARE = 0.6
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -129,13 +124,13 @@ def _links(seg: _Segments, rank_elevation: np.ndarray, o) -> np.ndarray:
     # same ring: consecutive windows of one run, nearly collinear
     a = np.flatnonzero((seg.run[1:] == seg.run[:-1]) & (seg.window[1:] == seg.window[:-1] + 1))
     cos_same = np.abs(np.einsum("ij,ij->i", seg.direction[a], seg.direction[a + 1]))
-    pairs.append(np.c_[a, a + 1][cos_same >= np.cos(np.radians(_MAX_ANGLE_SAME_RING_DEG))])
+    pairs.append(np.c_[a, a + 1][cos_same >= np.cos(np.radians(o.max_angle_same_ring_deg))])
     # across rings: overlapping azimuth intervals in a ring 1-2 ranks away
     by_rank = {r: np.flatnonzero(seg.rank == r) for r in np.unique(seg.rank)}
     lo_az = seg.azimuth.min(axis=1)
     hi_az = seg.azimuth.max(axis=1)
     for r, A in by_rank.items():
-        for dr in range(1, _MAX_RING_STEP + 1):
+        for dr in range(1, o.max_ring_step + 1):
             B = by_rank.get(r + dr)
             if B is None:
                 continue
@@ -161,8 +156,8 @@ def _links(seg: _Segments, rank_elevation: np.ndarray, o) -> np.ndarray:
     r = np.linalg.norm(ca, axis=1)
     del_el = np.abs(rank_elevation[seg.rank[P[:, 0]]] - rank_elevation[seg.rank[P[:, 1]]])
     # ring lines on a plane <= max_tilt off head-on are r*del_el/cos(tilt) apart
-    max_perp = 0.05 + 1.25 * r * del_el / np.cos(np.radians(o.max_tilt_deg))
-    parallel = np.abs(np.einsum("ij,ij->i", va, vb)) >= np.cos(np.radians(_MAX_ANGLE_CROSS_RING_DEG))
+    max_perp = 0.05 + o.ring_spacing_tolerance * r * del_el / np.cos(np.radians(o.max_tilt_deg))
+    parallel = np.abs(np.einsum("ij,ij->i", va, vb)) >= np.cos(np.radians(o.max_angle_cross_ring_deg))
     n = np.cross(va, d_perp)
     n /= np.maximum(np.linalg.norm(n, axis=1), 1e-12)[:, None]
     facing = np.abs(np.einsum("ij,ij->i", n, ca / r[:, None])) >= np.cos(np.radians(o.max_tilt_deg))
@@ -204,7 +199,8 @@ def _ransac_plane(points: np.ndarray, tol: float, iterations: int = 256) -> np.n
     return np.abs(points @ n2 - d2) <= tol
 
 
-def _ransac_planes(points: np.ndarray, owner: np.ndarray, tol: float, min_points: int, max_planes: int = 4):
+def _ransac_planes(points: np.ndarray, owner: np.ndarray, tol: float, min_points: int, inlier_share: float,
+                   max_planes: int = 4):
     """Split a cluster's segment points into planes; yields the segment ids of each plane."""
     remaining = np.arange(len(points))
     for _ in range(max_planes):
@@ -213,7 +209,7 @@ def _ransac_planes(points: np.ndarray, owner: np.ndarray, tol: float, min_points
         inl = remaining[_ransac_plane(points[remaining], tol)]
         ids, counts = np.unique(owner[inl], return_counts=True)
         total = np.bincount(owner[remaining], minlength=owner.max() + 1)[ids]
-        segs = ids[counts >= _SEGMENT_INLIER_SHARE * total]
+        segs = ids[counts >= inlier_share * total]
         if not len(segs):
             return
         yield segs
@@ -229,7 +225,7 @@ def _stage3(R: Rings, rank: np.ndarray, rank_el: np.ndarray, members: np.ndarray
 
     tol = o.point_plane_tolerance_m
     mrank = rank[members]
-    lo_r, hi_r = mrank.min() - _MAX_RING_STEP, mrank.max() + _MAX_RING_STEP
+    lo_r, hi_r = mrank.min() - o.max_ring_step, mrank.max() + o.max_ring_step
     az0 = np.arctan2(*np.mean(np.c_[np.sin(R.azimuth[members]), np.cos(R.azimuth[members])], axis=0))
     rel = lambda az: (az - az0 + np.pi) % (2 * np.pi) - np.pi  # noqa: E731  azimuth around the cluster
     out, pending = [], []
@@ -263,7 +259,7 @@ def _stage3(R: Rings, rank: np.ndarray, rank_el: np.ndarray, members: np.ndarray
             if len(run) < 2:
                 continue
             gap = abs(rank_el[rk] - rank_el[np.clip(rk, mrank.min(), mrank.max())])
-            reach = 0.05 + 1.25 * R.range[run].mean() * gap / np.cos(np.radians(o.max_tilt_deg))
+            reach = 0.05 + o.ring_spacing_tolerance * R.range[run].mean() * gap / np.cos(np.radians(o.max_tilt_deg))
             if tree.query(R.points[run], distance_upper_bound=reach)[0].min() <= reach:
                 out.append(run)
     return np.concatenate(out)
@@ -442,7 +438,8 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
         owner = np.repeat(ids, k)
         _, _, rms = fit_plane(pts)
         planes = [ids] if rms <= o.point_plane_tolerance_m / 2 and len(ids) <= o.max_segments_per_cluster \
-            else _ransac_planes(pts, owner, o.point_plane_tolerance_m, k * o.min_segments_per_cluster)
+            else _ransac_planes(pts, owner, o.point_plane_tolerance_m, k * o.min_segments_per_cluster,
+                                o.segment_inlier_share)
         for segs in planes:
             if len(segs) < o.min_segments_per_cluster or len(np.unique(seg.rank[segs])) < o.min_rings:
                 continue
@@ -458,6 +455,13 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
     for rows in _merge(pieces, R.points, o.point_plane_tolerance_m, float(np.hypot(*board.size_m))):
         why, plane, keep = _verdict(R.points[rows], rank[rows], board, step, noise, o)
         rows = rows[keep]
+        if o.debug_region is not None:
+            c = R.points[rows].mean(axis=0) if len(rows) else np.full(3, np.nan)
+            x0, x1, y0, y1 = o.debug_region
+            if x0 <= c[0] <= x1 and y0 <= c[1] <= y1:
+                # warning level: asked for explicitly, and worker processes keep no logging setup
+                log.warning("debug %s @%d: plane at (%.2f, %.2f, %.2f) m, %d points on %d rings: %s", scan.topic,
+                            scan.stamp_ns, *c, len(rows), len(np.unique(rank[rows])), why or "accepted")
         if debug is not None:
             debug.candidates.append((R.index[rows], why or "accepted"))
         if why is None:

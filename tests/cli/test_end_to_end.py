@@ -69,3 +69,23 @@ def test_continuous_ros2_bag_with_decimation(tmp_path, capsys):
     assert any("mov" in r["reason"] for r in rejected), rejected
     for topic, rot_deg, t_m in _errors(tmp_path / "out", truth):
         assert rot_deg < 0.1 and t_m < 0.01, (topic, rot_deg, t_m)
+
+
+def test_sensor_never_co_observed(tmp_path, capsys):
+    """A camera that looks at the sky never sees the board: a one-line error naming it, exit 2."""
+    import shutil
+
+    from clcgraph.sim.capture import DEMO_RIG
+
+    shutil.copy(DEMO_RIG.parent / "front.cameramodel", tmp_path / "front.cameramodel")
+    rig = tmp_path / "rig.yaml"
+    rig.write_text(RIG.replace("cameras: []", """cameras:
+  - {topic: /cam/sky, model: front.cameramodel, encoding: mono8, frame_id: sky, xyz: [0, 0, 1.5], rpy_deg: [0, -89, 0]}"""))
+    assert main(["simulate", str(rig), "--out", str(tmp_path / "bags"), "--poses", "6", "--seed", "3"]) == 0
+    capsys.readouterr()
+    rc = main(["solve", "--bag", str(tmp_path / "bags" / "*.bag"), "--topics", "/lidar/a,/lidar/b,/cam/sky",
+               str(tmp_path / "front.cameramodel"), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and "Traceback" not in "\n".join(err)
+    assert "/cam/sky" in err[-1] and "clcgraph solve: error" in err[-1]
+    assert not (tmp_path / "out").exists()
