@@ -187,6 +187,8 @@ class TargetlessOptions:
     mapping_viz_leaf_size: float = 0.15
     calibration_viz_leaf_size: float = 0.15
     leaf_size_input: float = 0.1
+    # Registration uses at most this many of a scan's input-voxel points (evenly thinned).
+    mapping_max_source_points: int = 12000
     leaf_size_local_map: float = 0.1
     leaf_size_dense_map: float = 0.05
     new_keyframe_min_distance: float = 1.0

@@ -83,6 +83,18 @@ def register(target, target_tree, source_pts: np.ndarray, T0: np.ndarray, *, kin
                             max_correspondence_distance=max_corr, num_threads=threads, max_iterations=iters)
 
 
+def voxel_pick(points: np.ndarray, leaf: float) -> np.ndarray:
+    """Indices of one raw point per voxel (the first): downsampling that keeps each point's own
+    time, so the picked points can still be deskewed (a centroid mixes times)."""
+    if len(points) == 0:
+        return np.zeros(0, np.int64)
+    key = np.floor(points / leaf).astype(np.int64)
+    key -= key.min(axis=0)
+    span = key.max(axis=0) + 1
+    flat = (key[:, 0] * span[1] + key[:, 1]) * span[2] + key[:, 2]
+    return np.unique(flat, return_index=True)[1]
+
+
 def _target(points: np.ndarray, leaf: float, threads: int):
     import small_gicp
 
@@ -118,6 +130,11 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
         m = crop_range(scan.points, scan.valid, o.mapping_min_range, o.mapping_max_range)
         raw = scan.points[m]
         tau = scan.time_s[m] if (scan.time_s is not None and o.deskew) else None
+        # registration works on one raw point per input voxel (deskewed on each pass); the frame
+        # keeps every point for the map
+        pick = voxel_pick(raw, leaf_in)
+        if len(pick) > o.mapping_max_source_points:  # evenly thinned: GICP needs thousands, not 40k
+            pick = pick[np.linspace(0, len(pick) - 1, o.mapping_max_source_points).astype(np.int64)]
         if last_stamp is None:
             pts = deskew(raw, tau, twist)
             f = Frame(scan.stamp_ns, pts, np.eye(4), twist.copy(), keyframe=True)
@@ -141,20 +158,32 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
                 f0 = res.frames[0]
                 f0.points, f0.twist = deskew(first_raw[0], first_raw[1], xi), xi.copy()
                 target, tree = _target(f0.points, map_leaf, o.mapper_num_threads)
-            pts = deskew(raw, tau, xi)
             import small_gicp
 
-            src, _ = small_gicp.preprocess_points(np.ascontiguousarray(pts, float), leaf_in, num_neighbors=10,
-                                                  num_threads=o.mapper_num_threads)
-            if it == 0:  # coarse pass only from the constant-velocity guess
+            src, _ = small_gicp.preprocess_points(np.ascontiguousarray(deskew(raw[pick], None if tau is None else tau[pick], xi)),
+                                                  leaf_in, num_neighbors=10, num_threads=o.mapper_num_threads)
+            fine = max(o.mapper_max_correspondence_distance, 3 * leaf_in)
+            r = small_gicp.align(target, src, tree, init_T_target_source=T, registration_type="GICP",
+                                 max_correspondence_distance=fine, num_threads=o.mapper_num_threads,
+                                 max_iterations=o.mapper_max_iterations)
+            if it == 0 and (not r.converged or r.num_inliers < 0.5 * src.size()):
+                # the constant-velocity guess was off (a bump, a stop): coarse pass first
                 T = small_gicp.align(target, src, tree, init_T_target_source=T, registration_type="GICP",
                                      max_correspondence_distance=1.0, num_threads=o.mapper_num_threads,
                                      max_iterations=o.mapper_max_iterations).T_target_source
-            r = small_gicp.align(target, src, tree, init_T_target_source=T, registration_type="GICP",
-                                 max_correspondence_distance=max(o.mapper_max_correspondence_distance, 3 * leaf_in),
-                                 num_threads=o.mapper_num_threads, max_iterations=o.mapper_max_iterations)
+                r = small_gicp.align(target, src, tree, init_T_target_source=T, registration_type="GICP",
+                                     max_correspondence_distance=fine, num_threads=o.mapper_num_threads,
+                                     max_iterations=o.mapper_max_iterations)
             T = r.T_target_source
-            xi = twist_between(T_last, T, dt)
+            xi_used, xi = xi, twist_between(T_last, T, dt)
+            if tau is not None and first_raw is None and it + 1 < n_it:
+                # another deskew pass only if the twist changed enough to move points by > 1 mm
+                span = float(tau.max() - tau.min()) if len(tau) else 0.0
+                r_max = float(np.linalg.norm(raw, axis=1).max()) if len(raw) else 0.0
+                d = xi - xi_used
+                if (np.linalg.norm(d[:3]) * r_max + np.linalg.norm(d[3:])) * span < 1e-3:
+                    break
+        pts = deskew(raw, tau, xi)
         first_raw = None
         H = np.asarray(r.H)
         cond = degeneracy(H)
