@@ -173,11 +173,15 @@ class TargetlessOptions:
     dense_pointcloud_num_keyframes: int = 10
     mapping_min_range: float = 0.5
     mapping_max_range: float = 60.0
+    # Scans with fewer points in range are not mapped (partial or blocked scans).
     min_mapping_pointcloud_size: int = 10000
     min_calibration_pointcloud_size: int = 500
     mapping_lost_timeout: float = 1.0
     # Mapper (seed names; NDT ones kept for the voxelized-GICP option: resolution = voxel size).
-    mapper_registrator: str = "GICP"  # mapping uses GICP; VGICP (NDT-like) is in the calibration ensemble
+    # Mapping registers with GICP (small_gicp); the seed's NDT settings (registrator, resolution,
+    # step size, epsilon) are kept for its config files but not used: NDT is not implemented
+    # (VGICP, its voxelized cousin, is one of the calibration ensemble's registrations).
+    mapper_registrator: str = "GICP"
     mapper_resolution: float = 5.0
     mapper_step_size: float = 0.1
     mapper_max_iterations: int = 35
@@ -210,17 +214,22 @@ class TargetlessOptions:
     max_allowed_interpolated_angle_straight: float = 0.5
     max_allowed_interpolated_speed_straight: float = 5.0
     max_allowed_interpolated_accel_straight: float = 0.1
+    # The seed's camera-LIDAR targetless settings (detections, camera frames, image features) are
+    # kept for its config files but not used: targetless calibration here is LIDAR-only.
     filter_detections: bool = True
     detection_max_time_tolerance: float = 0.5
     detection_size_tolerance: float = 0.4
     # Lost-frame detection between consecutive frames (deg, m, m/s^2).
     lost_frame_max_angle_diff: float = 25.0
+    # ... and when the constant-velocity prediction misses the registered pose by more than this (m).
     lost_frame_interpolation_error: float = 0.05
     lost_frame_max_acceleration: float = 8.0
+    # Report pictures: points beyond this range are left out, clouds voxelized to the viz leaf sizes.
     viz_max_range: float = 80.0
     crop_z_calibration_pointclouds: bool = True
     crop_z_calibration_pointclouds_value: float = 2.0
     calibration_use_only_stopped: bool = False
+    # Choose calibration frames from the end of the drive only (2 x lidar_calibration_max_frames).
     calibration_use_only_last_frames: bool = False
     max_calibration_range: float = 80.0
     min_calibration_range: float = 1.5
@@ -234,6 +243,7 @@ class TargetlessOptions:
     max_corr_dist_ultra_fine: float = 0.05
     lidar_calibration_min_frames: int = 2
     lidar_calibration_max_frames: int = 10
+    # (camera targetless: not used, see above)
     camera_calibration_min_frames: int = 1
     camera_calibration_max_frames: int = 10
     pc_features_min_distance: float = 0.2
@@ -250,6 +260,8 @@ class TargetlessOptions:
     base_lidar_min_plane_points: int = 1000
     base_lidar_min_plane_points_percentage: float = 10.0
     base_lidar_max_cos_distance: float = 0.5
+    # False: x, y, yaw of base_link-LIDAR from the initial guess; True: base_link right below the
+    # LIDAR, heading along its x axis.
     base_lidar_overwrite_xy_yaw: bool = False
 
 

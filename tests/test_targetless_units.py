@@ -96,3 +96,14 @@ def test_cli_targetless_flat_field_one_line_error(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert rc != 0 and len(err) == 1 and "degenerate" in err[0] and "/top/points" in err[0]
     assert not (tmp_path / "out").exists()
+
+
+def test_base_from_ground_overwrite_xy_yaw():
+    guess = geo.T_from_rt(np.r_[np.radians([1.0, -2.0, 30.0]), 0.5, -0.3, 1.7])
+    n_lidar = np.linalg.inv(guess)[:3, :3] @ np.array([0.0, 0.0, 1.0])  # the ground normal seen by the LIDAR
+    kept = base_from_ground(n_lidar, 1.8, guess)
+    assert np.allclose(kept[:3, 3], [0.5, -0.3, 1.8]) and np.allclose(kept[:3, :3], guess[:3, :3], atol=1e-9)
+    over = base_from_ground(n_lidar, 1.8, guess, overwrite_xy_yaw=True)
+    assert np.allclose(over[:3, 3], [0.0, 0.0, 1.8])
+    x = over[:3, :3] @ [1.0, 0.0, 0.0]
+    assert abs(np.arctan2(x[1], x[0])) < 1e-9 and np.allclose(over[:3, :3] @ n_lidar, [0, 0, 1])

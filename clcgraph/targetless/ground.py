@@ -53,7 +53,8 @@ def fit_ground(points: np.ndarray, up_guess: np.ndarray, o, *, seed: int = 0):
 
 
 def base_from_ground(n: np.ndarray, d: float, T_base_lidar_guess: np.ndarray, *, overwrite_xy_yaw: bool = False) -> np.ndarray:
-    """(4,4) T_base_lidar whose z axis is the ground normal and height d; x, y, yaw from the guess."""
+    """(4,4) T_base_lidar whose z axis is the ground normal and height d; x, y, yaw from the guess,
+    or (``overwrite_xy_yaw``) zero: base_link right below the LIDAR, heading along it."""
     R0 = T_base_lidar_guess[:3, :3]
     a = R0 @ n  # ground normal in the guessed base frame
     z = np.array([0.0, 0.0, 1.0])
@@ -68,6 +69,13 @@ def base_from_ground(n: np.ndarray, d: float, T_base_lidar_guess: np.ndarray, *,
     T = np.eye(4)
     T[:3, :3] = Rfix @ R0
     T[:3, 3] = [T_base_lidar_guess[0, 3], T_base_lidar_guess[1, 3], d]
+    if overwrite_xy_yaw:
+        # base_link right below the LIDAR, its x axis the LIDAR's x projected onto the ground
+        x = T[:3, :3] @ np.array([1.0, 0.0, 0.0])
+        yaw = np.arctan2(x[1], x[0])
+        c, s_ = np.cos(-yaw), np.sin(-yaw)
+        T[:3, :3] = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]]) @ T[:3, :3]
+        T[:2, 3] = 0.0
     return T
 
 
@@ -106,5 +114,5 @@ def calibrate_base(mp, T_base_lidar_guess: np.ndarray, o, *, max_keyframes: int 
     n = np.mean(normals, axis=0)
     n /= np.linalg.norm(n)
     d = float(np.mean(ds))
-    T = base_from_ground(n, d, T_base_lidar_guess)
+    T = base_from_ground(n, d, T_base_lidar_guess, overwrite_xy_yaw=o.base_lidar_overwrite_xy_yaw)
     return T, {"n_planes": len(pick), "n_frames": len(normals)}

@@ -49,6 +49,7 @@ class MapResult:
     frames: list = field(default_factory=list)
     keyframe_ids: list = field(default_factory=list)
     n_scans: int = 0
+    skipped: int = 0  # scans with fewer than min_mapping_pointcloud_size points
 
     def poses(self) -> np.ndarray:
         return np.array([f.T_map_lidar for f in self.frames])
@@ -128,6 +129,9 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
         if len(res.frames) >= o.mapping_max_frames:
             break
         m = crop_range(scan.points, scan.valid, o.mapping_min_range, o.mapping_max_range)
+        if m.sum() < o.min_mapping_pointcloud_size:  # a partial or blocked scan: not worth a frame
+            res.skipped += 1
+            continue
         raw = scan.points[m]
         tau = scan.time_s[m] if (scan.time_s is not None and o.deskew) else None
         # registration works on one raw point per input voxel (deskewed on each pass); the frame
@@ -150,6 +154,7 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
         lost = (scan.stamp_ns - prev_scan_ns) * 1e-9 > o.mapping_lost_timeout  # sensor gap, not a skipped frame
         prev_scan_ns = scan.stamp_ns
         T = T_last @ exp(twist * dt)
+        T_pred = T
         xi = twist
         n_it = max(1, o.deskew_iterations if tau is not None else 1)
         for it in range(n_it + (n_it if first_raw is not None and first_raw[1] is not None else 0)):
@@ -192,7 +197,10 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
         v_new, v_old = xi[3:], twist[3:]
         acc = np.linalg.norm(v_new - v_old) / max(dt, 1e-3)
         ang = np.degrees(np.linalg.norm(xi[:3] * dt))
-        lost = lost or acc > o.lost_frame_max_acceleration or ang > o.lost_frame_max_angle_diff
+        # the constant-velocity prediction missed by more than the seed's interpolation error
+        pred_err = float(np.linalg.norm((np.linalg.inv(T_pred) @ T)[:3, 3]))
+        lost = lost or acc > o.lost_frame_max_acceleration or ang > o.lost_frame_max_angle_diff \
+            or (len(res.frames) >= 2 and pred_err > o.lost_frame_interpolation_error)
         if dist < o.new_frame_min_distance and not lost:
             if dist < o.frame_stopped_distance:
                 stopped_count += 1
@@ -219,8 +227,12 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
                                     + res.frames[j].T_map_lidar[:3, 3] for j in local_ids])
             target, tree = _target(voxel_down(cloud, map_leaf), map_leaf, o.mapper_num_threads)
         T_last, last_stamp, twist = T, scan.stamp_ns, xi
+    if len(res.frames) < 3 and res.skipped >= res.n_scans / 2:
+        raise DegenerateError(f"{res.topic}: mapping is degenerate: {res.skipped} of {res.n_scans} scans have fewer "
+                              f"than min_mapping_pointcloud_size={o.min_mapping_pointcloud_size} points within "
+                              f"{o.mapping_min_range}-{o.mapping_max_range} m (an open field, a blocked LIDAR?)")
     conds = np.array([f.cond for f in res.frames[1:]])
-    if np.median(conds) > max_cond:
+    if len(conds) and np.median(conds) > max_cond:
         raise DegenerateError(f"{res.topic}: mapping is degenerate (median registration condition number "
                               f"{np.median(conds):.3g} > {max_cond:g}): the scene has no structure that fixes "
                               "the motion (open flat field?)")

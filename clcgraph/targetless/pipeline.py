@@ -223,7 +223,7 @@ def _urdf(res: TargetlessResult) -> str:
     return "\n".join(out) + "\n"
 
 
-def _plots(res: TargetlessResult, d: Path) -> list:
+def _plots(res: TargetlessResult, d: Path, o) -> list:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -234,8 +234,11 @@ def _plots(res: TargetlessResult, d: Path) -> list:
     P = mp.poses()
     kf = np.array(mp.keyframe_ids)
     fig, ax = plt.subplots(figsize=(8, 6))
-    pts = np.concatenate([mp.frames[k].points[::20] @ mp.frames[k].T_map_lidar[:3, :3].T + mp.frames[k].T_map_lidar[:3, 3]
-                          for k in kf])
+    from .mapping import voxel_down
+
+    near = [mp.frames[k].points[np.linalg.norm(mp.frames[k].points, axis=1) <= o.viz_max_range] for k in kf]
+    pts = voxel_down(np.concatenate([p @ mp.frames[k].T_map_lidar[:3, :3].T + mp.frames[k].T_map_lidar[:3, 3]
+                                     for p, k in zip(near, kf)]), o.mapping_viz_leaf_size)
     ax.scatter(pts[:, 0], pts[:, 1], s=0.2, c=pts[:, 2], cmap="viridis")
     ax.plot(P[:, 0, 3], P[:, 1, 3], "r-", lw=1, label="trajectory")
     ax.plot(P[kf, 0, 3], P[kf, 1, 3], "k.", label="keyframes")
@@ -266,8 +269,8 @@ def _plots(res: TargetlessResult, d: Path) -> list:
             fig, axs = plt.subplots(1, 2, figsize=(12, 5))
             for a, T, title in ((axs[0], res.T_lidar0_sensor_guess[topic], "before (tf_static)"),
                                 (axs[1], res.T_lidar0_sensor[topic], "after")):
-                tg = fd.target_pts[::5]
-                s = fd.source_pts @ T[:3, :3].T + T[:3, 3]
+                tg = voxel_down(fd.target_pts, o.calibration_viz_leaf_size)
+                s = voxel_down(fd.source_pts, o.calibration_viz_leaf_size) @ T[:3, :3].T + T[:3, 3]
                 a.scatter(tg[:, 0], tg[:, 1], s=0.2, c="0.6", label="mapping (dense)")
                 a.scatter(s[:, 0], s[:, 1], s=0.4, c="r", label=topic)
                 a.set_aspect("equal")
@@ -293,7 +296,7 @@ def write_targetless_outputs(res: TargetlessResult, out_dir, *, config: Config |
         (tmp / "urdf_snippet.xml").write_text(_urdf(res))
         if config is not None:
             (tmp / "config.resolved.yaml").write_text(config.to_yaml())
-        pngs = _plots(res, tmp)
+        pngs = _plots(res, tmp, (config or Config()).targetless)
         rows = "".join(f"<tr><td>{s['topic']}</td><td>{np.round(s['rt_lidar0_sensor'], 6).tolist()}</td>"
                        f"<td>{np.round(s['stdev_position_mm'], 3).tolist()}</td>"
                        f"<td>{np.round(s['stdev_orientation_deg'], 4).tolist()}</td></tr>" for s in cal["sensors"])

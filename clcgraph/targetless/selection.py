@@ -45,7 +45,10 @@ def select_frames(cfs, mp, o) -> list:
         cf.score = pca_information(s.points[m])
         if cf.score < o.calibration_min_pca_eigenvalue:
             cf.accepted, cf.reason = False, f"PCA eigenvalue {cf.score:.3g} < calibration_min_pca_eigenvalue"
-    cand = sorted((cf for cf in cfs if cf.accepted), key=lambda c: -c.score)
+    cand = [cf for cf in cfs if cf.accepted]
+    if o.calibration_use_only_last_frames:  # the end of the drive only (e.g. a dedicated calibration loop)
+        cand = sorted(cand, key=lambda c: c.keyframe_id)[-2 * o.lidar_calibration_max_frames:]
+    cand = sorted(cand, key=lambda c: -c.score)
     chosen = []
     for cf in cand:
         p = cf.T_map_lidar0[:3, 3]
