@@ -37,7 +37,7 @@ def run(duration_s: float = 60.0, small: bool = False, seed: int = 0) -> list[tu
                                      config=Config())
     total = time.perf_counter() - t
     for k, v in res.timings_s.items():
-        rows.append((k, v, v / duration_s, float("nan")))
+        rows.append((k, v, v / duration_s, res.peak_rss_mb.get(k, float("nan"))))
     rows.append(("calibration total", total, total / duration_s, _peak_mb()))
     e = geo.rt_from_T(np.linalg.inv(drive.T_lidar0_lidar(side, top)) @ res.T_lidar0_sensor[side])
     sd = res.stdev_rt(side)

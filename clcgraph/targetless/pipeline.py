@@ -51,6 +51,7 @@ class TargetlessResult:
     per_frame: dict = field(default_factory=dict)  # topic -> list of dicts (score, frame, errors)
     candidates: dict = field(default_factory=dict)  # topic -> ensemble candidates
     timings_s: dict = field(default_factory=dict)
+    peak_rss_mb: dict = field(default_factory=dict)  # stage -> process peak RSS after it
     notes: list = field(default_factory=list)
 
     def rt_lidar0_sensor(self, topic: str) -> np.ndarray:
@@ -60,13 +61,18 @@ class TargetlessResult:
         return np.sqrt(np.diag(self.covariance_rt[topic]))
 
 
-def _stage(timings, name):
+def _stage(timings, name, memory=None):
+    """Adds the stage's wall time to ``timings``; ``memory``: the process's peak RSS (MB) after it."""
     class _T:
         def __enter__(self):
             self.t = time.perf_counter()
 
         def __exit__(self, *exc):
             timings[name] = timings.get(name, 0.0) + time.perf_counter() - self.t
+            if memory is not None:
+                import resource
+
+                memory[name] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     return _T()
 
 
@@ -80,6 +86,7 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
     cfg = config or Config()
     o = cfg.targetless
     timings: dict = {}
+    memory: dict = {}
     if mapping_topic not in scans or not scans[mapping_topic]:
         raise InputError(f"{mapping_topic}: no scans of the mapping topic")
     if progress is None:
@@ -87,7 +94,7 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
 
         def progress(items, desc=f"mapping {mapping_topic}"):
             return _pg.progress(items, desc=desc, total=len(items), unit="scan")
-    with _stage(timings, "mapping"):
+    with _stage(timings, "mapping", memory):
         mp = build_map(scans[mapping_topic], o, progress=progress)
     G0 = np.asarray(T_base_sensor_guess[mapping_topic])
     res = TargetlessResult(mapping_topic, {mapping_topic: np.eye(4)}, {mapping_topic: np.zeros((6, 6))},
@@ -97,20 +104,20 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
             raise InputError(f"{topic}: no scans of this calibration topic")
         Tg = np.linalg.inv(G0) @ np.asarray(T_base_sensor_guess[topic])
         res.T_lidar0_sensor_guess[topic] = Tg
-        with _stage(timings, "calibration frames"):
+        with _stage(timings, "calibration frames", memory):
             cfs = make_calibration_frames(mp, scans[topic], o)
-        with _stage(timings, "selection"):
+        with _stage(timings, "selection", memory):
             chosen = select_frames(cfs, mp, o)
         if len(chosen) < o.lidar_calibration_min_frames:
             reasons = sorted({cf.reason for cf in cfs if cf.reason})
             raise DegenerateError(f"{topic}: {len(chosen)} usable calibration frames of {len(cfs)} "
                                   f"(< lidar_calibration_min_frames={o.lidar_calibration_min_frames}); "
                                   f"rejections: {'; '.join(reasons[:3]) or 'none'}")
-        with _stage(timings, "registration"):
+        with _stage(timings, "registration", memory):
             fr = prepare_frames(list(progress(chosen, desc=f"dense targets {topic}")), mp, Tg, o, deskew_on=o.deskew)
             T_best, cands = ensemble(fr, Tg, o)
             meas = refine_per_frame(fr, T_best, o)
-        with _stage(timings, "graph"):
+        with _stage(timings, "graph", memory):
             est = fuse(meas, min_frames=o.lidar_calibration_min_frames)
         s_guess, s_final = score(fr, Tg, o), score(fr, est.T, o)
         T_final, cov = est.T, est.cov_rt
@@ -130,11 +137,11 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
     if base_frame is not None:
         from .ground import calibrate_base
 
-        with _stage(timings, "ground"):
+        with _stage(timings, "ground", memory):
             T_b0, info = calibrate_base(mp, G0, o)
         for topic, T in res.T_lidar0_sensor.items():
             res.T_base_sensor[topic] = T_b0 @ T
-    res.timings_s = timings
+    res.timings_s, res.peak_rss_mb = timings, memory
     return res
 
 
