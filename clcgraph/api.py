@@ -399,7 +399,7 @@ def calibrate_targetless(bags, **kwargs):
 def compare_to_truth(result: Result, truth: dict) -> list[dict]:
     """Per sensor: rotation error (deg), translation error (mm) and their 1-sigmas against a
     simulator truth.yaml (``truth``: its parsed dict)."""
-    from .geometry import R_from_r, T_from_rt
+    from .geometry import T_from_rt
 
     want = {s["topic"]: np.asarray(s["rt_lidar0_sensor"], float) for s in truth["sensors"]}
     rows = []

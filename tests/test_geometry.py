@@ -48,8 +48,6 @@ def test_compose_invert_match_mrcal(rts):
 
 
 def test_drt_dxi_matches_finite_differences():
-    import gtsam
-
     rng = np.random.default_rng(2)
     for _ in range(10):
         rt = rng.normal(size=6)

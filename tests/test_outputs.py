@@ -12,7 +12,6 @@ import yaml
 from clcgraph.config import Config
 from clcgraph.errors import DataError, InputError
 from clcgraph.geometry import R_from_r, T_from_rt, compose_rt, invert_rt, r_from_R, transform
-from clcgraph.outputs import results
 from clcgraph.outputs.results import load_result, write_results
 from clcgraph.types import (BoardGeometry, CameraBoardObservation, LidarBoardObservation, Problem, Rejected, Result,
                             SectorReport, Sensor)

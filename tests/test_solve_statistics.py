@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from clcgraph.config import Config
-from clcgraph.outputs.dump import load_problem, renoise_problem, replay, save_problem
+from clcgraph.outputs.dump import renoise_problem, replay, save_problem
 
 
 def _sim(**kw):

@@ -32,7 +32,7 @@ import numpy as np
 
 from .. import cameras
 from ..errors import DegenerateError
-from ..geometry import R_from_r, compose_rt, invert_rt, r_from_R, rt_from_R_t, transform
+from ..geometry import R_from_r, compose_rt, invert_rt, rt_from_R_t, transform
 from ..types import Problem, Rejected
 
 log = logging.getLogger(__name__)

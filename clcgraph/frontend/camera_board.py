@@ -26,13 +26,12 @@ rotated by a multiple of 90 deg and the solver must resolve that (e.g. by trying
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import os
 import shutil
 import subprocess
 import tempfile
-import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
-from pathlib import Path
 
 import numpy as np
 

@@ -10,9 +10,12 @@ Three stages, as in the clc seed, vectorized per scan:
    linked; the ground (seen at grazing angles) falls out here. Connected components that are not
    one plane are split by RANSAC; a plane needs segments from >= ``min_rings`` rings.
 3. Points: each candidate plane collects the contiguous coplanar returns of its rings and the
-   rings next to it (gaps < ``max_gap_points_stage3``). A plane that continues past the board's
-   size (a wall, a car side) is then too big; a small flat thing is too small; a plane that is
-   not flat is rejected. Exactly one board-sized plane must remain (``require_unique``).
+   rings next to it (gaps < ``max_gap_points_stage3``, no range jump). The board is then what
+   fits a board-sized rectangle (``max_outside_fraction`` may stick out: a hand), keeping one
+   unbroken piece per ring, flat to within the scan's own range noise
+   (``max_plane_rms_sigmas``), not too small, not a sliver, and crossed by a ring over most of
+   its width once its rings span most of its height (a body or a post is tall and narrow).
+   Exactly one such plane must remain (``require_unique``).
 
 Static-scene suppression (``LidarOptions.suppress_static``) runs over a session before this:
 walls and parked cars that never move are removed, the board (which moves) stays.
@@ -300,10 +303,7 @@ def _board_window(points: np.ndarray, n: np.ndarray, sx: float, sy: float, slack
 
 def _extents(points: np.ndarray, n: np.ndarray) -> tuple[float, float]:
     """(diameter, width): the largest in-plane extent over 36 directions, and the smallest."""
-    u = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0])
-    u /= np.linalg.norm(u)
-    v = np.cross(n, u)
-    q = np.c_[points @ u, points @ v]
+    q = _in_plane(points, n)
     ang = np.linspace(0, np.pi, 36, endpoint=False)
     proj = q @ np.stack([np.cos(ang), np.sin(ang)])
     span = proj.max(axis=0) - proj.min(axis=0)

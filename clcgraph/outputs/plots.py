@@ -23,7 +23,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..geometry import R_from_r, T_from_rt, transform  # noqa: E402
+from ..geometry import T_from_rt, transform  # noqa: E402
 from ..types import Result  # noqa: E402
 
 log = logging.getLogger(__name__)

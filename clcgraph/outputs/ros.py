@@ -162,7 +162,7 @@ def launch_ros2_python(ros: dict) -> str:
             [f'"--{k}", "{v}"' for k, v in zip(["x", "y", "z", "qx", "qy", "qz", "qw"], args)]
             + [f'"--frame-id", "{e["parent_frame"]}"', f'"--child-frame-id", "{frame}"']
         )
-        out.append(f'        Node(package="tf2_ros", executable="static_transform_publisher",')
+        out.append('        Node(package="tf2_ros", executable="static_transform_publisher",')
         out.append(f'             name="clcgraph_{frame}", arguments=[{argv}]),')
     out.append("    ])")
     return "\n".join(out) + "\n"

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .deskew import exp, twist_between
+from .deskew import twist_between
 
 
 @dataclass

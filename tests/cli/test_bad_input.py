@@ -1,8 +1,6 @@
 """The bad-input contract of `clcgraph solve` and friends: one line on stderr naming the
 file/topic/sensor, exit code 2, no traceback, and no output directory left behind."""
 
-import pytest
-
 from clcgraph.cli import main
 from clcgraph.sim.bag_writer import BagWriter
 

@@ -1,7 +1,5 @@
 """Bag round trips (writer -> reader) for ROS1 / ROS2-sqlite3 / ROS2-mcap, tf_static, bad bags."""
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
