@@ -7,9 +7,10 @@ SYNOPSIS
     drive.T_base_lidar["/side/points"]       # truth (4,4)
     write_drive_bag(drive, "drive.bag")      # bag + /tf_static with the perturbed guess
 
-Each column of a scan is ray-cast from the vehicle pose at that column's time, so the
-scans carry the same smear as a real driver's output. The body rolls and pitches on its
-suspension (a sum of sines) about the base_link frame, which stays on the ground.
+Each column of a scan is ray-cast (sim/lidar.py, organised Ouster-style clouds) from the
+vehicle pose at that column's time, so the scans carry the same smear as a real driver's
+output. The body rolls and pitches on its suspension (a sum of sines) about the base_link
+frame, which stays on the ground.
 Frames: world (z up, ground z = 0), base_link (on the ground below the body centre,
 x forward), LIDARs front-left-up. ``scan.points`` are in the LIDAR frame at the
 column's time; ``scan.time_s`` is the column time minus the stamp (scan start).
@@ -140,21 +141,15 @@ def base_pose(plan: DrivePlan, t: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------- scene
 
 def _street_meshes(rng, flat: bool):
-    import open3d as o3d
+    from .scene import box_mesh, cylinder_mesh
 
     meshes = []
 
     def box(sx, sy, sz, x, y, z, yaw=0.0):
-        m = o3d.geometry.TriangleMesh.create_box(sx, sy, sz)
-        m.translate((-sx / 2, -sy / 2, 0))
-        m.rotate(geo.R_from_r(np.array([0, 0, yaw])), center=(0, 0, 0))
-        m.translate((x, y, z))
-        meshes.append(m)
+        meshes.append(box_mesh(sx, sy, sz, x, y, z, yaw))
 
-    def cyl(r, h, x, y, z=0.0):
-        m = o3d.geometry.TriangleMesh.create_cylinder(r, h, resolution=12)
-        m.translate((x, y, z + h / 2))
-        meshes.append(m)
+    def cyl(r, h, x, y):
+        meshes.append(cylinder_mesh(r, h, x, y))
 
     box(400, 400, 0.1, 0, 0, -0.1)  # ground, top face at z = 0
     if flat:
@@ -207,32 +202,18 @@ def make_scene(kind: str, seed: int = 0):
 # ----------------------------------------------------------------------- scans
 
 def _scan(scene, spec: LidarSpec, plan: DrivePlan, t_start: float, t0_ns: int, rng) -> LidarScan:
-    import open3d as o3d
+    from .lidar import LidarModel, simulate_scan
+    from .scene import Scene
 
     period = 1.0 / plan.rate_hz
-    cols = spec.columns
-    tc = t_start + np.arange(cols) / cols * period  # column times
-    T_wb = base_pose(plan, tc)
-    T_bl = geo.T_from_rt(np.asarray(spec.rt_base_lidar))
-    T_wl = T_wb @ T_bl  # (cols,4,4)
-    elev = np.radians(np.linspace(spec.elev_min_deg, spec.elev_max_deg, spec.rings))
-    az = np.pi - 2 * np.pi * np.arange(cols) / cols  # clockwise from behind, like a Velodyne
-    ce, se = np.cos(elev), np.sin(elev)
-    d = np.stack([ce[:, None] * np.cos(az)[None], ce[:, None] * np.sin(az)[None],
-                  np.broadcast_to(se[:, None], (spec.rings, cols))], axis=-1)  # (rings,cols,3) sensor frame
-    dw = np.einsum("cij,rcj->rci", T_wl[:, :3, :3], d)
-    ow = np.broadcast_to(T_wl[None, :, :3, 3], dw.shape)
-    rays = np.concatenate([ow, dw], axis=-1).reshape(-1, 6).astype(np.float32)
-    hit = scene.cast_rays(o3d.core.Tensor(rays))
-    r = hit["t_hit"].numpy().astype(float)
-    valid = np.isfinite(r) & (r < spec.max_range_m) & (r > 0.3)
-    r = np.where(valid, r + rng.normal(0, spec.range_noise_m, r.shape), 0.0)
-    pts = (d.reshape(-1, 3) * r[:, None])
-    ring = np.repeat(np.arange(spec.rings), cols)
-    time_s = np.tile(tc - t_start, spec.rings)
-    return LidarScan(topic=spec.topic, stamp_ns=t0_ns + int(round(t_start * 1e9)), points=pts, valid=valid,
-                     intensity=np.full(len(r), 100.0, np.float32), ring=ring, time_s=time_s,
-                     shape=(spec.rings, cols))
+    model = LidarModel(spec.topic, tuple(np.linspace(spec.elev_min_deg, spec.elev_max_deg, spec.rings)), spec.columns,
+                       range_noise_m=spec.range_noise_m, dropout=0.0, max_range_m=spec.max_range_m, layout="ouster",
+                       rotation_period_s=period)
+    tc = t_start + np.arange(spec.columns) / spec.columns * period  # column times
+    T_wl = base_pose(plan, tc) @ geo.T_from_rt(np.asarray(spec.rt_base_lidar))  # (cols,4,4)
+    scan, _ = simulate_scan(model, T_wl, Scene(scene, -1, -1), rng, stamp_ns=t0_ns + int(round(t_start * 1e9)),
+                            topic=spec.topic)
+    return scan
 
 
 def simulate_drive(plan: DrivePlan | None = None, *, seed: int = 0) -> Drive:

@@ -65,11 +65,20 @@ class LidarModel:
 
 def simulate_scan(model: LidarModel, T_world_lidar: np.ndarray, scene, rng, *, stamp_ns: int = 0,
                   topic: str = "/lidar") -> tuple[LidarScan, np.ndarray]:
-    """One rotation of ``model`` at ``T_world_lidar`` in ``scene`` -> (LidarScan, hit_board mask)."""
+    """One rotation of ``model`` at ``T_world_lidar`` in ``scene`` -> (LidarScan, hit_board mask).
+
+    ``T_world_lidar``: (4,4) for a still sensor, or (columns,4,4), the pose at each column's
+    firing time, for a moving one (the scan is then motion-distorted like a real driver's).
+    """
     d = model.directions()
-    R, t = T_world_lidar[:3, :3], T_world_lidar[:3, 3]
-    dw = d.reshape(-1, 3) @ R.T
-    rays = np.concatenate([np.broadcast_to(t, dw.shape), dw], axis=1)
+    T = np.asarray(T_world_lidar, float)
+    if T.ndim == 2:
+        dw = d.reshape(-1, 3) @ T[:3, :3].T
+        ow = np.broadcast_to(T[:3, 3], dw.shape)
+    else:
+        dw = np.einsum("cij,rcj->rci", T[:, :3, :3], d).reshape(-1, 3)
+        ow = np.broadcast_to(T[None, :, :3, 3], d.shape).reshape(-1, 3)
+    rays = np.concatenate([ow, dw], axis=1)
     r, gid = scene.cast(rays)
     valid = np.isfinite(r) & (r > model.min_range_m) & (r < model.max_range_m)
     valid &= rng.uniform(size=r.shape) >= model.dropout

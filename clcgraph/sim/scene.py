@@ -23,7 +23,7 @@ from ..types import BoardGeometry
 BOARD_THICKNESS_M = 0.01
 
 
-def _box(sx, sy, sz, x, y, z, yaw=0.0):
+def box_mesh(sx, sy, sz, x, y, z, yaw=0.0):
     """Legacy open3d box of size (sx, sy, sz), centred at (x, y) in xy, bottom at z."""
     import open3d as o3d
 
@@ -34,7 +34,7 @@ def _box(sx, sy, sz, x, y, z, yaw=0.0):
     return m
 
 
-def _cylinder(r, h, x, y):
+def cylinder_mesh(r, h, x, y):
     import open3d as o3d
 
     m = o3d.geometry.TriangleMesh.create_cylinder(r, h, resolution=16)
@@ -44,7 +44,7 @@ def _cylinder(r, h, x, y):
 
 def static_meshes(rng, *, clutter: bool = True, walls_m=(12.0, 25.0)) -> list:
     """Ground, walls and clutter (legacy open3d meshes) of one calibration site."""
-    meshes = [_box(200, 200, 0.1, 0, 0, -0.1)]  # ground, top at z = 0
+    meshes = [box_mesh(200, 200, 0.1, 0, 0, -0.1)]  # ground, top at z = 0
     if not clutter:
         return meshes
     n_walls = 8
@@ -52,18 +52,18 @@ def static_meshes(rng, *, clutter: bool = True, walls_m=(12.0, 25.0)) -> list:
         az = 2 * np.pi * (k + rng.uniform(-0.2, 0.2)) / n_walls
         d = rng.uniform(*walls_m)
         w = 2 * d * np.tan(np.pi / n_walls) + 2.0
-        meshes.append(_box(0.3, w, rng.uniform(3, 8), d * np.cos(az), d * np.sin(az), 0, az))
+        meshes.append(box_mesh(0.3, w, rng.uniform(3, 8), d * np.cos(az), d * np.sin(az), 0, az))
     for _ in range(3):  # parked cars: body + cabin, 6-11 m away
         az, d = rng.uniform(0, 2 * np.pi), rng.uniform(6, 11)
         x, y, yaw = d * np.cos(az), d * np.sin(az), rng.uniform(0, np.pi)
-        meshes += [_box(4.4, 1.8, 0.9, x, y, 0.25, yaw), _box(2.3, 1.6, 0.6, x, y, 1.15, yaw)]
+        meshes += [box_mesh(4.4, 1.8, 0.9, x, y, 0.25, yaw), box_mesh(2.3, 1.6, 0.6, x, y, 1.15, yaw)]
     for _ in range(6):  # poles and posts
         az, d = rng.uniform(0, 2 * np.pi), rng.uniform(3, 12)
-        meshes.append(_cylinder(rng.uniform(0.05, 0.15), rng.uniform(1.0, 4.0), d * np.cos(az), d * np.sin(az)))
+        meshes.append(cylinder_mesh(rng.uniform(0.05, 0.15), rng.uniform(1.0, 4.0), d * np.cos(az), d * np.sin(az)))
     for _ in range(6):  # small boxes, bins, crates (faces well below board size)
         az, d = rng.uniform(0, 2 * np.pi), rng.uniform(2.5, 11)
         s = rng.uniform(0.25, 0.55, 3)
-        meshes.append(_box(*s, d * np.cos(az), d * np.sin(az), 0, rng.uniform(0, np.pi)))
+        meshes.append(box_mesh(*s, d * np.cos(az), d * np.sin(az), 0, rng.uniform(0, np.pi)))
     return meshes
 
 
@@ -86,7 +86,7 @@ def person_mesh(board: BoardGeometry, T_world_board: np.ndarray, rng):
     p = T_world_board[:3, :3] @ np.array([side, (ymin + ymax) / 2, 0.0]) + T_world_board[:3, 3]
     behind = T_world_board[:3, 2] * np.array([1.0, 1.0, 0.0])
     p = p + 0.5 * behind / max(np.linalg.norm(behind), 1e-9)
-    body = _cylinder(0.2, 1.75, p[0], p[1])
+    body = cylinder_mesh(0.2, 1.75, p[0], p[1])
     return body
 
 
