@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..planes import fit_plane, ransac_plane
 from ..types import BoardGeometry, LidarBoardObservation, LidarScan, Rejected
 from .lidar_preprocess import Rings, infer_lidar_spacing, prepare, static_masks
 
@@ -176,32 +177,6 @@ def _components(n: int, links: np.ndarray) -> np.ndarray:
     return connected_components(g, directed=False)[1]
 
 
-def fit_plane(points: np.ndarray) -> tuple[np.ndarray, float, float]:
-    """Least-squares plane: (unit normal n, offset d with n.x = d, RMS distance)."""
-    c = points.mean(axis=0)
-    _, s, vt = np.linalg.svd(points - c, full_matrices=False)
-    n = vt[2]
-    return n, float(n @ c), float(s[2] / np.sqrt(len(points)))
-
-
-def _ransac_plane(points: np.ndarray, tol: float, iterations: int = 256) -> np.ndarray:
-    """(N,) inlier mask of the plane with most points within ``tol``, refined by least squares.
-    Seeded numpy, not Open3D's segment_plane: that one runs its iterations in threads and
-    returns different planes for the same scan from run to run."""
-    rng = np.random.default_rng(0)
-    tri = points[rng.integers(0, len(points), (iterations, 3))]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    norm = np.linalg.norm(n, axis=1)
-    ok = norm > 1e-9
-    n = n[ok] / norm[ok, None]
-    d = np.einsum("ij,ij->i", n, tri[ok, 0])
-    count = (np.abs(points @ n.T - d) <= tol).sum(axis=0)
-    best = int(np.argmax(count))
-    inl = np.abs(points @ n[best] - d[best]) <= tol
-    n2, d2, _ = fit_plane(points[inl])
-    return np.abs(points @ n2 - d2) <= tol
-
-
 def _ransac_planes(points: np.ndarray, owner: np.ndarray, tol: float, min_points: int, inlier_share: float,
                    max_planes: int = 4):
     """Split a cluster's segment points into planes; yields the segment ids of each plane."""
@@ -209,7 +184,7 @@ def _ransac_planes(points: np.ndarray, owner: np.ndarray, tol: float, min_points
     for _ in range(max_planes):
         if len(remaining) < min_points:
             return
-        inl = remaining[_ransac_plane(points[remaining], tol)]
+        inl = remaining[ransac_plane(points[remaining], tol)]
         ids, counts = np.unique(owner[inl], return_counts=True)
         total = np.bincount(owner[remaining], minlength=owner.max() + 1)[ids]
         segs = ids[counts >= inlier_share * total]

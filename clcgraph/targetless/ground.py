@@ -4,7 +4,7 @@ SYNOPSIS
     gp = fit_ground(points_lidar0, opts)                 # GroundPlane (unit normal up, offset) or DegenerateError
     T_base_lidar = base_from_ground(normal, d, T_base_lidar_guess)
 
-RANSAC (Open3D) on the dense cloud around keyframes in the crop box; a plane is rejected
+RANSAC (clcgraph.planes, seeded) on the dense cloud around keyframes in the crop box; a plane is rejected
 and its inliers removed when it has too few points / too small a share, or its normal is
 further than ``base_lidar_max_cos_distance`` from the guess's up direction; repeat.
 The body rolls/pitches on its suspension, so the normals of many keyframes are averaged
@@ -18,37 +18,32 @@ import logging
 import numpy as np
 
 from ..errors import DegenerateError
+from ..planes import fit_plane, ransac_plane
 
 log = logging.getLogger(__name__)
 
 
 def fit_ground(points: np.ndarray, up_guess: np.ndarray, o, *, seed: int = 0):
-    """(n (3,), d) of the ground plane n.p + d = 0 in the points' frame, n pointing along up_guess."""
-    import open3d as o3d
-
+    """(n (3,), d, inliers) of the ground plane n.p + d = 0 in the points' frame, n along up_guess."""
     lo = np.array([o.base_lidar_crop_box_min_x, o.base_lidar_crop_box_min_y, o.base_lidar_crop_box_min_z])
     hi = np.array([o.base_lidar_crop_box_max_x, o.base_lidar_crop_box_max_y, o.base_lidar_crop_box_max_z])
     p = points[np.all((points >= lo) & (points <= hi), axis=1)]
     n_all = len(p)
-    o3d.utility.random.seed(seed)
+    up = np.asarray(up_guess, float) / np.linalg.norm(up_guess)
     while len(p) >= o.base_lidar_min_plane_points:
-        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
-        model, inl = pc.segment_plane(o.base_lidar_max_inlier_distance, 3, o.base_lidar_max_iterations)
-        n, d = np.asarray(model[:3]), float(model[3])
-        s = np.linalg.norm(n)
-        n, d = n / s, d / s
-        if n @ up_guess < 0:
-            n, d = -n, -d
-        ok_count = len(inl) >= o.base_lidar_min_plane_points and 100.0 * len(inl) / n_all >= o.base_lidar_min_plane_points_percentage
-        if ok_count and (1.0 - n @ up_guess) <= o.base_lidar_max_cos_distance:
-            q = p[inl]  # least-squares refit on the inliers
-            c = q.mean(0)
-            w, V = np.linalg.eigh(np.cov((q - c).T))
-            n2 = V[:, 0] * np.sign(V[:, 0] @ n)
-            return n2, float(-n2 @ c), len(inl)
+        inl = ransac_plane(p, o.base_lidar_max_inlier_distance, iterations=o.base_lidar_max_iterations, seed=seed)
+        if not inl.any():
+            break
+        n, _, _ = fit_plane(p[inl])
+        if n @ up < 0:
+            n = -n
+        count = int(inl.sum())
+        ok_count = count >= o.base_lidar_min_plane_points and 100.0 * count / n_all >= o.base_lidar_min_plane_points_percentage
+        if ok_count and (1.0 - n @ up) <= o.base_lidar_max_cos_distance:
+            return n, float(-n @ p[inl].mean(axis=0)), count
         if not ok_count:
             break
-        p = np.delete(p, inl, axis=0)
+        p = p[~inl]  # a wall or a car: remove it and look again
     raise DegenerateError("no ground plane found in the base-lidar crop box (too few inliers or normals too far from up)")
 
 
