@@ -66,6 +66,9 @@ class SegmentationOptions:
     max_gap_points_stage1: int = 2
     # Straightness of a segment: RMS distance of its points from their line (a few range sigmas).
     max_rms_segment_m: float = 0.03
+    # Neighbouring returns more than 5 cm + this many point spacings apart are separate objects
+    # (stages 1 and 3; seed: threshold_distance_adjacent_points_cross_segment).
+    max_jump_spacings: float = 3.0
     # Stage 2: clustering segments across rings. Neighbouring segments link when they run
     # within these angles of each other (same ring / across rings; seed: min_cos_angle_error_*),
     max_angle_same_ring_deg: float = 15.0
@@ -95,7 +98,8 @@ class SegmentationOptions:
     min_plane_size_fraction: float = 0.5
     # ...narrower than this fraction of the board's short side is a sliver (seed: 2nd dimension check).
     min_width_fraction: float = 0.2
-    # ...and some ring must cross at least this fraction of the board's short side.
+    # ...and some ring must cross at least this fraction of the board's short side (and 0.6 x the
+    # height seen, up to the side: a tall narrow plane is a body or a post).
     min_chord_fraction: float = 0.45
     max_plane_rms_m: float = 0.03
     # ...and at most this many times the range noise seen along the scan's straight segments.

@@ -95,7 +95,7 @@ def _stage1(R: Rings, rank: np.ndarray, step: float, o) -> tuple[_Segments, np.n
     daz = np.diff(R.azimuth)
     jump = np.linalg.norm(np.diff(p, axis=0), axis=1)
     # a 60-deg tilted plane spaces returns 2 r daz apart; allow for range noise on top
-    max_jump = 0.05 + 3.0 * R.range[:-1] * np.maximum(daz, step)
+    max_jump = 0.05 + o.max_jump_spacings * R.range[:-1] * np.maximum(daz, step)
     linked = same_ring & (daz <= (o.max_gap_points_stage1 + 1.5) * step) & (jump <= max_jump)
     run = np.r_[0, np.cumsum(~linked)]
     run_start = np.r_[0, np.flatnonzero(~linked) + 1]
@@ -218,7 +218,7 @@ def _stage3(R: Rings, rank: np.ndarray, rank_el: np.ndarray, members: np.ndarray
             continue
         pos = np.searchsorted(az[order], rel(R.azimuth[rows]))  # position along the ring
         jump = np.linalg.norm(np.diff(R.points[rows], axis=0), axis=1)
-        max_jump = 0.05 + 3.0 * R.range[rows[:-1]] * step * np.clip(np.diff(pos), 1, 2)
+        max_jump = 0.05 + o.max_jump_spacings * R.range[rows[:-1]] * step * np.clip(np.diff(pos), 1, 2)
         brk = np.flatnonzero((np.diff(pos) > o.max_gap_points_stage3) | (jump > max_jump))
         mine = members[mrank == rk]
         for run in np.split(rows, brk + 1):
@@ -299,16 +299,17 @@ def _chord_and_height(pts: np.ndarray, ring: np.ndarray, n: np.ndarray) -> tuple
     return float((x[ends] - x[starts]).max()), float(np.ptp(y))
 
 
-def _main_piece_per_ring(pts: np.ndarray, ring: np.ndarray, step: float) -> np.ndarray:
+def _main_piece_per_ring(pts: np.ndarray, ring: np.ndarray, step: float, max_jump_spacings: float) -> np.ndarray:
     """(N,) mask keeping, in each ring, the longest piece unbroken by a 3D jump of more than
-    three point spacings: a body or post beside the board, crossing its plane, falls away."""
+    ``max_jump_spacings`` point spacings: a body or post beside the board, crossing its plane,
+    falls away."""
     az = np.arctan2(pts[:, 1], pts[:, 0])
     az0 = np.arctan2(np.sin(az).mean(), np.cos(az).mean())
     az = (az - az0 + np.pi) % (2 * np.pi) - np.pi
     order = np.lexsort((az, ring))
     p, r = pts[order], ring[order]
     jump = np.linalg.norm(np.diff(p, axis=0), axis=1)
-    limit = 0.05 + 3.0 * np.linalg.norm(p[:-1], axis=1) * step
+    limit = 0.05 + max_jump_spacings * np.linalg.norm(p[:-1], axis=1) * step
     piece = np.r_[0, np.cumsum((jump > limit) | (r[1:] != r[:-1]))]
     size = np.bincount(piece)
     ring_of_piece = np.zeros(len(size), r.dtype)
@@ -342,7 +343,7 @@ def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: floa
         res = np.abs(pts @ n - d)
         sigma = 1.4826 * np.median(res[keep])
         keep &= res <= max(3.0 * sigma, 0.01)
-    keep[keep] = _main_piece_per_ring(pts[keep], ring[keep], step)
+    keep[keep] = _main_piece_per_ring(pts[keep], ring[keep], step, o.max_jump_spacings)
     pts, ring = pts[keep], ring[keep]
     n, d, rms = fit_plane(pts)
     if d > 0:
