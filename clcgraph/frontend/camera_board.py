@@ -293,8 +293,17 @@ def detect_corners(images: list[Image], options) -> list[np.ndarray | Rejected]:
     nx, ny = options.corners_x, options.corners_y
     if options.detector == "mrgingham":
         raw = [None if c is None else c + _OFFSET_PX["mrgingham"] for c in _run_mrgingham(grays, options)]
-        # mrgingham misses small boards (squares of a few pixels); OpenCV's sector-based detector
-        # finds them, and its grid passes the same checks
+        # mrgingham misses small boards (squares of 5-8 px): it finds them in the image upsampled 2x
+        missed = [k for k, c in enumerate(raw) if c is None]
+        if missed:
+            import cv2
+
+            up = [cv2.resize(grays[k], None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC) for k in missed]
+            for k, c in zip(missed, _run_mrgingham(up, options)):
+                if c is not None:  # pixel centres at integers in both images
+                    raw[k] = (c + _OFFSET_PX["mrgingham"] + 0.5) / 2 - 0.5
+        # ... and where it still finds nothing, OpenCV's sector-based detector may; its grid
+        # passes the same checks
         missed = [k for k, c in enumerate(raw) if c is None]
         if missed and options.fallback_opencv:
             for k, c in zip(missed, _run_opencv([grays[k] for k in missed], options)):
