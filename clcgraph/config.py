@@ -135,6 +135,8 @@ class SolveOptions:
     sigma_lidar_m: float = 0.03
     sigma_camera_px: float = 0.3
     reestimate_noise: bool = True
+    # One sigma per sensor (rigs mix LIDAR models and cameras); False: one per kind, as the seed.
+    noise_per_sensor: bool = True
     # Outliers: points and whole observations beyond this many sigmas are rejected.
     outlier_sigma: float = 4.0
     reject_outliers: bool = True

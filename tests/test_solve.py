@@ -121,3 +121,15 @@ def test_disconnected_sensor_is_named():
     with pytest.raises(DegenerateError, match="/cam1") as e:
         calibrate(problem, SolveOptions())
     assert "\n" not in str(e.value)
+
+
+def test_noise_is_estimated_per_sensor():
+    """Two LIDARs of different range noise (1 and 3 cm): each gets its own sigma (within 10 %)."""
+    rig = make_rig(n_lidars=2, n_cameras=1)
+    problem, truth = simulate_problem(rig=rig, n_snapshots=30, seed=12, sigma_lidar_m=[0.01, 0.03])
+    r = calibrate(problem, SolveOptions())
+    per = r.noise["per_sensor"]
+    assert abs(per[0] / 0.01 - 1) < 0.1 and abs(per[1] / 0.03 - 1) < 0.1, per
+    assert abs(per[2] / 0.3 - 1) < 0.1, per
+    rot, tr, z = _errors(r, truth)
+    assert np.all(z < 3.5), z

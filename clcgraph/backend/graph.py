@@ -65,11 +65,17 @@ def _key(problem: Problem, i: int):
     return None if i == problem.reference else sensor_key(i)
 
 
+def sigma_of(sigma, sensor: int) -> float:
+    """A sensor's noise sigma from a scalar (all sensors) or a per-sensor array."""
+    return float(sigma[sensor]) if np.ndim(sigma) else float(sigma)
+
+
 def build(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.ndarray, *, lidar: str,
-          sigma_lidar_m: float, sigma_camera_px: float, options, board_nominal: np.ndarray | None = None):
+          sigma_lidar_m, sigma_camera_px, options, board_nominal: np.ndarray | None = None):
     """(gtsam.NonlinearFactorGraph, gtsam.Values) for the active observations.
 
     ``lidar``: "plane" (point-to-plane) or "range" (maximum likelihood).
+    ``sigma_lidar_m``, ``sigma_camera_px``: scalars, or per-sensor arrays (index = sensor).
     ``board_nominal``: (Nsnapshots,6) the in-plane prior's targets (default: ``rt_board``).
     """
     import gtsam
@@ -78,13 +84,13 @@ def build(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.
     g = gtsam.NonlinearFactorGraph()
     for o, m in zip(problem.lidar_observations, active.lidar):
         if m is not None and m.any():
-            g.add(make(_key(problem, o.sensor), board_key(o.snapshot), o.points[m], sigma_lidar_m))
+            g.add(make(_key(problem, o.sensor), board_key(o.snapshot), o.points[m], sigma_of(sigma_lidar_m, o.sensor)))
     for o, m in zip(problem.camera_observations, active.camera):
         if m is not None and m.any():
             s = problem.sensors[o.sensor]
             q = np.where(m[:, None], o.corners_px, np.nan)
             g.add(camera_corners_factor(sensor_key(o.sensor), board_key(o.snapshot), q, s.lensmodel,
-                                        s.intrinsics, problem.board, sigma_camera_px))
+                                        s.intrinsics, problem.board, sigma_of(sigma_camera_px, o.sensor)))
     used, seen_by_camera = active.boards(problem)
     nominal = rt_board if board_nominal is None else board_nominal
     for k in sorted(used - seen_by_camera):

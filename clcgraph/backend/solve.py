@@ -81,6 +81,38 @@ def _dof(problem, active, n_l: int, n_c: int) -> tuple[float, float]:
     return p * n_l / n, p * n_c / n
 
 
+def _per_sensor_residuals(problem, lid, cam, active) -> dict:
+    """{sensor: its active residuals (m or px)}."""
+    out: dict = {}
+    for o, r, m in zip(problem.lidar_observations, lid, active.lidar):
+        if m is not None and r is not None:
+            out.setdefault(o.sensor, []).append(r[m])
+    for o, r, m in zip(problem.camera_observations, cam, active.camera):
+        if m is not None and r is not None:
+            out.setdefault(o.sensor, []).append(r[m].ravel())
+    return {i: np.concatenate(v) for i, v in out.items()}
+
+
+def _reestimate(problem, active, per: dict, sig: np.ndarray, lidars: list, per_sensor: bool) -> np.ndarray:
+    """Sigmas from the residuals, unbiased by the parameters they determine (shared out by
+    residual count); per sensor, or pooled per kind (LIDAR, camera)."""
+    n_l = sum(len(per[i]) for i in per if i in lidars)
+    n_c = sum(len(per[i]) for i in per if i not in lidars)
+    p_l, p_c = _dof(problem, active, n_l, n_c)
+    out = sig.copy()
+    groups = [[i] for i in per] if per_sensor else [[i for i in per if i in lidars], [i for i in per if i not in lidars]]
+    for ids in groups:
+        if not ids:
+            continue
+        is_lidar = ids[0] in lidars
+        n = sum(len(per[i]) for i in ids)
+        p = (p_l * n / max(n_l, 1)) if is_lidar else (p_c * n / max(n_c, 1))
+        ss = sum(float(np.sum(per[i] ** 2)) for i in ids)
+        value = max(float(np.sqrt(ss / max(n - p, 1))), _MIN_SIGMA_LIDAR_M if is_lidar else _MIN_SIGMA_CAMERA_PX)
+        out[ids] = value
+    return out
+
+
 def _active_residuals(lid, cam, active):
     rl = [r[m] for r, m in zip(lid, active.lidar) if m is not None and r is not None]
     rc = [r[m].ravel() for r, m in zip(cam, active.camera) if m is not None and r is not None]
@@ -103,7 +135,7 @@ def _reject(problem, active, lid, cam, sig_l, sig_c, options, rt_sensor, rt_boar
             if m is None or r is None or not m.any():
                 continue
             rr = r[m] if kind == "lidar" else r[m].ravel()
-            members.setdefault(o.snapshot, []).append((kind, j, float(np.sqrt(np.mean(rr**2)) / (sig_l if kind == "lidar" else sig_c))))
+            members.setdefault(o.snapshot, []).append((kind, j, float(np.sqrt(np.mean(rr**2)) / G.sigma_of(sig, o.sensor))))
     for k, group in members.items():
         if max(z for _, _, z in group) <= _WHOLE_OBS_FACTOR:
             continue
@@ -132,13 +164,13 @@ def _reject(problem, active, lid, cam, sig_l, sig_c, options, rt_sensor, rt_boar
                                 f"(> {_WHOLE_OBS_FACTOR:g}): wrong plane or bad detection{why}", "outlier", o.sensor, k))
     if new:
         return new
-    lim_l, lim_c = options.outlier_sigma * sig_l, options.outlier_sigma * sig_c
-    for j, (r, m) in enumerate(zip(lid, active.lidar)):
+    for j, (o, r, m) in enumerate(zip(problem.lidar_observations, lid, active.lidar)):
         if m is not None and r is not None:
-            active.lidar[j] = np.abs(r) <= lim_l
+            active.lidar[j] = np.abs(r) <= options.outlier_sigma * G.sigma_of(sig_l, o.sensor)
     for j, (o, r, m) in enumerate(zip(problem.camera_observations, cam, active.camera)):
         if m is not None and r is not None:
-            active.camera[j] = np.all(np.isfinite(o.corners_px), axis=1) & np.all(np.abs(r) <= lim_c, axis=1)
+            lim = options.outlier_sigma * G.sigma_of(sig_c, o.sensor)
+            active.camera[j] = np.all(np.isfinite(o.corners_px), axis=1) & np.all(np.abs(r) <= lim, axis=1)
     # an observation that lost most of its points is wrong as a whole
     for kind, obs, masks in (("lidar", problem.lidar_observations, active.lidar),
                              ("camera", problem.camera_observations, active.camera)):
@@ -186,9 +218,9 @@ def _deleted_z(problem, active, rt_sensor, rt_board, k, kind, j, sig_l, sig_c, o
     lid, cam = G.residuals(problem, rt_sensor, b)
     if kind == "lidar":
         r = lid[j][active.lidar[j]]
-        return float(np.sqrt(np.mean(r**2)) / sig_l)
+        return float(np.sqrt(np.mean(r**2)) / G.sigma_of(sig_l, problem.lidar_observations[j].sensor))
     r = cam[j][active.camera[j]].ravel()
-    return float(np.sqrt(np.mean(r**2)) / sig_c)
+    return float(np.sqrt(np.mean(r**2)) / G.sigma_of(sig_c, problem.camera_observations[j].sensor))
 
 
 def _covariance(problem: Problem, g, values, rt_sensor, options) -> np.ndarray:
@@ -247,35 +279,35 @@ def calibrate(problem: Problem, options) -> Result:
     nominal = s.rt_lidar0_board.copy()
     active = G.Active.all(problem, s.dropped)
     rejected = list(problem.rejected) + list(s.rejected)
-    sig_l, sig_c = float(options.sigma_lidar_m), float(options.sigma_camera_px)
+    lidars = [i for i, x in enumerate(problem.sensors) if x.kind == "lidar"]
+    # one noise sigma per sensor (m for LIDARs, px for cameras): rigs mix LIDAR models
+    sig = np.array([options.sigma_lidar_m if x.kind == "lidar" else options.sigma_camera_px for x in problem.sensors],
+                   float)
 
     t = time.perf_counter()
-    rt_sensor, rt_board, iters["plane"], _ = _lm(problem, active, rt_sensor, rt_board, "plane", sig_l, sig_c, options, nominal)
-    rt_sensor, rt_board, iters["range"], (g, values) = _lm(problem, active, rt_sensor, rt_board, "range", sig_l, sig_c,
+    rt_sensor, rt_board, iters["plane"], _ = _lm(problem, active, rt_sensor, rt_board, "plane", sig, sig, options, nominal)
+    rt_sensor, rt_board, iters["range"], (g, values) = _lm(problem, active, rt_sensor, rt_board, "range", sig, sig,
                                                           options, nominal)
     times["lm"] = time.perf_counter() - t
     t = time.perf_counter()
     iters["rounds"] = 0
     for rnd in range(_MAX_ROUNDS):
         lid, cam = G.residuals(problem, rt_sensor, rt_board)
-        rl, rc = _active_residuals(lid, cam, active)
         new, before = [], _mask_signature(active)
         if options.reject_outliers:
-            robust_l = _mad_sigma(rl) if len(rl) else sig_l
-            robust_c = _mad_sigma(rc) if len(rc) else sig_c
+            # outliers against one robust sigma per kind: a sensor with several bad observations
+            # would inflate its own
+            rl, rc = _active_residuals(lid, cam, active)
+            robust_l = _mad_sigma(rl) if len(rl) else options.sigma_lidar_m
+            robust_c = _mad_sigma(rc) if len(rc) else options.sigma_camera_px
             new = _reject(problem, active, lid, cam, robust_l, robust_c, options, rt_sensor, rt_board)
             rejected += new
-            rl, rc = _active_residuals(lid, cam, active)
-        old = (sig_l, sig_c)
+        old = sig.copy()
         if options.reestimate_noise:
-            p_l, p_c = _dof(problem, active, len(rl), len(rc))
-            if len(rl):
-                sig_l = max(float(np.sqrt(np.sum(rl**2) / max(len(rl) - p_l, 1))), _MIN_SIGMA_LIDAR_M)
-            if len(rc):
-                sig_c = max(float(np.sqrt(np.sum(rc**2) / max(len(rc) - p_c, 1))), _MIN_SIGMA_CAMERA_PX)
-        stable = (not new and _mask_signature(active) == before
-                  and abs(sig_l / old[0] - 1) < 0.01 and abs(sig_c / old[1] - 1) < 0.01)
-        rt_sensor, rt_board, it, (g, values) = _lm(problem, active, rt_sensor, rt_board, "range", sig_l, sig_c,
+            sig = _reestimate(problem, active, _per_sensor_residuals(problem, lid, cam, active), sig, lidars,
+                              options.noise_per_sensor)
+        stable = not new and _mask_signature(active) == before and np.all(np.abs(sig / old - 1) < 0.01)
+        rt_sensor, rt_board, it, (g, values) = _lm(problem, active, rt_sensor, rt_board, "range", sig, sig,
                                                   options, nominal)
         iters["rounds"] += 1
         iters[f"round{rnd}"] = it
@@ -300,18 +332,26 @@ def calibrate(problem: Problem, options) -> Result:
                                      f"{options.outlier_sigma:g} sigma", "outlier", o.sensor, o.snapshot))
     total = g.error(values)
     prior = sum(g.at(f).error(values) for f in range(g.size()) if "PriorFactor" in type(g.at(f)).__name__)
-    z = np.r_[rl / sig_l, rc / sig_c]
+    per = _per_sensor_residuals(problem, lid, cam, active)
+    z = np.concatenate([per[i] / sig[i] for i in sorted(per)]) if per else np.zeros(0)
     rms = {"normalized": float(np.sqrt(np.mean(z**2))) if len(z) else float("nan"),
            "lidar_m": float(np.sqrt(np.mean(rl**2))) if len(rl) else float("nan"),
            "camera_px": float(np.sqrt(np.mean(rc**2))) if len(rc) else float("nan")}
-    noise = {"lidar_m": sig_l if len(rl) else float("nan"), "camera_px": sig_c if len(rc) else float("nan")}
+    def pooled(ids):  # the sigma of all of one kind's residuals together
+        n = np.array([len(per.get(i, ())) for i in ids], float)
+        return float(np.sqrt(np.sum(n * sig[ids] ** 2) / n.sum())) if len(ids) and n.sum() else float("nan")
+
+    cams = [i for i in range(len(sig)) if i not in lidars]
+    noise = {"lidar_m": pooled(lidars), "camera_px": pooled(cams),
+             "per_sensor": {i: float(sig[i]) for i in sorted(per)}}
     times["total"] = time.perf_counter() - t0
     stats = {"stage": "solve", "iterations": iters, "time_s": times, "regularization_share": float(prior / max(total, 1e-300)),
              "n_outlier_points": int(sum(int((~m).sum()) for m in active.lidar if m is not None)),
              "n_rejected_observations": sum(1 for r in rejected if r.stage in ("outlier", "seed"))}
     if not np.all(np.isfinite(rt_sensor)):
         raise SolveError("the solve produced non-finite sensor poses")
-    log.info("solve: %d rounds, sigma LIDAR %.4f m, camera %.3f px, %.2f s", iters["rounds"], sig_l, sig_c, times["total"])
+    log.info("solve: %d rounds, sigma LIDAR %.4f m, camera %.3f px, %.2f s", iters["rounds"], noise["lidar_m"],
+             noise["camera_px"], times["total"])
     return Result(problem=problem, rt_lidar0_sensor=rt_sensor, covariance_rt=cov, rt_lidar0_board=rt_board,
                   noise=noise, rms=rms, rejected=tuple(rejected), stats=stats,
                   residuals=_residual_arrays(problem, lid, cam, active))

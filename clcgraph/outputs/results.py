@@ -69,6 +69,8 @@ def calibration_dict(result: Result) -> dict:
                 # for humans: 1-sigma position (mm) and orientation (deg) of the sensor
                 "stdev_position_mm": _floats(sd[3:] * 1e3),
                 "stdev_orientation_deg": _floats(np.degrees(sd[:3])),
+                # this sensor's re-estimated noise: m (LIDAR range) or px (camera corners)
+                "noise_sigma": _scalar(result.noise.get("per_sensor", {}).get(i)),
             }
         )
     rejected = [

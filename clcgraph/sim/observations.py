@@ -155,6 +155,7 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
                      lidar_only: bool = False, min_rings: int = 3, min_points: int = 20):
     """A Problem with noisy board observations of ``rig`` and its Truth (see module doc).
 
+    ``sigma_lidar_m``: one range sigma, or one per LIDAR (in sensor order).
     ``vertical_only``: the board is held upright (yaw up to ``tilt_max_deg``, pitch jitter
     ``vertical_jitter_deg``, 0 = exactly vertical). ``corrupt_fraction``: that share of each
     sensor's observations is corrupted (LIDAR: points of another surface 0.3 m off and 25 deg
@@ -184,7 +185,8 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
         for i, s in enumerate(sensors):
             rt_s_b = compose_rt(invert_rt(rts[i]), rt_b)
             if s.is_lidar:
-                p, ring = _lidar_hits(lidars[i], rt_s_b, board, rng, sigma_lidar_m)
+                sigma = sigma_lidar_m[i] if np.ndim(sigma_lidar_m) else sigma_lidar_m  # per LIDAR, or one
+                p, ring = _lidar_hits(lidars[i], rt_s_b, board, rng, sigma)
                 if len(p) >= min_points and len(np.unique(ring)) >= min_rings:
                     plane, rms = plane_fit(p)
                     lo.append(LidarBoardObservation(sensor=i, snapshot=k, points=p, plane=plane, rms_m=rms))
