@@ -72,8 +72,20 @@ def plot_residual_histograms(result: Result, path) -> Path:
             ax.hist(np.clip(xo, -lim, lim), bins=bins, weights=np.full(xo.size, 1.0 / (x.size * (bins[1] - bins[0]))),
                     color="r", alpha=0.6, label=f"outliers, rejected (N={xo.size})")
         g = np.linspace(-lim, lim, 400)
-        ax.plot(g, np.exp(-0.5 * (g / sigma) ** 2) / (sigma * np.sqrt(2 * np.pi)), "r-",
-                label=f"Gaussian, sigma={sigma:.3g} {unit}")
+        # each sensor has its own sigma: the expected density is their mixture, by residual count
+        sens = np.asarray(result.residuals.get(key.split("_")[0] + "_sensor", []), int).ravel()
+        per = result.noise.get("per_sensor") or {}
+        if sens.shape == out_mask.shape and per:
+            sens = sens[~out_mask & np.isfinite(np.asarray(result.residuals.get(key), float).ravel())]
+            ids, counts = np.unique(sens, return_counts=True)
+            sig = np.array([per.get(int(i), sigma) for i in ids])
+            w = counts / counts.sum()
+        else:
+            sig, w = np.array([sigma]), np.array([1.0])
+        dens = sum(wi * np.exp(-0.5 * (g / si) ** 2) / (si * np.sqrt(2 * np.pi)) for wi, si in zip(w, sig))
+        what = (f"Gaussian, sigma={sigma:.3g} {unit}" if len(sig) == 1 else
+                "Gaussians of the sensors' sigmas (" + ", ".join(f"{x:.3g}" for x in sig) + f" {unit})")
+        ax.plot(g, dens, "r-", label=what)
         ax.set_xlabel(f"{kind} residual ({unit})")
         ax.set_ylabel("density")
         ax.set_title(f"{kind} residuals: RMS {np.sqrt(np.mean(x**2)):.3g} {unit}")
@@ -124,8 +136,12 @@ def plot_residuals_per_snapshot(result: Result, path) -> Path:
             if o["n_outliers"]:
                 ax.plot(o["snapshot"], o["rms"], "o", mfc="none", mec="r", ms=10, mew=1.5)
             plotted.add(i)
+        per = result.noise.get("per_sensor") or {}
+        for i in sorted(plotted):
+            if i in per:  # each sensor's re-estimated noise, in its colour
+                ax.axhline(per[i], color=colors[i], ls="--", lw=0.8, label=f"noise sigma {per[i]:.3g} {unit}")
         sigma = result.noise.get(nk)
-        if sigma and np.isfinite(sigma):
+        if not per and sigma and np.isfinite(sigma):
             ax.axhline(sigma, color="k", ls="--", lw=0.8, label=f"noise sigma {sigma:.3g} {unit}")
         # rejected observations of this kind's sensors, at the bottom of the axis
         for r in result.rejected:
