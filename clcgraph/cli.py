@@ -617,7 +617,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Calibrate the extrinsics of a rig of LIDARs and cameras.",
     )
     parser.add_argument("--verbose", "-v", action="store_true", help="debug logging; tracebacks on errors")
-    parser.add_argument("--quiet", "-q", action="store_true", help="only warnings and errors; no progress bars")
+    parser.add_argument("--quiet", "-q", action="store_true",
+                        help="only warnings and errors, no progress (the default when stderr is not a terminal)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for add in _COMMANDS:
@@ -628,7 +629,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
+    # progress notes are for someone watching: piped or logged runs get warnings and errors only
+    quiet = args.quiet or not sys.stderr.isatty()
+    level = logging.DEBUG if args.verbose else logging.WARNING if quiet else logging.INFO
     logging.basicConfig(level=level, format="%(message)s" if not args.verbose else "%(levelname)s %(name)s: %(message)s")
     from . import progress
 

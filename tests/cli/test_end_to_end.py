@@ -48,8 +48,8 @@ def test_too_few_snapshots(tmp_path, capsys):
     rc = main(["solve", "--bag", str(tmp_path / "bags" / "*.bag"), "--topics", "/lidar/a,/lidar/b",
                "--out", str(tmp_path / "out")])
     err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 2 and "Traceback" not in "\n".join(err)
-    assert "snapshot" in err[-1] and "clcgraph solve: error" in err[-1]
+    assert rc == 2 and len(err) == 1, err
+    assert "snapshot" in err[0] and "clcgraph solve: error" in err[0]
     assert not (tmp_path / "out").exists()
 
 
@@ -86,6 +86,6 @@ def test_sensor_never_co_observed(tmp_path, capsys):
     rc = main(["solve", "--bag", str(tmp_path / "bags" / "*.bag"), "--topics", "/lidar/a,/lidar/b,/cam/sky",
                str(tmp_path / "front.cameramodel"), "--out", str(tmp_path / "out")])
     err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 2 and "Traceback" not in "\n".join(err)
-    assert "/cam/sky" in err[-1] and "clcgraph solve: error" in err[-1]
+    assert rc == 2 and len(err) == 1, err
+    assert "/cam/sky" in err[0] and "clcgraph solve: error" in err[0]
     assert not (tmp_path / "out").exists()
