@@ -111,12 +111,15 @@ def static_masks(scans, *, npoints_per_rotation: int, quantum_m: float = 0.2, mi
     K = np.concatenate(keys)
     Q = np.concatenate(qs)
     good = K >= 0
-    kq, counts = np.unique(np.c_[K[good], Q[good]], axis=0, return_counts=True)
+    span = int(Q[good].max()) + 1 if good.any() else 1
+    # one int64 per (cell, range bin): a 1-D unique is much faster than a row-wise one
+    kq, counts = np.unique(K[good] * span + Q[good], return_counts=True)
+    kc, qb = kq // span, kq % span
     # the most common range bin of each cell
-    order = np.lexsort((-counts, kq[:, 0]))
-    kq, counts = kq[order], counts[order]
-    first = np.r_[True, kq[1:, 0] != kq[:-1, 0]]
-    cells, mq, mc = kq[first, 0], kq[first, 1], counts[first]
+    order = np.lexsort((-counts, kc))
+    kc, qb, counts = kc[order], qb[order], counts[order]
+    first = np.r_[True, kc[1:] != kc[:-1]]
+    cells, mq, mc = kc[first], qb[first], counts[first]
     n = len(scans)
     out = []
     for k, q in zip(keys, qs):
