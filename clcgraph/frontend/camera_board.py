@@ -285,6 +285,8 @@ def detect_corners(images: list[Image], options) -> list[np.ndarray | Rejected]:
     docstring) in mrcal's pixel convention. The mrgingham detector runs one batched
     command-line call (``--jobs``); OpenCV runs in a process pool of ``jobs`` workers.
     """
+    import cv2
+
     if options.detector not in _OFFSET_PX:
         raise InputError(f"unknown detector {options.detector!r}: use mrgingham or opencv")
     if not images:
@@ -296,16 +298,17 @@ def detect_corners(images: list[Image], options) -> list[np.ndarray | Rejected]:
         # mrgingham misses small boards (squares of 5-8 px): it finds them in the image upsampled 2x
         missed = [k for k, c in enumerate(raw) if c is None]
         if missed:
-            import cv2
-
             up = [cv2.resize(grays[k], None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC) for k in missed]
             for k, c in zip(missed, _run_mrgingham(up, options)):
                 if c is not None:  # pixel centres at integers in both images
                     raw[k] = (c + _OFFSET_PX["mrgingham"] + 0.5) / 2 - 0.5
-        # ... and where it still finds nothing, OpenCV's sector-based detector may; its grid
-        # passes the same checks
+        # ... and where it still finds nothing, OpenCV's sector-based detector may (its grid
+        # passes the same checks); only where OpenCV's quick check sees a board at all, as most
+        # such images have none and the full detector is slow
         missed = [k for k, c in enumerate(raw) if c is None]
         if missed and options.fallback_opencv:
+            missed = [k for k in missed if cv2.checkChessboard(
+                cv2.resize(grays[k], None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC), (nx, ny))]
             for k, c in zip(missed, _run_opencv([grays[k] for k in missed], options)):
                 raw[k] = None if c is None else c + _OFFSET_PX["opencv"]
     else:
