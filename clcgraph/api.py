@@ -218,7 +218,8 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
              len(snaps), n_used, len(lidar_obs), len(camera_obs))
     if n_used < 3:
         raise DegenerateError(f"only {n_used} snapshot(s) with the board seen by >= 2 sensors (of {len(snaps)}); "
-                              "record more board poses (see `clcgraph segment` / `clcgraph detect` for why boards were missed)")
+                              + _why_missed(sensors, lidar_obs, camera_obs, rejected)
+                              + "record more board poses (see `clcgraph segment` / `clcgraph detect` for why boards were missed)")
 
     priors: tuple[PosePrior, ...] = ()
     if cfg.solve.prior_from_tf_static_sigma is not None:
@@ -233,6 +234,26 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
         priors=priors,
         lidar_visibility_points=visibility,
     )
+
+
+def _why_missed(sensors, lidar_obs, camera_obs, rejected) -> str:
+    """Per sensor, how many boards it found and its most common reason for the rest, e.g. a
+    board size that does not match the config: 'lidar /l: 2 found; 14 x "plane ... larger than the board"'."""
+    import re
+    from collections import Counter
+
+    found = Counter(o.sensor for o in [*lidar_obs, *camera_obs])
+    why: dict[int, Counter] = {}
+    for r in rejected:
+        if r.sensor is not None and r.stage in ("segmentation", "detection"):
+            text = r.reason.split(": ", 1)[-1] if r.stage == "segmentation" else r.reason
+            why.setdefault(r.sensor, Counter())[re.sub(r"\d+(\.\d+)?", "#", text)[:90]] += 1
+    parts = []
+    for i, s in enumerate(sensors):
+        if i in why:
+            reason, n = why[i].most_common(1)[0]
+            parts.append(f'{s.topic}: {found.get(i, 0)} found, {n} x "{reason}"')
+    return ("; ".join(parts) + "; ") if parts else ""
 
 
 def segment(scans, *, config=None, sensor: int = 0, snapshots: Sequence[int] | None = None,
