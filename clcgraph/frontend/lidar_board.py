@@ -420,7 +420,7 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
             if len(segs) < o.min_segments_per_cluster or len(np.unique(seg.rank[segs])) < o.min_rings:
                 continue
             if len(segs) > o.max_segments_per_cluster:
-                reasons.append(f"plane of {len(segs)} segments > max_segments_per_cluster")
+                reasons.append((len(segs) * k, f"plane of {len(segs)} segments > max_segments_per_cluster"))
                 continue
             n, d, _ = fit_plane(seg_pts[segs].reshape(-1, 3))
             members = (seg.first[segs, None] + np.arange(k)).ravel()
@@ -443,12 +443,18 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
         if why is None:
             found.append((rows, plane))
         else:
-            reasons.append(why)
+            reasons.append((len(rows), why))
     if not found:
         if not reasons:
             return rejected(f"no flat cluster of >= {o.min_segments_per_cluster} segments over "
                             f">= {o.min_rings} rings facing the sensor")
-        return rejected("no board-like plane; " + "; ".join(sorted(set(reasons))[:3]))
+        # the verdicts on the largest candidates first: the board is usually among them
+        seen, top = set(), []
+        for _, why in sorted(reasons, key=lambda x: -x[0]):
+            if why not in seen:
+                seen.add(why)
+                top.append(why)
+        return rejected("no board-like plane; " + "; ".join(top[:3]))
     if len(found) > 1 and o.require_unique:
         where = ", ".join(f"{np.linalg.norm(R.points[r].mean(axis=0)):.1f} m" for r, _ in found)
         return rejected(f"{len(found)} board-like planes (at {where}); require_unique")
