@@ -26,12 +26,11 @@ rotated by a multiple of 90 deg and the solver must resolve that (e.g. by trying
 from __future__ import annotations
 
 import logging
-import multiprocessing
 import os
 import shutil
 import subprocess
 import tempfile
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -268,8 +267,9 @@ def _run_opencv(grays: list[np.ndarray], options) -> list[np.ndarray | None]:
     args = [(g, nx, ny) for g in grays]
     if options.jobs <= 1 or len(grays) < 4:
         return [_opencv_one(a) for a in args]
-    # forkserver: forking a process that runs open3d/BLAS threads can deadlock the children
-    with ProcessPoolExecutor(max_workers=options.jobs, mp_context=multiprocessing.get_context("forkserver")) as ex:
+    # threads: OpenCV releases the GIL while detecting (and worker processes would fork a
+    # threaded process or re-import the caller's script)
+    with ThreadPoolExecutor(max_workers=options.jobs) as ex:
         return list(ex.map(_opencv_one, args, chunksize=max(1, len(args) // (4 * options.jobs))))
 
 
@@ -283,7 +283,7 @@ def detect_corners(images: list[Image], options) -> list[np.ndarray | Rejected]:
 
     options: ``config.DetectionOptions``. Corners are in canonical board order (module
     docstring) in mrcal's pixel convention. The mrgingham detector runs one batched
-    command-line call (``--jobs``); OpenCV runs in a process pool of ``jobs`` workers.
+    command-line call (``--jobs``); OpenCV runs in ``jobs`` threads.
     """
     import cv2
 

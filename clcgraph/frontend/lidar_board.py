@@ -29,9 +29,8 @@ SYNOPSIS
 from __future__ import annotations
 
 import logging
-import multiprocessing
 import os
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -435,7 +434,7 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
             c = R.points[rows].mean(axis=0) if len(rows) else np.full(3, np.nan)
             x0, x1, y0, y1 = o.debug_region
             if x0 <= c[0] <= x1 and y0 <= c[1] <= y1:
-                # warning level: asked for explicitly, and worker processes keep no logging setup
+                # warning level: asked for explicitly, so shown even when progress notes are not
                 log.warning("debug %s @%d: plane at (%.2f, %.2f, %.2f) m, %d points on %d rings: %s", scan.topic,
                             scan.stamp_ns, *c, len(rows), len(np.unique(rank[rows])), why or "accepted")
         if debug is not None:
@@ -493,7 +492,7 @@ def _one(args):
 def segment_many(scans, options, lidar_options, board: BoardGeometry, *, sensor: int = 0,
                  snapshots=None, jobs: int | None = None, progress=None) -> list:
     """segment_board over a session of one LIDAR (static scene removed when suppress_static),
-    in a process pool. ``progress``: optional wrapper of the result iteration (a progress bar)."""
+    in ``jobs`` threads. ``progress``: optional wrapper of the result iteration (a progress bar)."""
     scans = list(scans)
     snapshots = list(range(len(scans))) if snapshots is None else list(snapshots)
     if not scans:
@@ -508,7 +507,9 @@ def segment_many(scans, options, lidar_options, board: BoardGeometry, *, sensor:
     if jobs <= 1 or len(scans) < 4:
         it = map(_one, args)
         return list(progress(it, len(args)) if progress else it)
-    # forkserver: forking a process that runs open3d/BLAS threads can deadlock the children
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("forkserver")) as ex:
+    # threads, not processes: numpy and scipy release the GIL in the heavy parts, and worker
+    # processes would either fork a threaded process (deadlocks) or re-import the caller's
+    # script (forkserver/spawn: a fleet script without a __main__ guard would run again)
+    with ThreadPoolExecutor(max_workers=jobs) as ex:
         it = ex.map(_one, args, chunksize=1)
         return list(progress(it, len(args)) if progress else it)
