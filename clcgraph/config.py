@@ -101,6 +101,7 @@ class SegmentationOptions:
     # ...and some ring must cross at least this fraction of the board's short side (and 0.6 x the
     # height seen, up to the side: a tall narrow plane is a body or a post).
     min_chord_fraction: float = 0.45
+    # A board is flat: its plane-fit RMS is at most this,
     max_plane_rms_m: float = 0.03
     # ...and at most this many times the range noise seen along the scan's straight segments.
     max_plane_rms_sigmas: float = 1.5
