@@ -329,13 +329,14 @@ def _add_simulate(sub):
     p.add_argument("--poses", type=int, default=20, help="number of board poses")
     p.add_argument("--format", default="ros1", choices=["ros1", "ros2-sqlite3", "ros2-mcap"], help="bag format")
     p.add_argument("--continuous", action="store_true", help="one continuous bag (the board moves between poses)")
+    p.add_argument("--compress", action="store_true", help="lz4-compressed ROS1 bags")
     p.add_argument("--seed", type=int, default=0)
 
     def run(args):
         from . import api
 
         truth = api.simulate(args.rig, args.out, n_poses=args.poses, format=args.format,
-                             continuous=args.continuous, seed=args.seed)
+                             continuous=args.continuous, seed=args.seed, compress=args.compress)
         print(f"wrote {len(truth['snapshots'])} board poses of {len(truth['sensors'])} sensors into {args.out} "
               f"(truth in {args.out}/truth.yaml)")
         return 0

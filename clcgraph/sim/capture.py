@@ -120,8 +120,9 @@ def _write(w: BagWriter, rig: Rig, scans, images):
 
 def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str = "ros1", continuous: bool = False,
              tilt_max_deg: float = 40.0, tf_error=(1.0, 0.03), hold_s: float = 2.0, move_s: float = 1.0,
-             camera_hz: float = 5.0, clutter: bool = True) -> dict:
+             camera_hz: float = 5.0, clutter: bool = True, compress: bool = False) -> dict:
     """Simulate a capture session of the rig in ``rig_yaml`` into ``out_dir`` (replaced atomically).
+    ``compress``: lz4-compressed ROS1 bags (as `rosbag record --lz4` writes them).
 
     Returns the truth dict that is also written to ``out_dir/truth.yaml``.
     """
@@ -138,7 +139,7 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
         ext = ".bag" if format == "ros1" else ""
         snapshots = []
         if continuous:
-            writer = BagWriter(tmp / f"session{ext}", format=format)
+            writer = BagWriter(tmp / f"session{ext}", format=format, compress=compress)
             writer.__enter__()
             writer.write_tf_static(tf, stamp_ns=T0_NS)
         poses = []
@@ -172,7 +173,7 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
                 t_ns += int((hold_s + move_s) * 1e9)
             else:
                 name = f"pose{k:03d}{ext}"
-                with BagWriter(tmp / name, format=format) as w:
+                with BagWriter(tmp / name, format=format, compress=compress) as w:
                     w.write_tf_static(tf, stamp_ns=t_ns)
                     _write(w, rig, scans, images)
                 snapshots.append({"bag": name, "stamp_ns": int(t_ns), "rt_lidar0_board": rt_l0_b.tolist(),
@@ -237,5 +238,5 @@ def _truth(rig: Rig, tf, snapshots, format, continuous, seed) -> dict:
 
 
 def simulate_demo(out_dir=None, *, seed: int = 0, n_poses: int = 20) -> dict:
-    """The demo session: data/synthetic/demo-rig.yaml, 20 bag-per-pose ROS1 bags."""
-    return simulate(DEMO_RIG, out_dir or DEMO_DIR, n_poses=n_poses, seed=seed)
+    """The demo session: data/synthetic/demo-rig.yaml, 20 bag-per-pose ROS1 bags (lz4, ~95 MB)."""
+    return simulate(DEMO_RIG, out_dir or DEMO_DIR, n_poses=n_poses, seed=seed, compress=True)
