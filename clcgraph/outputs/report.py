@@ -41,10 +41,12 @@ def _fmt(v, f="{:.3g}"):
 
 def _pose_table(result: Result) -> str:
     rows = []
+    per = result.noise.get("per_sensor") or {}
     for i, s in enumerate(result.problem.sensors):
         rt = np.asarray(result.rt_lidar0_sensor[i], float)
         sd = result.stdev_rt(i)
         ref = " (reference)" if i == result.problem.reference else ""
+        noise = "–" if i not in per else (f"{per[i] * 1e3:.1f} mm" if s.kind == "lidar" else f"{per[i]:.3f} px")
         rows.append(
             "<tr>" + "".join(
                 f"<td>{c}</td>" for c in (
@@ -53,11 +55,12 @@ def _pose_table(result: Result) -> str:
                     " ".join(f"{x:+.3f}" for x in np.degrees(rt[:3])),
                     " ".join(f"{x:.2f}" for x in sd[3:] * 1e3),
                     " ".join(f"{x:.3f}" for x in np.degrees(sd[:3])),
+                    noise,
                 )
             ) + "</tr>"
         )
     head = ("<tr><th>#</th><th>topic</th><th>kind</th><th>t_lidar0_sensor (m)</th><th>r_lidar0_sensor (deg)</th>"
-            "<th>stdev position (mm)</th><th>stdev orientation (deg)</th></tr>")
+            "<th>stdev position (mm)</th><th>stdev orientation (deg)</th><th>noise sigma</th></tr>")
     return f"<table>{head}{''.join(rows)}</table>"
 
 
