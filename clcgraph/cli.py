@@ -220,8 +220,7 @@ def _add_segment(sub):
 
         from .api import expand_bags
         from .frontend.bag import first_messages, read_messages
-        from .frontend.lidar_board import Debug, segment_board
-        from .frontend.lidar_preprocess import infer_lidar_spacing, static_masks
+        from .frontend.lidar_board import Debug, segment_many
         from .outputs.plots import plot_segmentation
         from .types import BoardGeometry, LidarBoardObservation
 
@@ -233,17 +232,13 @@ def _add_segment(sub):
             scans = [first_messages(b, [args.topic])[args.topic] for b in paths]
         d = cfg.detection
         board = BoardGeometry(corners_x=d.corners_x, corners_y=d.corners_y, spacing_m=d.spacing_m, margin_m=d.margin_m)
-        npoints = cfg.lidar.npoints_per_rotation or infer_lidar_spacing(scans[:5])[1] or None
-        static = (static_masks(scans, npoints_per_rotation=npoints, quantum_m=cfg.lidar.static_range_quantum_m)
-                  if cfg.lidar.suppress_static and npoints else [None] * len(scans))
         outdir = Path(args.png) if args.png else None
         if outdir:
             outdir.mkdir(parents=True, exist_ok=True)
+        debugs = [Debug() for _ in scans]
+        results = segment_many(scans, cfg.segmentation, cfg.lidar, board, debug=debugs)
         dump, nfound = {}, 0
-        for k, (scan, ex) in enumerate(zip(scans, static)):
-            dbg = Debug()
-            r = segment_board(scan, cfg.segmentation, cfg.lidar, board, snapshot=k, exclude=ex,
-                              npoints_per_rotation=npoints, debug=dbg)
+        for k, (scan, r, dbg) in enumerate(zip(scans, results, debugs)):
             t = f"{scan.stamp_ns * 1e-9:.6f}"
             if isinstance(r, LidarBoardObservation):
                 nfound += 1

@@ -24,11 +24,10 @@ def fit_plane(points: np.ndarray) -> tuple[np.ndarray, float, float]:
 
 
 def ransac_plane(points: np.ndarray, tol: float, *, iterations: int = 256, max_scored: int = 20000,
-                 accept=None, seed: int = 0) -> np.ndarray:
+                 seed: int = 0) -> np.ndarray:
     """(N,) inlier mask of the plane with the most points within ``tol``, refined by least squares.
 
-    Hypotheses are scored on at most ``max_scored`` evenly spaced points; ``accept(n)``, if
-    given, rules out hypotheses by their normal (e.g. the ground must face up).
+    Hypotheses are scored on at most ``max_scored`` evenly spaced points.
     """
     rng = np.random.default_rng(seed)
     tri = points[rng.integers(0, len(points), (iterations, 3))]
@@ -36,9 +35,6 @@ def ransac_plane(points: np.ndarray, tol: float, *, iterations: int = 256, max_s
     norm = np.linalg.norm(n, axis=1)
     ok = norm > 1e-9
     n, tri = n[ok] / norm[ok, None], tri[ok]
-    if accept is not None:
-        keep = np.array([bool(accept(v)) for v in n], bool)
-        n, tri = n[keep], tri[keep]
     if not len(n):
         return np.zeros(len(points), bool)
     d = np.einsum("ij,ij->i", n, tri[:, 0])

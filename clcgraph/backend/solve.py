@@ -43,11 +43,12 @@ _MIN_INLIER_SHARE = 0.5
 _TIE_RATIO = 1.5  # deleted residuals this close cannot tell the culprit apart  # ... or whose points/corners are mostly beyond outlier_sigma
 
 
-def _lm(problem, active, rt_sensor, rt_board, lidar, sig_l, sig_c, options, nominal):
+def _lm(problem, active, rt_sensor, rt_board, lidar, sigma, options, nominal):
+    """LM from the given poses; ``sigma``: per-sensor noise (m for LIDARs, px for cameras)."""
     import gtsam
 
-    g, v = G.build(problem, active, rt_sensor, rt_board, lidar=lidar, sigma_lidar_m=sig_l,
-                   sigma_camera_px=sig_c, options=options, board_nominal=nominal)
+    g, v = G.build(problem, active, rt_sensor, rt_board, lidar=lidar, sigma_lidar_m=sigma,
+                   sigma_camera_px=sigma, options=options, board_nominal=nominal)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(options.max_iterations)
     params.setRelativeErrorTol(1e-10)
@@ -285,8 +286,8 @@ def calibrate(problem: Problem, options) -> Result:
                    float)
 
     t = time.perf_counter()
-    rt_sensor, rt_board, iters["plane"], _ = _lm(problem, active, rt_sensor, rt_board, "plane", sig, sig, options, nominal)
-    rt_sensor, rt_board, iters["range"], (g, values) = _lm(problem, active, rt_sensor, rt_board, "range", sig, sig,
+    rt_sensor, rt_board, iters["plane"], _ = _lm(problem, active, rt_sensor, rt_board, "plane", sig, options, nominal)
+    rt_sensor, rt_board, iters["range"], (g, values) = _lm(problem, active, rt_sensor, rt_board, "range", sig,
                                                           options, nominal)
     times["lm"] = time.perf_counter() - t
     t = time.perf_counter()
@@ -307,7 +308,7 @@ def calibrate(problem: Problem, options) -> Result:
             sig = _reestimate(problem, active, _per_sensor_residuals(problem, lid, cam, active), sig, lidars,
                               options.noise_per_sensor)
         stable = not new and _mask_signature(active) == before and np.all(np.abs(sig / old - 1) < 0.01)
-        rt_sensor, rt_board, it, (g, values) = _lm(problem, active, rt_sensor, rt_board, "range", sig, sig,
+        rt_sensor, rt_board, it, (g, values) = _lm(problem, active, rt_sensor, rt_board, "range", sig,
                                                   options, nominal)
         iters["rounds"] += 1
         iters[f"round{rnd}"] = it

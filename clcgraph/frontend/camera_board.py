@@ -297,9 +297,9 @@ def detect_corners(images: list[Image], options) -> list[np.ndarray | Rejected]:
         raw = [None if c is None else c + _OFFSET_PX["mrgingham"] for c in _run_mrgingham(grays, options)]
         # mrgingham misses small boards (squares of 5-8 px): it finds them in the image upsampled 2x
         missed = [k for k, c in enumerate(raw) if c is None]
+        up = {k: cv2.resize(grays[k], None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC) for k in missed}
         if missed:
-            up = [cv2.resize(grays[k], None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC) for k in missed]
-            for k, c in zip(missed, _run_mrgingham(up, options)):
+            for k, c in zip(missed, _run_mrgingham([up[k] for k in missed], options)):
                 if c is not None:  # pixel centres at integers in both images
                     raw[k] = (c + _OFFSET_PX["mrgingham"] + 0.5) / 2 - 0.5
         # ... and where it still finds nothing, OpenCV's sector-based detector may (its grid
@@ -307,8 +307,7 @@ def detect_corners(images: list[Image], options) -> list[np.ndarray | Rejected]:
         # such images have none and the full detector is slow
         missed = [k for k, c in enumerate(raw) if c is None]
         if missed and options.fallback_opencv:
-            missed = [k for k in missed if cv2.checkChessboard(
-                cv2.resize(grays[k], None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC), (nx, ny))]
+            missed = [k for k in missed if cv2.checkChessboard(up[k], (nx, ny))]
             for k, c in zip(missed, _run_opencv([grays[k] for k in missed], options)):
                 raw[k] = None if c is None else c + _OFFSET_PX["opencv"]
     else:

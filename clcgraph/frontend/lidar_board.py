@@ -37,7 +37,7 @@ import numpy as np
 
 from ..planes import fit_plane, ransac_plane
 from ..types import BoardGeometry, LidarBoardObservation, LidarScan, Rejected
-from .lidar_preprocess import Rings, infer_lidar_spacing, prepare, static_masks
+from .lidar_preprocess import Rings, neighbour_steps, prepare, session_masks, typical_step
 
 STAGE = "segmentation"
 log = logging.getLogger(__name__)
@@ -65,6 +65,17 @@ class Debug:
     accepted: np.ndarray | None = None
 
 
+def _max_jump(range_m, angle_rad, o):
+    """Largest gap between neighbouring returns of one surface: 5 cm of range noise plus
+    ``max_jump_spacings`` point spacings (a 60-deg tilted plane spaces returns 2 r dangle apart)."""
+    return 0.05 + o.max_jump_spacings * range_m * angle_rad
+
+
+def _across_rings(range_m, del_el, o):
+    """Largest distance between the lines of two rings on a plane <= max_tilt off head-on."""
+    return 0.05 + o.ring_spacing_tolerance * range_m * del_el / np.cos(np.radians(o.max_tilt_deg))
+
+
 def _ring_ranks(R: Rings) -> tuple[np.ndarray, np.ndarray]:
     """Per point the ring's rank by elevation (ring numbers need not be ordered), and the
     elevation (rad) of each rank."""
@@ -80,9 +91,7 @@ def _ring_ranks(R: Rings) -> tuple[np.ndarray, np.ndarray]:
 def _azimuth_step(R: Rings, npoints_per_rotation: int | None) -> float:
     if npoints_per_rotation:
         return 2 * np.pi / npoints_per_rotation
-    d = np.diff(R.azimuth)
-    d = d[(d > 1e-6) & (np.diff(R.ring) == 0)]
-    return float(np.median(d[d < 3 * np.percentile(d, 25)])) if len(d) else 2 * np.pi / 1800
+    return typical_step(neighbour_steps(R)) or 2 * np.pi / 1800
 
 
 def _stage1(R: Rings, rank: np.ndarray, step: float, o) -> tuple[_Segments, np.ndarray, float]:
@@ -93,8 +102,7 @@ def _stage1(R: Rings, rank: np.ndarray, step: float, o) -> tuple[_Segments, np.n
     same_ring = R.ring[1:] == R.ring[:-1]
     daz = np.diff(R.azimuth)
     jump = np.linalg.norm(np.diff(p, axis=0), axis=1)
-    # a 60-deg tilted plane spaces returns 2 r daz apart; allow for range noise on top
-    max_jump = 0.05 + o.max_jump_spacings * R.range[:-1] * np.maximum(daz, step)
+    max_jump = _max_jump(R.range[:-1], np.maximum(daz, step), o)
     linked = same_ring & (daz <= (o.max_gap_points_stage1 + 1.5) * step) & (jump <= max_jump)
     run = np.r_[0, np.cumsum(~linked)]
     run_start = np.r_[0, np.flatnonzero(~linked) + 1]
@@ -158,8 +166,7 @@ def _links(seg: _Segments, rank_elevation: np.ndarray, o) -> np.ndarray:
     dist_perp = np.linalg.norm(d_perp, axis=1)
     r = np.linalg.norm(ca, axis=1)
     del_el = np.abs(rank_elevation[seg.rank[P[:, 0]]] - rank_elevation[seg.rank[P[:, 1]]])
-    # ring lines on a plane <= max_tilt off head-on are r*del_el/cos(tilt) apart
-    max_perp = 0.05 + o.ring_spacing_tolerance * r * del_el / np.cos(np.radians(o.max_tilt_deg))
+    max_perp = _across_rings(r, del_el, o)
     parallel = np.abs(np.einsum("ij,ij->i", va, vb)) >= np.cos(np.radians(o.max_angle_cross_ring_deg))
     n = np.cross(va, d_perp)
     n /= np.maximum(np.linalg.norm(n, axis=1), 1e-12)[:, None]
@@ -217,7 +224,7 @@ def _stage3(R: Rings, rank: np.ndarray, rank_el: np.ndarray, members: np.ndarray
             continue
         pos = np.searchsorted(az[order], rel(R.azimuth[rows]))  # position along the ring
         jump = np.linalg.norm(np.diff(R.points[rows], axis=0), axis=1)
-        max_jump = 0.05 + o.max_jump_spacings * R.range[rows[:-1]] * step * np.clip(np.diff(pos), 1, 2)
+        max_jump = _max_jump(R.range[rows[:-1]], step * np.clip(np.diff(pos), 1, 2), o)
         brk = np.flatnonzero((np.diff(pos) > o.max_gap_points_stage3) | (jump > max_jump))
         mine = members[mrank == rk]
         for run in np.split(rows, brk + 1):
@@ -236,7 +243,7 @@ def _stage3(R: Rings, rank: np.ndarray, rank_el: np.ndarray, members: np.ndarray
             if len(run) < 2:
                 continue
             gap = abs(rank_el[rk] - rank_el[np.clip(rk, mrank.min(), mrank.max())])
-            reach = 0.05 + o.ring_spacing_tolerance * R.range[run].mean() * gap / np.cos(np.radians(o.max_tilt_deg))
+            reach = _across_rings(R.range[run].mean(), gap, o)
             if tree.query(R.points[run], distance_upper_bound=reach)[0].min() <= reach:
                 out.append(run)
     return np.concatenate(out)
@@ -254,20 +261,19 @@ def _board_window(points: np.ndarray, n: np.ndarray, sx: float, sy: float, slack
     crossing line) stay outside it."""
     q = _in_plane(points, n)
     ang = np.radians(np.arange(0, 180, 3.0))
+    p1 = q @ np.stack([np.cos(ang), np.sin(ang)])  # (N, angles): along each rotated axis
+    p2 = q @ np.stack([-np.sin(ang), np.cos(ang)])
+    e1, e2 = np.sort(p1, axis=0), np.sort(p2, axis=0)
+
+    def window(e, length):
+        # per angle: the start of the length-long interval holding the most points
+        j = np.stack([np.searchsorted(e[:, k], e[:, k] + length, side="right") for k in range(e.shape[1])], 1)
+        i = np.argmax(j - np.arange(len(e))[:, None], axis=0)
+        return e[i, np.arange(e.shape[1])]
+
     best, best_mask = -1, None
     for lx, ly in {(sx, sy), (sy, sx)}:
-        e1 = np.sort(q @ np.stack([np.cos(ang), np.sin(ang)]), axis=0)
-        e2 = np.sort(q @ np.stack([-np.sin(ang), np.cos(ang)]), axis=0)
-
-        def window(e, length):
-            # per angle: the start of the length-long interval holding the most points
-            j = np.stack([np.searchsorted(e[:, k], e[:, k] + length, side="right") for k in range(e.shape[1])], 1)
-            i = np.argmax(j - np.arange(len(e))[:, None], axis=0)
-            return e[i, np.arange(e.shape[1])]
-
         s1, s2 = window(e1, lx + slack), window(e2, ly + slack)
-        p1 = q @ np.stack([np.cos(ang), np.sin(ang)])
-        p2 = q @ np.stack([-np.sin(ang), np.cos(ang)])
         inside = (p1 >= s1) & (p1 <= s1 + lx + slack) & (p2 >= s2) & (p2 <= s2 + ly + slack)
         k = int(np.argmax(inside.sum(axis=0)))
         if inside[:, k].sum() > best:
@@ -298,7 +304,7 @@ def _chord_and_height(pts: np.ndarray, ring: np.ndarray, n: np.ndarray) -> tuple
     return float((x[ends] - x[starts]).max()), float(np.ptp(y))
 
 
-def _main_piece_per_ring(pts: np.ndarray, ring: np.ndarray, step: float, max_jump_spacings: float) -> np.ndarray:
+def _main_piece_per_ring(pts: np.ndarray, ring: np.ndarray, step: float, o) -> np.ndarray:
     """(N,) mask keeping, in each ring, the longest piece unbroken by a 3D jump of more than
     ``max_jump_spacings`` point spacings: a body or post beside the board, crossing its plane,
     falls away."""
@@ -308,7 +314,7 @@ def _main_piece_per_ring(pts: np.ndarray, ring: np.ndarray, step: float, max_jum
     order = np.lexsort((az, ring))
     p, r = pts[order], ring[order]
     jump = np.linalg.norm(np.diff(p, axis=0), axis=1)
-    limit = 0.05 + max_jump_spacings * np.linalg.norm(p[:-1], axis=1) * step
+    limit = _max_jump(np.linalg.norm(p[:-1], axis=1), step, o)
     piece = np.r_[0, np.cumsum((jump > limit) | (r[1:] != r[:-1]))]
     size = np.bincount(piece)
     ring_of_piece = np.zeros(len(size), r.dtype)
@@ -342,7 +348,7 @@ def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: floa
         res = np.abs(pts @ n - d)
         sigma = 1.4826 * np.median(res[keep])
         keep &= res <= max(3.0 * sigma, 0.01)
-    keep[keep] = _main_piece_per_ring(pts[keep], ring[keep], step, o.max_jump_spacings)
+    keep[keep] = _main_piece_per_ring(pts[keep], ring[keep], step, o)
     pts, ring = pts[keep], ring[keep]
     n, d, rms = fit_plane(pts)
     if d > 0:
@@ -483,33 +489,29 @@ def _merge(pieces: list, points: np.ndarray, tol: float, reach: float) -> list:
     return [g[0] for g in groups]
 
 
-def _one(args):
-    scan, o, lo, board, sensor, snapshot, exclude, npoints = args
-    return segment_board(scan, o, lo, board, sensor=sensor, snapshot=snapshot, exclude=exclude,
-                         npoints_per_rotation=npoints)
-
-
 def segment_many(scans, options, lidar_options, board: BoardGeometry, *, sensor: int = 0,
-                 snapshots=None, jobs: int | None = None, progress=None) -> list:
+                 snapshots=None, jobs: int | None = None, progress=None, debug: list | None = None) -> list:
     """segment_board over a session of one LIDAR (static scene removed when suppress_static),
-    in ``jobs`` threads. ``progress``: optional wrapper of the result iteration (a progress bar)."""
+    in ``jobs`` threads. ``progress``: optional wrapper of the result iteration (a progress bar);
+    ``debug``: one Debug per scan to fill."""
     scans = list(scans)
     snapshots = list(range(len(scans))) if snapshots is None else list(snapshots)
     if not scans:
         return []
-    npoints = lidar_options.npoints_per_rotation or infer_lidar_spacing(scans[:5])[1] or None
-    if lidar_options.suppress_static and npoints:
-        static = static_masks(scans, npoints_per_rotation=npoints, quantum_m=lidar_options.static_range_quantum_m)
-    else:
-        static = [None] * len(scans)
-    args = [(s, options, lidar_options, board, sensor, k, ex, npoints) for s, k, ex in zip(scans, snapshots, static)]
+    npoints, static = session_masks(scans, lidar_options)
+
+    def one(k):
+        return segment_board(scans[k], options, lidar_options, board, sensor=sensor, snapshot=snapshots[k],
+                             exclude=static[k], npoints_per_rotation=npoints,
+                             debug=None if debug is None else debug[k])
+
     jobs = jobs or min(2, os.cpu_count() or 1)
     if jobs <= 1 or len(scans) < 4:
-        it = map(_one, args)
-        return list(progress(it, len(args)) if progress else it)
+        it = map(one, range(len(scans)))
+        return list(progress(it, len(scans)) if progress else it)
     # threads, not processes: numpy and scipy release the GIL in the heavy parts, and worker
     # processes would either fork a threaded process (deadlocks) or re-import the caller's
     # script (forkserver/spawn: a fleet script without a __main__ guard would run again)
     with ThreadPoolExecutor(max_workers=jobs) as ex:
-        it = ex.map(_one, args, chunksize=1)
-        return list(progress(it, len(args)) if progress else it)
+        it = ex.map(one, range(len(scans)))
+        return list(progress(it, len(scans)) if progress else it)

@@ -70,22 +70,39 @@ def prepare(scan: LidarScan, *, min_range_m: float, max_range_m: float, exclude:
     return Rings(idx, r, az[order], rng[idx], p[idx], np.r_[starts, len(idx)], ring_ids)
 
 
+def neighbour_steps(R: Rings) -> np.ndarray:
+    """Azimuth steps (rad) between consecutive returns of the same ring."""
+    d = np.diff(R.azimuth)
+    return d[(d > 1e-6) & (np.diff(R.ring) == 0)]
+
+
+def typical_step(d: np.ndarray) -> float | None:
+    """The azimuth step of neighbouring returns, not of gaps over missing ones (None if no steps)."""
+    return float(np.median(d[d < 3 * np.percentile(d, 25)])) if len(d) else None
+
+
 def infer_lidar_spacing(scans) -> tuple[int, int]:
     """(number of rings, Npoints_per_rotation) from the angular spacing of neighbouring returns."""
     n_rings, steps = 0, []
     for scan in scans:
         R = prepare(scan, min_range_m=0.0, max_range_m=np.inf)
         n_rings = max(n_rings, len(R.ring_ids))
-        for a, b in zip(R.starts[:-1], R.starts[1:]):
-            d = np.diff(R.azimuth[a:b])
-            steps.append(d[d > 1e-6])
-    if not steps or not np.concatenate(steps).size:
+        steps.append(neighbour_steps(R))
+    step = typical_step(np.concatenate(steps)) if steps else None
+    if not step:
         return n_rings, 0
-    d = np.concatenate(steps)
-    step = np.median(d[d < 3 * np.percentile(d, 25)])  # neighbours, not gaps over missing returns
     n = 2 * np.pi / step
     best = min(COMMON_NPOINTS, key=lambda c: abs(c - n))
     return n_rings, int(best if abs(best - n) < 0.03 * n else round(n))
+
+
+def session_masks(scans, lidar_options) -> tuple[int | None, list]:
+    """(Npoints_per_rotation: configured or inferred, per scan the static-scene mask or None)
+    for a session of one LIDAR's scans."""
+    npoints = lidar_options.npoints_per_rotation or infer_lidar_spacing(scans[:5])[1] or None
+    if lidar_options.suppress_static and npoints:
+        return npoints, static_masks(scans, npoints_per_rotation=npoints, quantum_m=lidar_options.static_range_quantum_m)
+    return npoints, [None] * len(scans)
 
 
 def static_masks(scans, *, npoints_per_rotation: int, quantum_m: float = 0.2, min_share: float = 0.5) -> list[np.ndarray]:
