@@ -218,18 +218,12 @@ def _add_segment(sub):
 
         import numpy as np
 
-        from .api import expand_bags
-        from .frontend.bag import first_messages, read_messages
         from .frontend.lidar_board import Debug, segment_many
         from .outputs.plots import plot_segmentation
         from .types import BoardGeometry, LidarBoardObservation
 
         cfg = _load_config(args)
-        paths = expand_bags(args.bags)
-        if args.every:
-            scans = [m.data for m in read_messages(paths, [args.topic])]
-        else:
-            scans = [first_messages(b, [args.topic])[args.topic] for b in paths]
+        scans = _lidar_scans(args.bags, args.topic, every=args.every)
         d = cfg.detection
         board = BoardGeometry(corners_x=d.corners_x, corners_y=d.corners_y, spacing_m=d.spacing_m, margin_m=d.margin_m)
         outdir = Path(args.png) if args.png else None
@@ -279,11 +273,9 @@ def _add_infer_lidar_spacing(sub):
     p.add_argument("--topic", required=True, help="the PointCloud2 topic")
 
     def run(args):
-        from .api import expand_bags
-        from .frontend.bag import first_messages
         from .frontend.lidar_preprocess import infer_lidar_spacing
 
-        scans = [first_messages(b, [args.topic])[args.topic] for b in expand_bags(args.bags)[:5]]
+        scans = _lidar_scans(args.bags, args.topic, limit=5)
         n_rings, npoints = infer_lidar_spacing(scans)
         print(f"{args.topic}: {n_rings} rings, Npoints_per_rotation {npoints}")
         return 0
@@ -337,6 +329,27 @@ def _add_simulate(sub):
         return 0
 
     p.set_defaults(func=run)
+
+
+def _lidar_scans(bags, topic: str, *, every: bool = False, limit: int | None = None) -> list:
+    """The scans of a PointCloud2 topic: the first of each bag (or every one); InputError if the
+    topic holds something else."""
+    from .api import expand_bags
+    from .errors import InputError
+    from .frontend.bag import first_messages, read_messages
+    from .types import LidarScan
+
+    paths = expand_bags(bags)[:limit]
+    if every:
+        scans = [m.data for m in read_messages(paths, [topic])]
+    else:
+        scans = [first_messages(b, [topic]).get(topic) for b in paths]
+    bad = next((i for i, x in enumerate(scans) if not isinstance(x, LidarScan)), None)
+    if bad is not None:
+        where = paths[bad] if not every else ", ".join(map(str, paths))
+        what = "no message" if scans[bad] is None else type(scans[bad]).__name__
+        raise InputError(f"{where}: topic {topic} holds {what}, not sensor_msgs/PointCloud2")
+    return scans
 
 
 def _load_config(args):

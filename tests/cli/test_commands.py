@@ -12,3 +12,22 @@ def test_show_bag_previews(capsys, tmp_path, good):
     import matplotlib.image
 
     assert matplotlib.image.imread(tmp_path / "png" / "good_lidar0.png").shape[1] > 600
+
+
+def test_segment_and_spacing_on_a_non_cloud_topic_are_one_line_errors(capsys, good):
+    for cmd in ("segment", "infer-lidar-spacing"):
+        assert main([cmd, str(good), "--topic", "/cam0"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "good.bag" in err[0] and "/cam0" in err[0] and "PointCloud2" in err[0], err
+
+
+def test_segment_dump_and_spacing(capsys, tmp_path, good):
+    import numpy as np
+
+    assert main(["infer-lidar-spacing", str(good), "--topic", "/lidar0"]) == 0
+    assert "/lidar0:" in capsys.readouterr().out
+    assert main(["segment", str(good), "--topic", "/lidar0", "--dump", str(tmp_path / "d.npz"),
+                 "--png", str(tmp_path / "png")]) == 0
+    assert "scans with a board" in capsys.readouterr().out
+    assert "scan0_segments" in np.load(tmp_path / "d.npz").files
+    assert len(list((tmp_path / "png").iterdir())) == 1
