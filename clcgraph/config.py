@@ -250,6 +250,9 @@ class TargetlessOptions:
     max_corr_dist_ultra_fine: float = 0.05
     lidar_calibration_min_frames: int = 2
     lidar_calibration_max_frames: int = 10
+    # Final graph (clcgraph, not in the seed): prior covariance of the registration bias shared
+    # by all frames, in units of one frame's covariance (0: trust the frames' scatter alone).
+    registration_common_mode: float = 1.0
     # (camera targetless: not used, see above)
     camera_calibration_min_frames: int = 1
     camera_calibration_max_frames: int = 10

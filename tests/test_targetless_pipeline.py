@@ -61,6 +61,8 @@ def test_targetless_from_bag_accuracy_covariance_outputs(drive, tmp_path_factory
     assert cal["reference"] == TOP and [s["topic"] for s in cal["sensors"]] == [TOP, SIDE]
     assert np.allclose(np.array(cal["sensors"][1]["T_lidar0_sensor"]), res.T_lidar0_sensor[SIDE])
     assert np.array(cal["covariance_rt_lidar0_sensor"]).shape == (12, 12)
+    g = cal["graph"][SIDE]  # the final graph: keyframe poses linked by submap registrations
+    assert g["keyframes"] >= 3 and g["keyframe_edges"] >= g["keyframes"] - 1 and g["frames"] >= 2
     assert cal["base_link"][0]["topic"] == TOP
     assert np.allclose(geo.T_from_rt(np.array(cal["base_link"][1]["rt_base_link_sensor"])),
                        np.array(cal["base_link"][1]["T_base_link_sensor"]))

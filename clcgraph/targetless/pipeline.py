@@ -32,7 +32,7 @@ from ..errors import DegenerateError, InputError
 from .calibration_frames import make_calibration_frames
 from .graph import fuse
 from .mapping import build_map
-from .registration import ensemble, prepare_frames, refine_per_frame, score
+from .registration import ensemble, keyframe_edges, prepare_frames, refine_per_frame, score
 from .selection import select_frames
 
 log = logging.getLogger(__name__)
@@ -50,6 +50,7 @@ class TargetlessResult:
     map_result: object = None
     per_frame: dict = field(default_factory=dict)  # topic -> list of dicts (score, frame, errors)
     candidates: dict = field(default_factory=dict)  # topic -> ensemble candidates
+    graph: dict = field(default_factory=dict)  # topic -> size of the final graph and its noise scales
     timings_s: dict = field(default_factory=dict)
     peak_rss_mb: dict = field(default_factory=dict)  # stage -> process peak RSS after it
     notes: list = field(default_factory=list)
@@ -118,7 +119,17 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
             T_best, cands = ensemble(fr, Tg, o)
             meas = refine_per_frame(fr, T_best, o)
         with _stage(timings, "graph", memory):
-            est = fuse(meas, min_frames=o.lidar_calibration_min_frames)
+            used = sorted({m.anchor for m in meas} | {p for m in meas for p in m.influence})
+            keyframes = {p: mp.frames[mp.keyframe_ids[p]].T_map_lidar for p in used}
+            edges = keyframe_edges(mp, used, o)
+            est = fuse(meas, keyframes, edges, common_mode=o.registration_common_mode,
+                       min_frames=o.lidar_calibration_min_frames)
+        res.graph[topic] = {"frames": len(meas), "keyframes": len(keyframes), "keyframe_edges": len(edges),
+                            "noise_scale": {k: float(v) for k, v in est.scales.items()},
+                            "redundancy": {k: float(v) for k, v in est.redundancy.items() if k in est.scales},
+                            "common_mode": float(o.registration_common_mode)}
+        log.info("%s: graph of %d frames, %d keyframes, %d keyframe edges; noise scales %s", topic, len(meas),
+                 len(keyframes), len(edges), {k: f"{v:.3g}" for k, v in est.scales.items()})
         s_guess, s_final = score(fr, Tg, o), score(fr, est.T, o)
         T_final, cov = est.T, est.cov_rt
         if s_guess <= s_final:  # the initial guess stays a candidate
@@ -192,6 +203,7 @@ def calibration_dict(res: TargetlessResult) -> dict:
     if res.base_frame is not None:
         d["base_link"] = [{"topic": t, "frame": res.base_frame, "T_base_link_sensor": np.asarray(T).tolist(),
                            "rt_base_link_sensor": geo.rt_from_T(T).tolist()} for t, T in res.T_base_sensor.items()]
+    d["graph"] = res.graph
     d["timings_s"] = {k: float(v) for k, v in res.timings_s.items()}
     return d
 
@@ -308,9 +320,18 @@ def write_targetless_outputs(res: TargetlessResult, out_dir, *, config: Config |
                        f"<td>{np.round(s['stdev_position_mm'], 3).tolist()}</td>"
                        f"<td>{np.round(s['stdev_orientation_deg'], 4).tolist()}</td></tr>" for s in cal["sensors"])
         tim = "".join(f"<tr><td>{k}</td><td>{v:.2f}</td></tr>" for k, v in res.timings_s.items())
+        gr = "".join(f"<tr><td>{t}</td><td>{g['frames']}</td><td>{g['keyframes']}</td><td>{g['keyframe_edges']}</td>"
+                     f"<td>{g['noise_scale']['frames']:.3g}</td><td>{g['noise_scale']['keyframes']:.3g}</td>"
+                     f"<td>{g['common_mode']:g}</td></tr>"
+                     for t, g in res.graph.items())
         html = (f"<html><head><title>clcgraph targetless</title></head><body><h1>clcgraph targetless calibration</h1>"
                 f"<p>reference: {res.mapping_topic}</p><table border=1><tr><th>topic</th><th>rt_lidar0_sensor</th>"
                 f"<th>stdev position [mm]</th><th>stdev orientation [deg]</th></tr>{rows}</table>"
+                f"<h2>final graph</h2><p>extrinsic + keyframe poses; one factor per frame, registration edges "
+                f"between keyframe submaps; noise scales estimated from the residuals (x GICP Hessian^-1); the "
+                f"sigmas include a bias shared by all frames (prior: 'common mode' x one frame's covariance).</p>"
+                f"<table border=1><tr><th>topic</th><th>frames</th><th>keyframes</th><th>edges</th>"
+                f"<th>scale frames</th><th>scale edges</th><th>common mode</th></tr>{gr}</table>"
                 f"<h2>timings [s]</h2><table border=1>{tim}</table>"
                 + "".join(f'<h2>{p}</h2><img src="{p}">' for p in pngs)
                 + "".join(f"<p>{n}</p>" for n in res.notes) + "</body></html>")

@@ -13,7 +13,7 @@ T_lidar0_sensor.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -24,6 +24,17 @@ log = logging.getLogger(__name__)
 
 
 @dataclass
+class TargetParts:
+    """Which keyframe submaps made each voxel of a dense target (for the graph's links)."""
+    leaf: float
+    pair_codes: np.ndarray  # sorted unique voxel_code * 64 + group index
+    counts: np.ndarray  # raw points per (voxel, group)
+    positions: np.ndarray  # group index -> keyframe position (index into MapResult.keyframe_ids)
+    anchor: int  # keyframe position of the calibration frame's own keyframe
+    T_anchor_kf: dict  # keyframe position -> (4,4) pose of its submap in the target's frame
+
+
+@dataclass
 class FrameData:
     cf: object  # CalibrationFrame
     target_pts: np.ndarray  # (M,3) dense, lidar0 frame at the scan stamp
@@ -31,10 +42,27 @@ class FrameData:
     target: object = None  # small_gicp.PointCloud
     tree: object = None
     kdtree: object = None  # scipy cKDTree for scoring
+    parts: TargetParts | None = None
 
 
-def dense_target(mp, kid: int, T_map_lidar0: np.ndarray, o, *, max_frames: int = 40) -> np.ndarray:
-    """(M,3) mapping points of the frames within +-dense_pointcloud_num_keyframes keyframes, in lidar0 at T."""
+def voxel_codes(points: np.ndarray, leaf: float) -> np.ndarray:
+    """(N,) int64 voxel index of each point, 19 bits per axis (+-13 km at 5 cm)."""
+    k = np.floor(points * (1.0 / leaf)).astype(np.int64)
+    k += 1 << 18
+    c = k[:, 0] << 38
+    c |= k[:, 1] << 19
+    c |= k[:, 2]
+    return c
+
+
+def keyframe_position(mp, frame_ids) -> np.ndarray:
+    """Position (in mp.keyframe_ids) of the latest keyframe at or before each frame."""
+    return np.searchsorted(np.asarray(mp.keyframe_ids), np.asarray(frame_ids), side="right") - 1
+
+
+def dense_target(mp, kid: int, T_map_lidar0: np.ndarray, o, *, max_frames: int = 40):
+    """(M,3) mapping points of the frames within +-dense_pointcloud_num_keyframes keyframes, in lidar0
+    at T, and the TargetParts telling which keyframe's submap each voxel came from."""
     kpos = mp.keyframe_ids.index(kid)
     lo = mp.keyframe_ids[max(0, kpos - o.dense_pointcloud_num_keyframes)]
     hi = mp.keyframe_ids[min(len(mp.keyframe_ids) - 1, kpos + o.dense_pointcloud_num_keyframes)]
@@ -42,14 +70,22 @@ def dense_target(mp, kid: int, T_map_lidar0: np.ndarray, o, *, max_frames: int =
     if len(ids) > max_frames:
         ids = np.unique(np.r_[np.linspace(lo, hi, max_frames).round().astype(int), kid])
     Tinv = np.linalg.inv(T_map_lidar0)
-    clouds = []
-    for j in ids:
+    leaf = max(o.leaf_size_dense_map, 0.02)
+    pos = keyframe_position(mp, ids)
+    positions = np.unique(pos)
+    clouds, labels = [], []
+    for j, p in zip(ids, pos):
         f = mp.frames[j]
         T = Tinv @ f.T_map_lidar
         clouds.append(f.points @ T[:3, :3].T + T[:3, 3])
-    pts = voxel_down(np.concatenate(clouds), max(o.leaf_size_dense_map, 0.02))
+        labels.append(np.full(len(f.points), np.searchsorted(positions, p), np.int64))
+    allp = np.concatenate(clouds)
+    pairs, counts = np.unique(voxel_codes(allp, leaf) * 64 + np.concatenate(labels), return_counts=True)
+    parts = TargetParts(leaf, pairs, counts, positions, kpos,
+                        {int(p): Tinv @ mp.frames[mp.keyframe_ids[p]].T_map_lidar for p in positions})
+    pts = voxel_down(allp, leaf)
     r = np.linalg.norm(pts, axis=1)
-    return pts[(r >= o.min_calibration_range) & (r <= o.max_calibration_range)]
+    return pts[(r >= o.min_calibration_range) & (r <= o.max_calibration_range)], parts
 
 
 def _adjoint_to_sensor(T_lidar0_sensor: np.ndarray, xi: np.ndarray) -> np.ndarray:
@@ -70,14 +106,14 @@ def prepare_frames(chosen, mp, T_guess: np.ndarray, o, *, deskew_on: bool = True
         m = s.valid & np.isfinite(r) & (r >= o.min_calibration_range) & (r <= o.max_calibration_range)
         xi_s = _adjoint_to_sensor(T_guess, cf.twist_lidar0)
         src = deskew(s.points[m], s.time_s[m] if (deskew_on and s.time_s is not None) else None, xi_s)
-        tgt = dense_target(mp, cf.keyframe_id, cf.T_map_lidar0, o)
+        tgt, parts = dense_target(mp, cf.keyframe_id, cf.T_map_lidar0, o)
         if o.crop_z_calibration_pointclouds:
             zmax = (src @ T_guess[:3, :3].T + T_guess[:3, 3])[:, 2].max() + o.crop_z_calibration_pointclouds_value
             tgt = tgt[tgt[:, 2] <= zmax]
         t, tree = small_gicp.preprocess_points(np.ascontiguousarray(tgt), max(o.leaf_size_dense_map, 0.02),
                                                num_neighbors=10, num_threads=o.mapper_num_threads)
         tpts = np.asarray(t.points())[:, :3]
-        out.append(FrameData(cf, tpts, src, t, tree, cKDTree(tpts)))
+        out.append(FrameData(cf, tpts, src, t, tree, cKDTree(tpts), parts))
         if progress is not None:
             progress(1)
     return out
@@ -143,10 +179,49 @@ class FrameMeasurement:
     H: np.ndarray  # (6,6) GICP Hessian, tangent [omega, v] right perturbation
     n_inliers: int
     error: float
+    anchor: int | None = None  # keyframe position whose pose anchors the target (graph link)
+    influence: dict = field(default_factory=dict)  # keyframe position -> B (6,6), see factors/map_registration.py
+
+
+def influence(fd: FrameData, T: np.ndarray, o) -> dict:
+    """Keyframe position -> B_j = -H^-1 H_j Ad(T^-1 T_anchor_kf_j): how the registration moves
+    when keyframe j's submap moves. H_j is the point-to-plane information of the correspondences
+    at T, split among submaps by their share of each target voxel's points."""
+    import gtsam
+
+    pa = fd.parts
+    R, t = T[:3, :3], T[:3, 3]
+    p = fd.source_pts
+    d, idx = fd.kdtree.query(p @ R.T + t, distance_upper_bound=o.max_corr_dist_fine)
+    ok = np.isfinite(d)
+    p, idx = p[ok], idx[ok]
+    _, nb = fd.kdtree.query(fd.target_pts[idx], k=10)
+    q = fd.target_pts[nb] - fd.target_pts[nb].mean(axis=1, keepdims=True)
+    n = np.linalg.eigh(np.einsum("pki,pkj->pij", q, q))[1][:, :, 0]  # surface normal: least spread
+    m = n @ R  # R^T n
+    J = np.c_[np.cross(p, m), m]  # d(n . (R p + t)) / d[omega, v]
+    # share of each submap in each corresponding target voxel
+    code = voxel_codes(fd.target_pts[idx], pa.leaf) * 64
+    lo = np.searchsorted(pa.pair_codes, code)
+    hi = np.searchsorted(pa.pair_codes, code + 64)
+    G = len(pa.positions)
+    frac = np.zeros((len(idx), G))
+    anchor_g = int(np.searchsorted(pa.positions, pa.anchor))
+    frac[hi == lo, anchor_g] = 1.0  # a voxel not found (should not happen): the anchor's own
+    cnt = hi - lo
+    rows = np.repeat(np.arange(len(idx)), cnt)
+    at = np.repeat(lo - (np.cumsum(cnt) - cnt), cnt) + np.arange(cnt.sum())
+    np.add.at(frac, (rows, pa.pair_codes[at] % 64), pa.counts[at])
+    frac /= frac.sum(axis=1, keepdims=True)
+    Hj = np.einsum("pg,pi,pk->gik", frac, J, J)
+    Hinv = np.linalg.inv(Hj.sum(axis=0))
+    Tinv = np.linalg.inv(T)
+    return {int(pos): -Hinv @ Hj[g] @ gtsam.Pose3(Tinv @ pa.T_anchor_kf[int(pos)]).AdjointMap()
+            for g, pos in enumerate(pa.positions) if Hj[g].trace() > 0}
 
 
 def refine_per_frame(frames, T0: np.ndarray, o) -> list:
-    """Fine GICP of each frame from T0; returns FrameMeasurement per frame."""
+    """Fine GICP of each frame from T0; returns FrameMeasurement per frame (with its graph links)."""
     out = []
     for fd in frames:
         r = register(fd.target, fd.tree, fd.source_pts, T0, kind="GICP", max_corr=o.max_corr_dist_fine,
@@ -154,5 +229,52 @@ def refine_per_frame(frames, T0: np.ndarray, o) -> list:
         r = register(fd.target, fd.tree, fd.source_pts, r.T_target_source, kind="GICP",
                      max_corr=o.max_corr_dist_ultra_fine, iters=min(o.solver_iterations, 60),
                      threads=o.mapper_num_threads, leaf=0.05)
-        out.append(FrameMeasurement(np.asarray(r.T_target_source), np.asarray(r.H), int(r.num_inliers), float(r.error)))
+        T = np.asarray(r.T_target_source)
+        links = influence(fd, T, o) if fd.parts is not None else {}
+        out.append(FrameMeasurement(T, np.asarray(r.H), int(r.num_inliers), float(r.error),
+                                    fd.parts.anchor if fd.parts is not None else None, links))
     return out
+
+
+def submap(mp, pos: int, *, max_frames: int = 3) -> np.ndarray:
+    """(N,3) points of keyframe ``pos``'s frames (up to the next keyframe) in that keyframe's frame."""
+    k = mp.keyframe_ids
+    end = k[pos + 1] if pos + 1 < len(k) else len(mp.frames)
+    ids = np.unique(np.linspace(k[pos], end - 1, max_frames).round().astype(int))
+    Tinv = np.linalg.inv(mp.frames[k[pos]].T_map_lidar)
+    clouds = []
+    for j in ids:
+        T = Tinv @ mp.frames[j].T_map_lidar
+        clouds.append(mp.frames[j].points @ T[:3, :3].T + T[:3, 3])
+    return np.concatenate(clouds)
+
+
+def keyframe_edges(mp, positions, o, *, max_cond: float = 1e6, min_inlier_share: float = 0.3) -> list:
+    """Registrations of keyframe submaps j+1 and j+2 to j's, for the keyframe positions given
+    (KeyframeEdge list); a failed or degenerate registration gives no edge. The mapping's
+    relative poses are the initial guesses (millimetres off), so one fine GICP pass suffices."""
+    import small_gicp
+
+    from .graph import KeyframeEdge
+    from .mapping import degeneracy
+
+    leaf = 2 * max(o.leaf_size_local_map, 0.05)  # neighbouring submaps overlap almost entirely: coarse is enough
+    positions = sorted(set(int(p) for p in positions))
+    clouds = {p: small_gicp.preprocess_points(np.ascontiguousarray(submap(mp, p)), leaf, num_neighbors=10,
+                                              num_threads=o.mapper_num_threads) for p in positions}
+    pose = {p: mp.frames[mp.keyframe_ids[p]].T_map_lidar for p in positions}
+    edges = []
+    for a in positions:
+        for b in (a + 1, a + 2):
+            if b not in clouds:
+                continue
+            r = small_gicp.align(clouds[a][0], clouds[b][0], clouds[a][1],
+                                 init_T_target_source=np.linalg.inv(pose[a]) @ pose[b], registration_type="GICP",
+                                 max_correspondence_distance=o.max_corr_dist_fine, num_threads=o.mapper_num_threads,
+                                 max_iterations=min(o.solver_iterations, 60))
+            H = np.asarray(r.H)
+            if r.converged and r.num_inliers >= min_inlier_share * clouds[b][0].size() and degeneracy(H) <= max_cond:
+                edges.append(KeyframeEdge(a, b, np.asarray(r.T_target_source), H))
+            else:
+                log.info("keyframes %d-%d: submap registration failed or degenerate; no edge", a, b)
+    return edges

@@ -177,3 +177,33 @@ def test_small_solve_recovers_a_board_pose():
     params.setAbsoluteErrorTol(1e-20)
     out = gtsam.LevenbergMarquardtOptimizer(g, v, params).optimize()
     np.testing.assert_allclose(gtsam.Pose3.Logmap(T_b.between(out.atPose3(B))), 0, atol=1e-9)
+
+
+def test_map_registration_factor_jacobians_and_zero_at_truth():
+    from clcgraph.factors.map_registration import _residual as mapreg_fn, map_registration_factor
+
+    rng = np.random.default_rng(8)
+    for has_bias in (False, True):
+        E, beta, Xi = _pose(rng, 0.3), _pose(rng, 0.01, 0.01), _pose(rng, 0.5, 5.0)
+        Xj = [Xi.compose(_pose(rng, 0.05, 2.0)) for _ in range(3)]
+        M = [perturb(Xi.between(x), rng.normal(0, 0.01, 6)) for x in Xj]  # the map's slightly wrong estimates
+        B = [rng.normal(0, 0.5, (6, 6)) for _ in Xj]
+        links = list(zip(M, B))
+        # the measurement the model predicts at the truth: zero residual
+        shift = sum(b @ gtsam.Pose3.Logmap(m.between(Xi.between(x))) for (m, b), x in zip(links, Xj))
+        Z = E.compose(beta if has_bias else gtsam.Pose3()).compose(gtsam.Pose3.Expmap(shift))
+        poses = [E] + ([beta] if has_bias else []) + [Xi] + Xj
+        assert np.abs(mapreg_fn(poses, Z, links, has_bias, False)[0]).max() < 1e-9
+        moved = [perturb(p, rng.normal(0, 0.2, 6)) for p in poses]
+        assert check_jacobians(lambda P, w: mapreg_fn(P, Z, links, has_bias, w), moved) < 1e-6
+        # through GTSAM: keys in order, whitened by the covariance
+        keys = [gtsam.symbol("e", 0), gtsam.symbol("b", 0), gtsam.symbol("x", 0)] + [gtsam.symbol("x", j + 1) for j in range(3)]
+        if not has_bias:
+            keys.pop(1)
+        f = map_registration_factor(Z, 4e-6 * np.eye(6), keys[0], bias_key=keys[1] if has_bias else None,
+                                    anchor_key=keys[-4], links=dict(zip(keys[-3:], links)))
+        v = gtsam.Values()
+        for k, p in zip(keys, moved):
+            v.insert(k, p)
+        e = mapreg_fn(moved, Z, links, has_bias, False)[0]
+        assert f.error(v) == pytest.approx(0.5 * e @ e / 4e-6, rel=1e-9)
