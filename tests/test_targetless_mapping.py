@@ -43,3 +43,13 @@ def test_deskew_improves_mapping_under_yaw():
     # at up to 8 deg/s and 1 m/s the smear is ~0.8 deg / 10 cm over a revolution
     assert r_on < 0.5 * r_off and t_on < 0.8 * t_off, (r_on, r_off, t_on, t_off)
     assert r_on < 0.02 and t_on < 0.004, (r_on, t_on)
+
+
+@pytest.mark.slow
+def test_voxelized_gicp_mapping_is_as_accurate():
+    """The NDT-like option: VGICP against Gaussian voxels of the local map."""
+    plan = DrivePlan.small(duration_s=8.0, yaw_rate_amp_dps=8.0, yaw_period_s=8.0, speed_mps=1.0)
+    drive = simulate_drive(plan, seed=4)
+    o = Config().replace(targetless=dict(mapper_registrator="VGICP")).targetless
+    r, t = (np.sqrt(np.mean(x[5:] ** 2)) for x in _rel_errors(drive, build_map(drive.scans[TOP], o)))
+    assert r < 0.02 and t < 0.004, (r, t)

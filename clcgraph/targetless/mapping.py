@@ -96,11 +96,29 @@ def voxel_pick(points: np.ndarray, leaf: float) -> np.ndarray:
     return np.unique(flat, return_index=True)[1]
 
 
-def _target(points: np.ndarray, leaf: float, threads: int):
-    import small_gicp
+class LocalMap:
+    """The mapping's registration target: points with covariances and a KD-tree (GICP), or a
+    Gaussian voxel map (VGICP, the NDT-like option; voxel size ``mapper_resolution``)."""
 
-    return small_gicp.preprocess_points(np.ascontiguousarray(points, float), leaf, num_neighbors=10,
-                                        num_threads=threads)
+    def __init__(self, points: np.ndarray, leaf: float, o):
+        import small_gicp
+
+        self.o = o
+        self.cloud, self.tree = small_gicp.preprocess_points(np.ascontiguousarray(points, float), leaf,
+                                                             num_neighbors=10, num_threads=o.mapper_num_threads)
+        self.voxels = None
+        if o.mapper_registrator in ("VGICP", "NDT"):
+            self.voxels = small_gicp.GaussianVoxelMap(o.mapper_resolution)
+            self.voxels.insert(self.cloud)
+
+    def align(self, src, T0: np.ndarray, max_corr: float):
+        import small_gicp
+
+        kw = dict(init_T_target_source=T0, max_correspondence_distance=max_corr,
+                  num_threads=self.o.mapper_num_threads, max_iterations=self.o.mapper_max_iterations)
+        if self.voxels is not None:
+            return small_gicp.align(self.voxels, src, **kw)
+        return small_gicp.align(self.cloud, src, self.tree, registration_type="GICP", **kw)
 
 
 def degeneracy(H: np.ndarray) -> float:
@@ -121,7 +139,7 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
     T_last = np.eye(4)
     last_stamp = None
     local_ids: list[int] = []
-    target = tree = None
+    local = None
     stopped_count = 0
     # progress: optional wrapper of the scan iterable (the orchestration layer's bar)
     for i, scan in enumerate(progress(scans) if progress is not None else scans):
@@ -145,7 +163,7 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
             res.frames.append(f)
             res.keyframe_ids.append(0)
             local_ids = [0]
-            target, tree = _target(pts, map_leaf, o.mapper_num_threads)
+            local = LocalMap(pts, map_leaf, o)
             first_raw = (raw, tau)  # re-deskewed once the first twist is known
             T_last, last_stamp = f.T_map_lidar, scan.stamp_ns
             prev_scan_ns = scan.stamp_ns
@@ -162,23 +180,16 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
                 # the first frame (the map origin) was deskewed with zero twist: redo it, then re-register
                 f0 = res.frames[0]
                 f0.points, f0.twist = deskew(first_raw[0], first_raw[1], xi), xi.copy()
-                target, tree = _target(f0.points, map_leaf, o.mapper_num_threads)
+                local = LocalMap(f0.points, map_leaf, o)
             import small_gicp
 
             src, _ = small_gicp.preprocess_points(np.ascontiguousarray(deskew(raw[pick], None if tau is None else tau[pick], xi)),
                                                   leaf_in, num_neighbors=10, num_threads=o.mapper_num_threads)
             fine = max(o.mapper_max_correspondence_distance, 3 * leaf_in)
-            r = small_gicp.align(target, src, tree, init_T_target_source=T, registration_type="GICP",
-                                 max_correspondence_distance=fine, num_threads=o.mapper_num_threads,
-                                 max_iterations=o.mapper_max_iterations)
+            r = local.align(src, T, fine)
             if it == 0 and (not r.converged or r.num_inliers < 0.5 * src.size()):
                 # the constant-velocity guess was off (a bump, a stop): coarse pass first
-                T = small_gicp.align(target, src, tree, init_T_target_source=T, registration_type="GICP",
-                                     max_correspondence_distance=1.0, num_threads=o.mapper_num_threads,
-                                     max_iterations=o.mapper_max_iterations).T_target_source
-                r = small_gicp.align(target, src, tree, init_T_target_source=T, registration_type="GICP",
-                                     max_correspondence_distance=fine, num_threads=o.mapper_num_threads,
-                                     max_iterations=o.mapper_max_iterations)
+                r = local.align(src, local.align(src, T, 1.0).T_target_source, fine)
             T = r.T_target_source
             xi_used, xi = xi, twist_between(T_last, T, dt)
             if tau is not None and first_raw is None and it + 1 < n_it:
@@ -226,7 +237,7 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
             local_ids = (local_ids + [k])[-o.local_map_num_keyframes:]
             cloud = np.concatenate([res.frames[j].points @ res.frames[j].T_map_lidar[:3, :3].T
                                     + res.frames[j].T_map_lidar[:3, 3] for j in local_ids])
-            target, tree = _target(voxel_down(cloud, map_leaf), map_leaf, o.mapper_num_threads)
+            local = LocalMap(voxel_down(cloud, map_leaf), map_leaf, o)
         T_last, last_stamp, twist = T, scan.stamp_ns, xi
     if len(res.frames) < 3 and res.skipped >= res.n_scans / 2:
         raise DegenerateError(f"{res.topic}: mapping is degenerate: {res.skipped} of {res.n_scans} scans have fewer "
