@@ -43,6 +43,7 @@ class FrameData:
     tree: object = None
     kdtree: object = None  # scipy cKDTree for scoring
     parts: TargetParts | None = None
+    normals: np.ndarray | None = None  # (M,3) float32 target normals, computed where first needed (NaN before)
 
 
 def voxel_codes(points: np.ndarray, leaf: float) -> np.ndarray:
@@ -145,10 +146,11 @@ def _run(fd, T0, kind, corr, o, leaf):
 
 
 def ensemble(frames, T_guess: np.ndarray, o, *, progress=None):
-    """Best T_lidar0_sensor among the guess and per-frame registrations (ICP coarse-to-fine, GICP, VGICP).
+    """Best T_lidar0_sensor among the guess, per-frame registrations (ICP coarse-to-fine, GICP,
+    VGICP) and a batched ICP over all frames.
 
     Each registration starts from the best candidate so far; every candidate is scored
-    on all frames. Returns (T_best (4,4), list of (name, frame index, score)).
+    on all frames. Returns (T_best (4,4), list of (name, frame index (-1: all), score)).
     """
     best, best_s = T_guess, score(frames, T_guess, o)
     cands = [("initial guess", -1, best_s)]
@@ -170,6 +172,11 @@ def ensemble(frames, T_guess: np.ndarray, o, *, progress=None):
                 best, best_s = T, s
         if progress is not None:
             progress(1)
+    T = batched_icp(frames, best, o)  # all frames at once, from the best single-frame result
+    s = score(frames, T, o)
+    cands.append(("batched ICP", -1, s))
+    if s < best_s:
+        best, best_s = T, s
     return best, cands
 
 
@@ -183,6 +190,52 @@ class FrameMeasurement:
     influence: dict = field(default_factory=dict)  # keyframe position -> B (6,6), see factors/map_registration.py
 
 
+def plane_residuals(fd: FrameData, T: np.ndarray, max_corr: float, sub: int = 1):
+    """Point-to-plane residuals of every ``sub``-th source point at T_lidar0_sensor = T against its
+    nearest target point (within max_corr): (J (N,6) w.r.t. T's right perturbation, r (N,) m,
+    target indices (N,)). Normals from the 10 nearest target points."""
+    R, t = T[:3, :3], T[:3, 3]
+    p = fd.source_pts[::sub]
+    x = p @ R.T + t
+    d, idx = fd.kdtree.query(x, distance_upper_bound=max_corr)
+    ok = np.isfinite(d)
+    p, x, idx = p[ok], x[ok], idx[ok]
+    if fd.normals is None:
+        fd.normals = np.full(fd.target_pts.shape, np.nan, np.float32)
+    new = np.unique(idx[np.isnan(fd.normals[idx, 0])])
+    if len(new):
+        _, nb = fd.kdtree.query(fd.target_pts[new], k=10)
+        q = fd.target_pts[nb] - fd.target_pts[nb].mean(axis=1, keepdims=True)
+        fd.normals[new] = np.linalg.eigh(np.einsum("pki,pkj->pij", q, q))[1][:, :, 0]  # least spread
+    n = fd.normals[idx].astype(float)
+    m = n @ R  # R^T n
+    J = np.c_[np.cross(p, m), m]  # d(n . (R p + t)) / d[omega, v]
+    return J, np.einsum("pi,pi->p", n, x - fd.target_pts[idx]), idx
+
+
+def batched_icp(frames, T0: np.ndarray, o, *, iterations: int = 15, sub: int = 2) -> np.ndarray:
+    """The seed's Batched ICP: one T_lidar0_sensor registering all frames at once (point-to-plane
+    Gauss-Newton over the stacked residuals, Huber-weighted), fine then ultra-fine correspondences."""
+    from .deskew import exp
+
+    T = np.asarray(T0, float)
+    for corr in (o.max_corr_dist_fine, o.max_corr_dist_ultra_fine):
+        for _ in range(iterations):
+            H, g = np.zeros((6, 6)), np.zeros(6)
+            for fd in frames:
+                J, r, _ = plane_residuals(fd, T, corr, sub)
+                w = np.minimum(1.0, 0.5 * corr / np.maximum(np.abs(r), 1e-12))  # Huber at corr / 2
+                H += (J * w[:, None]).T @ J
+                g += (J * w[:, None]).T @ r
+            if not np.isfinite(H).all() or np.linalg.cond(H) > 1e12:
+                return T
+            dx = -np.linalg.solve(H, g)
+            T = T @ exp(dx)
+            if np.linalg.norm(dx[:3]) < 1e-7 and np.linalg.norm(dx[3:]) < 1e-6:
+                break
+    return T
+
+
 def influence(fd: FrameData, T: np.ndarray, o) -> dict:
     """Keyframe position -> B_j = -H^-1 H_j Ad(T^-1 T_anchor_kf_j): how the registration moves
     when keyframe j's submap moves. H_j is the point-to-plane information of the correspondences
@@ -190,16 +243,7 @@ def influence(fd: FrameData, T: np.ndarray, o) -> dict:
     import gtsam
 
     pa = fd.parts
-    R, t = T[:3, :3], T[:3, 3]
-    p = fd.source_pts
-    d, idx = fd.kdtree.query(p @ R.T + t, distance_upper_bound=o.max_corr_dist_fine)
-    ok = np.isfinite(d)
-    p, idx = p[ok], idx[ok]
-    _, nb = fd.kdtree.query(fd.target_pts[idx], k=10)
-    q = fd.target_pts[nb] - fd.target_pts[nb].mean(axis=1, keepdims=True)
-    n = np.linalg.eigh(np.einsum("pki,pkj->pij", q, q))[1][:, :, 0]  # surface normal: least spread
-    m = n @ R  # R^T n
-    J = np.c_[np.cross(p, m), m]  # d(n . (R p + t)) / d[omega, v]
+    J, _, idx = plane_residuals(fd, T, o.max_corr_dist_fine)
     # share of each submap in each corresponding target voxel
     code = voxel_codes(fd.target_pts[idx], pa.leaf) * 64
     lo = np.searchsorted(pa.pair_codes, code)
