@@ -3,11 +3,14 @@
 SYNOPSIS
     prob = prepare_frames(chosen, map_result, T_lidar0_sensor_guess, opts)  # dense targets + deskewed sources
     T_best, cands = ensemble(prob, T_guess, opts)     # best candidate on ALL frames (the guess stays one)
-    meas = refine_per_frame(prob, T_best, opts)       # per-frame T_k (4,4) and Hessian H_k (6,6)
+    meas = refine_per_frame(prob, T_best, opts)       # per-frame T_k (4,4), Hessian H_k (6,6), graph links
+    edges = keyframe_edges(map_result, positions, opts)  # submap-to-submap registrations (graph.KeyframeEdge)
 
 All clouds of one frame are expressed in the mapping LIDAR frame at the calibration
 scan's stamp (the interpolated pose), so every registration directly estimates
-T_lidar0_sensor.
+T_lidar0_sensor. A dense target is made of keyframe submaps (each keyframe's frames up to
+the next keyframe); each frame's measurement records how its registration would move if a
+submap moved (``influence``), which is how targetless/graph.py ties frames to keyframe poses.
 """
 
 from __future__ import annotations
