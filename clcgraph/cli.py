@@ -103,7 +103,7 @@ def _add_targetless(sub):
     def run(args):
         from .config import Config, ConfigError
         from .errors import InputError
-        from .targetless.pipeline import calibrate_targetless, write_targetless_outputs
+        from .targetless.pipeline import calibrate_targetless, summary_table, write_targetless_outputs
 
         try:
             cfg = Config.from_yaml(args.config) if args.config else Config()
@@ -113,7 +113,8 @@ def _add_targetless(sub):
         res = calibrate_targetless(args.bag, mapping_topic=args.mapping_topic, calibration_topics=topics,
                                    base_frame=args.base_frame, config=cfg)
         paths = write_targetless_outputs(res, args.out, config=cfg)
-        print(f"wrote {paths['calibration']}")
+        print(summary_table(res))
+        print(f"wrote {paths['calibration']} and {paths['report']}")
         return 0
 
     p.set_defaults(func=run)

@@ -72,6 +72,27 @@ def test_targetless_from_bag_accuracy_covariance_outputs(drive, tmp_path_factory
         assert png in html and (out / png).stat().st_size > 1000
 
 
+@pytest.mark.slow
+def test_cli_targetless_prints_the_table_and_writes_outputs(drive, tmp_path, capsys):
+    from clcgraph.cli import main
+
+    write_drive_bag(drive, tmp_path / "drive.bag")
+    (tmp_path / "cfg.yaml").write_text(_cfg().to_yaml())
+    rc = main(["-q", "targetless", "--bag", str(tmp_path / "drive.bag"), "--mapping-topic", TOP,
+               "--calibration-topics", SIDE, "--base-frame", "base_link", "--config", str(tmp_path / "cfg.yaml"),
+               "--out", str(tmp_path / "out")])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    lines = out.splitlines()
+    assert lines[0].split()[:2] == ["sensor", "x"] and any(ln.startswith(SIDE) for ln in lines)
+    assert any(ln.startswith(f"base_link <- {TOP}") for ln in lines) and "report.html" in lines[-1]
+    side = next(ln for ln in lines if ln.startswith(SIDE)).split()
+    T_true = drive.T_lidar0_lidar(SIDE, TOP)
+    assert np.allclose([float(v) for v in side[1:4]], T_true[:3, 3], atol=0.003)  # printed x y z, to 3 mm
+    cal = yaml.safe_load((tmp_path / "out" / "calibration.yaml").read_text())
+    assert cal["method"] == "targetless" and (tmp_path / "out" / "config.resolved.yaml").exists()
+
+
 def test_open_flat_field_is_degenerate():
     dr = simulate_drive(DrivePlan.small(duration_s=4.0, scene="flat"), seed=1)
     with pytest.raises(DegenerateError, match="degenerate"):

@@ -208,6 +208,27 @@ def calibration_dict(res: TargetlessResult) -> dict:
     return d
 
 
+def summary_table(res: TargetlessResult) -> str:
+    """The table `clcgraph targetless` prints: pose and 1-sigma per LIDAR, then base_link poses."""
+    from scipy.spatial.transform import Rotation
+
+    def rpy(T):
+        return Rotation.from_matrix(np.asarray(T)[:3, :3]).as_euler("ZYX", degrees=True)[::-1]
+
+    rows = [("sensor", "x [m]", "y [m]", "z [m]", "roll/pitch/yaw [deg]", "1-sigma [mm, deg]", "frames")]
+    for t, T in res.T_lidar0_sensor.items():
+        sd = res.stdev_rt(t)
+        sigma = "reference" if t == res.mapping_topic else f"{1e3 * sd[3:].max():.2f}, {np.degrees(sd[:3].max()):.4f}"
+        rows.append((t, *(f"{v:+.4f}" for v in np.asarray(T)[:3, 3]), " ".join(f"{v:+.3f}" for v in rpy(T)), sigma,
+                     str(res.graph.get(t, {}).get("frames", "-"))))
+    for t, T in res.T_base_sensor.items():
+        rows.append((f"{res.base_frame} <- {t}", *(f"{v:+.4f}" for v in np.asarray(T)[:3, 3]),
+                     " ".join(f"{v:+.3f}" for v in rpy(T)), "ground plane", "-"))
+    widths = [max(len(r[k]) for r in rows) for k in range(len(rows[0]))]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
+    return "\n".join(lines + list(res.notes))
+
+
 def _static_tf_lines(res: TargetlessResult) -> str:
     lines = []
     parent_T = res.T_base_sensor if res.base_frame else res.T_lidar0_sensor
