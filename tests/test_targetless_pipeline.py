@@ -68,7 +68,7 @@ def test_targetless_from_bag_accuracy_covariance_outputs(drive, tmp_path_factory
                        np.array(cal["base_link"][1]["T_base_link_sensor"]))
     assert "static_transform_publisher" in (out / "static_tf.txt").read_text()
     html = (out / "report.html").read_text()
-    for png in ("map_top.png", "scores_side_points.png", "aligned_side_points.png"):
+    for png in ("map_top.png", "scores_side_points.png", "aligned_side_points.png", "distances_side_points.png"):
         assert png in html and (out / png).stat().st_size > 1000
 
 

@@ -305,21 +305,50 @@ def _plots(res: TargetlessResult, d: Path, o) -> list:
         out.append(f"scores_{name}.png")
         fds = getattr(res, "_frame_data", {}).get(topic)
         if fds:
-            fd = fds[len(fds) // 2]
-            fig, axs = plt.subplots(1, 2, figsize=(12, 5))
-            for a, T, title in ((axs[0], res.T_lidar0_sensor_guess[topic], "before (tf_static)"),
-                                (axs[1], res.T_lidar0_sensor[topic], "after")):
-                tg = voxel_down(fd.target_pts, o.calibration_viz_leaf_size)
-                s = voxel_down(fd.source_pts, o.calibration_viz_leaf_size) @ T[:3, :3].T + T[:3, 3]
-                a.scatter(tg[:, 0], tg[:, 1], s=0.2, c="0.6", label="mapping (dense)")
-                a.scatter(s[:, 0], s[:, 1], s=0.4, c="r", label=topic)
-                a.set_aspect("equal")
-                a.set_title(title)
-            axs[1].legend(loc="upper left", bbox_to_anchor=(1, 1))
-            fig.savefig(d / f"aligned_{name}.png", dpi=90, bbox_inches="tight")
-            plt.close(fig)
-            out.append(f"aligned_{name}.png")
+            out += _alignment_plots(res, topic, fds, d, o, plt)
     return out
+
+
+def _alignment_plots(res: TargetlessResult, topic: str, fds, d: Path, o, plt) -> list:
+    """Before/after views of one frame near the sensor (top and side), and the distances of all
+    frames' points to the dense map before and after."""
+    from .mapping import voxel_down
+
+    name = topic.strip("/").replace("/", "_")
+    before, after = res.T_lidar0_sensor_guess[topic], res.T_lidar0_sensor[topic]
+    fd = fds[len(fds) // 2]
+    c = after[:3, 3]
+    box = 10.0  # m around the sensor: far enough for structure, near enough to see centimetres
+    tg = voxel_down(fd.target_pts, o.calibration_viz_leaf_size / 3)
+    tg = tg[np.all(np.abs(tg[:, :2] - c[:2]) < box, axis=1)]
+    fig, axs = plt.subplots(2, 2, figsize=(13, 8), height_ratios=[2, 1], layout="constrained")
+    for col, (T, title) in enumerate(((before, "before (tf_static)"), (after, "after"))):
+        s = fd.source_pts @ T[:3, :3].T + T[:3, 3]
+        s = s[np.all(np.abs(s[:, :2] - c[:2]) < box, axis=1)]
+        for row, (i, j, lab) in enumerate(((0, 1, "y"), (0, 2, "z"))):
+            a = axs[row, col]
+            a.scatter(tg[:, i], tg[:, j], s=0.2, c="0.6", label="mapping (dense)")
+            a.scatter(s[:, i], s[:, j], s=0.5, c="r", label=topic)
+            a.set_aspect("equal")
+            a.set_xlabel("x [m]")
+            a.set_ylabel(f"{lab} [m]")
+            a.set_title(f"{title}: {'top' if row == 0 else 'side'} view, {box:.0f} m around the sensor")
+    axs[0, 1].legend(loc="upper left", bbox_to_anchor=(1, 1))
+    fig.savefig(d / f"aligned_{name}.png", dpi=90, bbox_inches="tight")
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    bins = np.linspace(0, o.calibration_eval_max_corr_distance * 3, 61)
+    for T, lab, col in ((before, "before", "C0"), (after, "after", "C3")):
+        dist = np.concatenate([fd.kdtree.query(fd.source_pts[::4] @ T[:3, :3].T + T[:3, 3])[0] for fd in fds])
+        ax.hist(np.minimum(dist, bins[-1]), bins, histtype="step", color=col,
+                label=f"{lab}: median {1e3 * np.median(dist):.1f} mm")
+    ax.set_xlabel("distance of each point to the nearest dense-map point [m] (last bin: farther)")
+    ax.set_ylabel("points")
+    ax.set_title(f"{topic}: all {len(fds)} calibration frames")
+    ax.legend()
+    fig.savefig(d / f"distances_{name}.png", dpi=90, bbox_inches="tight")
+    plt.close(fig)
+    return [f"aligned_{name}.png", f"distances_{name}.png"]
 
 
 def write_targetless_outputs(res: TargetlessResult, out_dir, *, config: Config | None = None) -> dict:
