@@ -93,6 +93,24 @@ def test_cli_targetless_prints_the_table_and_writes_outputs(drive, tmp_path, cap
     assert cal["method"] == "targetless" and (tmp_path / "out" / "config.resolved.yaml").exists()
 
 
+@pytest.mark.slow
+def test_two_calibration_lidars_share_the_map():
+    from clcgraph.sim.drive import LidarSpec, _rt
+
+    base = DrivePlan.small()
+    rear = LidarSpec("/rear/points", "rear_lidar", 16, 512, -15.0, 15.0, _rt([-20.0, 5.0, 185.0], [-0.9, -0.2, 1.4]), 0.061)
+    dr = simulate_drive(DrivePlan.small(duration_s=15.0, lidars=base.lidars + (rear,)), seed=6)
+    res = calibrate_targetless_scans(dr.scans, mapping_topic=TOP, calibration_topics=[SIDE, "/rear/points"],
+                                     T_base_sensor_guess=dr.T_base_lidar_guess, config=_cfg())
+    for t in (SIDE, "/rear/points"):
+        T_true = dr.T_lidar0_lidar(t, TOP)
+        e_deg, e_m = _err(T_true, res.T_lidar0_sensor[t])
+        assert e_deg <= 0.03 and e_m <= 0.004, (t, e_deg, e_m)
+        drt = res.rt_lidar0_sensor(t) - geo.rt_from_T(T_true)
+        assert np.all(np.abs(drt) <= 3 * res.stdev_rt(t)), (t, drt, res.stdev_rt(t))
+        assert res.graph[t]["keyframe_edges"] >= 1
+
+
 def test_open_flat_field_is_degenerate():
     dr = simulate_drive(DrivePlan.small(duration_s=4.0, scene="flat"), seed=1)
     with pytest.raises(DegenerateError, match="degenerate"):

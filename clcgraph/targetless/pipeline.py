@@ -100,6 +100,7 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
     G0 = np.asarray(T_base_sensor_guess[mapping_topic])
     res = TargetlessResult(mapping_topic, {mapping_topic: np.eye(4)}, {mapping_topic: np.zeros((6, 6))},
                            {mapping_topic: np.eye(4)}, frames=dict(frames or {}), base_frame=base_frame, map_result=mp)
+    edge_cache: dict = {}  # keyframe submap registrations, shared by the calibration LIDARs
     for topic in calibration_topics:
         if topic not in scans or not scans[topic]:
             raise InputError(f"{topic}: no scans of this calibration topic")
@@ -121,7 +122,7 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
         with _stage(timings, "graph", memory):
             used = sorted({m.anchor for m in meas} | {p for m in meas for p in m.influence})
             keyframes = {p: mp.frames[mp.keyframe_ids[p]].T_map_lidar for p in used}
-            edges = keyframe_edges(mp, used, o)
+            edges = keyframe_edges(mp, used, o, cache=edge_cache)
             est = fuse(meas, keyframes, edges, common_mode=o.registration_common_mode,
                        min_frames=o.lidar_calibration_min_frames)
         res.graph[topic] = {"frames": len(meas), "keyframes": len(keyframes), "keyframe_edges": len(edges),
@@ -134,8 +135,11 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
         T_final, cov = est.T, est.cov_rt
         if s_guess <= s_final:  # the initial guess stays a candidate
             log.warning("%s: the initial guess scores better than the registration; keeping it", topic)
-            res.notes.append(f"{topic}: initial guess kept (score {s_guess:.3g} <= {s_final:.3g})")
+            res.notes.append(f"{topic}: initial guess kept (score {s_guess:.3g} <= {s_final:.3g}); its sigmas "
+                             "include the difference to the registration estimate")
             T_final = Tg
+            d = geo.rt_from_T(Tg) - geo.rt_from_T(est.T)
+            cov = cov + np.outer(d, d)  # nothing measured the guess: it is as uncertain as it is far
         res.T_lidar0_sensor[topic] = T_final
         res.covariance_rt[topic] = cov
         res.candidates[topic] = cands

@@ -296,32 +296,33 @@ def submap(mp, pos: int, *, max_frames: int = 3) -> np.ndarray:
     return np.concatenate(clouds)
 
 
-def keyframe_edges(mp, positions, o, *, max_cond: float = 1e6, min_inlier_share: float = 0.3) -> list:
+def keyframe_edges(mp, positions, o, *, cache: dict | None = None, max_cond: float = 1e6,
+                   min_inlier_share: float = 0.3) -> list:
     """Registrations of keyframe submaps j+1 and j+2 to j's, for the keyframe positions given
     (KeyframeEdge list); a failed or degenerate registration gives no edge. The mapping's
-    relative poses are the initial guesses (millimetres off), so one fine GICP pass suffices."""
+    relative poses are the initial guesses (millimetres off), so one fine GICP pass suffices.
+    ``cache``: (a, b) -> KeyframeEdge or None, shared between calibration LIDARs."""
     import small_gicp
 
     from .graph import KeyframeEdge
     from .mapping import degeneracy
 
+    cache = {} if cache is None else cache
     leaf = 2 * max(o.leaf_size_local_map, 0.05)  # neighbouring submaps overlap almost entirely: coarse is enough
     positions = sorted(set(int(p) for p in positions))
+    pairs = [(a, b) for a in positions for b in (a + 1, a + 2) if b in positions and (a, b) not in cache]
+    needed = sorted({p for ab in pairs for p in ab})
     clouds = {p: small_gicp.preprocess_points(np.ascontiguousarray(submap(mp, p)), leaf, num_neighbors=10,
-                                              num_threads=o.mapper_num_threads) for p in positions}
-    pose = {p: mp.frames[mp.keyframe_ids[p]].T_map_lidar for p in positions}
-    edges = []
-    for a in positions:
-        for b in (a + 1, a + 2):
-            if b not in clouds:
-                continue
-            r = small_gicp.align(clouds[a][0], clouds[b][0], clouds[a][1],
-                                 init_T_target_source=np.linalg.inv(pose[a]) @ pose[b], registration_type="GICP",
-                                 max_correspondence_distance=o.max_corr_dist_fine, num_threads=o.mapper_num_threads,
-                                 max_iterations=min(o.solver_iterations, 60))
-            H = np.asarray(r.H)
-            if r.converged and r.num_inliers >= min_inlier_share * clouds[b][0].size() and degeneracy(H) <= max_cond:
-                edges.append(KeyframeEdge(a, b, np.asarray(r.T_target_source), H))
-            else:
-                log.info("keyframes %d-%d: submap registration failed or degenerate; no edge", a, b)
-    return edges
+                                              num_threads=o.mapper_num_threads) for p in needed}
+    pose = {p: mp.frames[mp.keyframe_ids[p]].T_map_lidar for p in needed}
+    for a, b in pairs:
+        r = small_gicp.align(clouds[a][0], clouds[b][0], clouds[a][1],
+                             init_T_target_source=np.linalg.inv(pose[a]) @ pose[b], registration_type="GICP",
+                             max_correspondence_distance=o.max_corr_dist_fine, num_threads=o.mapper_num_threads,
+                             max_iterations=min(o.solver_iterations, 60))
+        H = np.asarray(r.H)
+        ok = r.converged and r.num_inliers >= min_inlier_share * clouds[b][0].size() and degeneracy(H) <= max_cond
+        cache[a, b] = KeyframeEdge(a, b, np.asarray(r.T_target_source), H) if ok else None
+        if not ok:
+            log.info("keyframes %d-%d: submap registration failed or degenerate; no edge", a, b)
+    return [cache[a, b] for a in positions for b in (a + 1, a + 2) if cache.get((a, b)) is not None]
