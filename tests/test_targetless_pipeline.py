@@ -111,6 +111,20 @@ def test_two_calibration_lidars_share_the_map():
         assert res.graph[t]["keyframe_edges"] >= 1
 
 
+@pytest.mark.slow
+def test_a_better_scoring_initial_guess_is_kept_with_honest_sigmas(drive, monkeypatch):
+    import clcgraph.targetless.pipeline as pl
+
+    guess = np.linalg.inv(drive.T_base_lidar_guess[TOP]) @ drive.T_base_lidar_guess[SIDE]
+    monkeypatch.setattr(pl, "score", lambda frames, T, o: 0.0 if np.allclose(T, guess) else 1.0)
+    res = calibrate_targetless_scans(drive.scans, mapping_topic=TOP, calibration_topics=[SIDE],
+                                     T_base_sensor_guess=drive.T_base_lidar_guess, config=_cfg())
+    assert np.allclose(res.T_lidar0_sensor[SIDE], guess) and "initial guess kept" in res.notes[0]
+    # the guess is 2 deg / 20 cm off and its sigmas say so (>= 1/3 of the distance to the registration)
+    sd = res.stdev_rt(SIDE)
+    assert np.degrees(np.linalg.norm(sd[:3])) > 0.6 and np.linalg.norm(sd[3:]) > 0.06
+
+
 def test_open_flat_field_is_degenerate():
     dr = simulate_drive(DrivePlan.small(duration_s=4.0, scene="flat"), seed=1)
     with pytest.raises(DegenerateError, match="degenerate"):
