@@ -99,7 +99,7 @@ def _build(meas, keyframes, edges, scales, common_mode):
         kinds.append("keyframes")
     # one gauge prior per connected group of keyframes (the map's origin is arbitrary)
     for root in _components(keyframes, edges):
-        g.add(gtsam.PriorFactorPose3(X(root), gtsam.Pose3(keyframes[root]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+        g.add(gtsam.PriorFactorPose3(X(root), gtsam.Pose3(keyframes[root]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-3)))
         kinds.append("gauge")
     return g, v, kinds
 

@@ -193,12 +193,11 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
             T = r.T_target_source
             xi_used, xi = xi, twist_between(T_last, T, dt)
             if tau is not None and first_raw is None and it + 1 < n_it:
-                # another deskew pass only if the twist changed enough to move the typical
-                # (median-range) point by > 1 mm
+                # another deskew pass only if the twist changed enough to move points by > 1 mm
                 span = float(tau.max() - tau.min()) if len(tau) else 0.0
-                r_typ = float(np.median(np.linalg.norm(raw[pick], axis=1))) if len(pick) else 0.0
+                r_max = float(np.linalg.norm(raw, axis=1).max()) if len(raw) else 0.0
                 d = xi - xi_used
-                if (np.linalg.norm(d[:3]) * r_typ + np.linalg.norm(d[3:])) * span < 1e-3:
+                if (np.linalg.norm(d[:3]) * r_max + np.linalg.norm(d[3:])) * span < 1e-3:
                     break
         pts = deskew(raw, tau, xi)
         first_raw = None

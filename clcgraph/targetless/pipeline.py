@@ -343,7 +343,7 @@ def _alignment_plots(res: TargetlessResult, topic: str, fds, d: Path, o, plt) ->
     fig, ax = plt.subplots(figsize=(7, 3.5))
     bins = np.linspace(0, o.calibration_eval_max_corr_distance * 3, 61)
     for T, lab, col in ((before, "before", "C0"), (after, "after", "C3")):
-        dist = np.concatenate([fd.kdtree.query(fd.source_pts[::4] @ T[:3, :3].T + T[:3, 3])[0] for fd in fds])
+        dist = np.concatenate([f.kdtree.query(f.source_pts[::4] @ T[:3, :3].T + T[:3, 3])[0] for f in fds])
         ax.hist(np.minimum(dist, bins[-1]), bins, histtype="step", color=col,
                 label=f"{lab}: median {1e3 * np.median(dist):.1f} mm")
     ax.set_xlabel("distance of each point to the nearest dense-map point [m] (last bin: farther)")
