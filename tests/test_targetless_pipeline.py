@@ -74,11 +74,12 @@ def test_targetless_from_bag_accuracy_covariance_outputs(drive, tmp_path_factory
 
 @pytest.mark.slow
 def test_cli_targetless_prints_the_table_and_writes_outputs(drive, tmp_path, capsys):
+    """Through the CLI, from a ROS2 mcap bag with organised Ouster-style clouds (padding, t in ns)."""
     from clcgraph.cli import main
 
-    write_drive_bag(drive, tmp_path / "drive.bag")
+    write_drive_bag(drive, tmp_path / "drive", format="ros2-mcap", layout="ouster")
     (tmp_path / "cfg.yaml").write_text(_cfg().to_yaml())
-    rc = main(["-q", "targetless", "--bag", str(tmp_path / "drive.bag"), "--mapping-topic", TOP,
+    rc = main(["-q", "targetless", "--bag", str(tmp_path / "drive"), "--mapping-topic", TOP,
                "--calibration-topics", SIDE, "--base-frame", "base_link", "--config", str(tmp_path / "cfg.yaml"),
                "--out", str(tmp_path / "out")])
     out = capsys.readouterr().out

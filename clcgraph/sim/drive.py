@@ -243,8 +243,10 @@ def simulate_drive(plan: DrivePlan | None = None, *, seed: int = 0) -> Drive:
     return Drive(plan, scans, T_true, T_guess, frames, tt, base_pose(plan, tt), t0_ns)
 
 
-def write_drive_bag(drive: Drive, path, *, format: str = "ros1", base_frame: str = "base_link") -> None:
-    """Write the scans and /tf_static (the perturbed guess, base_link -> each LIDAR) to a bag."""
+def write_drive_bag(drive: Drive, path, *, format: str = "ros1", base_frame: str = "base_link",
+                    layout: str = "velodyne") -> None:
+    """Write the scans and /tf_static (the perturbed guess, base_link -> each LIDAR) to a bag;
+    ``layout``: the point layout of the drivers (bag_writer: "velodyne" or organised "ouster")."""
     from .bag_writer import BagWriter
 
     with BagWriter(path, format=format) as w:
@@ -252,7 +254,7 @@ def write_drive_bag(drive: Drive, path, *, format: str = "ros1", base_frame: str
                           stamp_ns=drive.t0_ns)
         allscans = sorted((s.stamp_ns, t, s) for t, ss in drive.scans.items() for s in ss)
         for _, t, s in allscans:
-            w.write_pointcloud(t, s, frame_id=drive.frames[t], layout="velodyne")
+            w.write_pointcloud(t, s, frame_id=drive.frames[t], layout=layout)
 
 
 def write_truth(drive: Drive, path) -> None:
