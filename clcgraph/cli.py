@@ -493,7 +493,7 @@ def _add_config(sub):
 def _add_format_for_ros(sub):
     p = sub.add_parser("format-for-ros", help="base_link-relative transforms of a calibration, for ROS (YAML, URDF, launch)")
     p.add_argument("bag", help="a bag with /tf_static (the vehicle's frames) and the sensor topics")
-    p.add_argument("--calibration", required=True, metavar="DIR", help="the --out directory of clcgraph solve")
+    p.add_argument("--calibration", required=True, metavar="DIR", help="the --out directory of clcgraph solve or targetless")
     p.add_argument("--base-frame", default="base_link", help="parent frame of the published transforms")
     p.add_argument("--out", default=None, metavar="DIR", help="write ros.yaml, URDF and launch snippets here")
 
@@ -526,7 +526,7 @@ def _add_format_for_ros(sub):
 def _add_show_aligned(sub):
     p = sub.add_parser("show-aligned", help="LIDAR clouds of a bag aligned by a calibration, rendered to PNG")
     p.add_argument("bag", help="the bag to show (its first scan of each LIDAR)")
-    p.add_argument("--calibration", required=True, metavar="DIR", help="the --out directory of clcgraph solve")
+    p.add_argument("--calibration", required=True, metavar="DIR", help="the --out directory of clcgraph solve or targetless")
     p.add_argument("--topics", default=None, help="comma-separated LIDAR topics (default: every LIDAR of the calibration)")
     p.add_argument("--png", default="aligned.png", help="output picture")
     p.add_argument("--threshold-range", type=float, default=None, metavar="M", help="drop points farther than this")
@@ -599,6 +599,10 @@ def _add_show_uncertainty(sub):
 
         path = Path(args.dump)
         if path.is_dir():
+            cal = path / "calibration.yaml"
+            if not (path / "problem.npz").exists() and cal.exists() and "method: targetless" in cal.read_text():
+                raise InputError(f"{path}: a targetless calibration has no sector uncertainty (that needs "
+                                 "`clcgraph solve`'s problem.npz); its 1-sigmas are in calibration.yaml and report.html")
             path = path / "problem.npz"
         res = replay(path)
         n = len(res.problem.sensors)

@@ -136,3 +136,13 @@ def test_ros_files(setup):
     assert set(files) == {"ros-transforms.yaml", "sensors.urdf.xml", "static_tf.launch", "static_tf.launch.py",
                           "static_tf_ros1.sh", "static_tf_ros2.sh"}
     assert yaml.safe_load(files["ros-transforms.yaml"])["transforms"]["cam"]["parent_frame"] == "base_link"
+
+
+def test_ground_plane_base_link_of_a_targetless_calibration_wins_over_tf(setup):
+    result, cal, tf, _ = setup
+    T_ground = T_from_rt(np.r_[0.01, -0.02, 0.0, 1.2, 0.0, 1.93])  # base_link <- reference from the ground plane
+    tl = dict(cal, base_link=[{"topic": cal["reference"], "frame": "base_link", "T_base_link_sensor": T_ground}])
+    out = ros.format_for_ros(tl, tf, frames=FRAMES)
+    for i, s in enumerate(result.problem.sensors):
+        np.testing.assert_allclose(ros.T_from_ros_entry(out["transforms"][FRAMES[s.topic]]),
+                                   T_ground @ T_from_rt(result.rt_lidar0_sensor[i]), atol=1e-12)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import yaml
 
+import clcgraph
 from clcgraph import geometry as geo
 from clcgraph.config import Config
 from clcgraph.errors import DegenerateError
@@ -60,7 +61,11 @@ def test_targetless_from_bag_accuracy_covariance_outputs(drive, tmp_path_factory
     cal = yaml.safe_load(paths["calibration"].read_text())
     assert cal["reference"] == TOP and [s["topic"] for s in cal["sensors"]] == [TOP, SIDE]
     assert np.allclose(np.array(cal["sensors"][1]["T_lidar0_sensor"]), res.T_lidar0_sensor[SIDE])
-    assert np.array(cal["covariance_rt_lidar0_sensor"]).shape == (12, 12)
+    assert np.array(cal["covariance_rt_lidar0_sensor"]).shape == (6, 6)  # the reference excluded, as solve writes it
+    loaded = clcgraph.load_result(out)  # the same loader as for `clcgraph solve`
+    assert np.allclose(loaded["sensors"][1]["T_lidar0_sensor"], res.T_lidar0_sensor[SIDE])
+    assert np.allclose(loaded["covariance_rt_lidar0_sensor"], res.covariance_rt[SIDE])
+    assert loaded["base_link"][0]["T_base_link_sensor"].shape == (4, 4)
     g = cal["graph"][SIDE]  # the final graph: keyframe poses linked by submap registrations
     assert g["keyframes"] >= 3 and g["keyframe_edges"] >= g["keyframes"] - 1 and g["frames"] >= 2
     assert cal["base_link"][0]["topic"] == TOP
@@ -92,6 +97,21 @@ def test_cli_targetless_prints_the_table_and_writes_outputs(drive, tmp_path, cap
     assert np.allclose([float(v) for v in side[1:4]], T_true[:3, 3], atol=0.003)  # printed x y z, to 3 mm
     cal = yaml.safe_load((tmp_path / "out" / "calibration.yaml").read_text())
     assert cal["method"] == "targetless" and (tmp_path / "out" / "config.resolved.yaml").exists()
+    # the result feeds the same tools as a target-based one; format-for-ros takes base_link <- top
+    # from the ground plane (the bag's /tf_static is only the guess)
+    rc = main(["-q", "format-for-ros", str(tmp_path / "drive"), "--calibration", str(tmp_path / "out"),
+               "--out", str(tmp_path / "ros")])
+    assert rc == 0
+    ros = yaml.safe_load((tmp_path / "ros" / "ros-transforms.yaml").read_text())
+    side_ros = ros["transforms"]["side_lidar"]
+    T_base_side = np.array(cal["base_link"][1]["T_base_link_sensor"])
+    assert np.allclose([side_ros["translation"][k] for k in "xyz"], T_base_side[:3, 3], atol=1e-9)
+    assert main(["-q", "show-aligned", str(tmp_path / "drive"), "--calibration", str(tmp_path / "out"),
+                 "--png", str(tmp_path / "aligned.png")]) == 0
+    capsys.readouterr()
+    assert main(["-q", "show-uncertainty", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "targetless" in err[0]
 
 
 @pytest.mark.slow

@@ -31,6 +31,9 @@ log = logging.getLogger(__name__)
 CALIBRATION_FILE = "calibration.yaml"
 CONFIG_FILE = "config.resolved.yaml"
 TOP_KEYS = ("reference", "sensors", "covariance_rt_lidar0_sensor", "rms", "noise", "snapshots", "sectors")
+# `clcgraph targetless` writes the same sensors and covariance, its graph instead of the fit
+# statistics, and optionally base_link poses from the ground plane
+TARGETLESS_KEYS = ("reference", "sensors", "covariance_rt_lidar0_sensor", "graph")
 SENSOR_KEYS = ("topic", "kind", "rt_lidar0_sensor", "T_lidar0_sensor", "stdev_rt")
 
 # The placeholder lens a LIDAR's .cameramodel carries (clc does the same): only its
@@ -212,10 +215,12 @@ def _fail(path, msg):
 
 
 def load_result(out_dir: str | Path) -> dict:
-    """Read ``out_dir/calibration.yaml`` (or that file itself) back, checking its schema.
+    """Read ``out_dir/calibration.yaml`` (or that file itself) back, checking its schema; of
+    `clcgraph solve` or of `clcgraph targetless` (``method: targetless``).
 
     Returns the dict with, per sensor, ``rt_lidar0_sensor`` as a (6,) array and
-    ``T_lidar0_sensor`` as a (4,4) array; the covariance as a (6(N-1),6(N-1)) array.
+    ``T_lidar0_sensor`` as a (4,4) array; the covariance as a (6(N-1),6(N-1)) array (the
+    reference excluded); targetless ``base_link`` poses as arrays.
     """
     path = Path(out_dir)
     if path.is_dir():
@@ -228,7 +233,8 @@ def load_result(out_dir: str | Path) -> dict:
         _fail(path, f"invalid YAML ({str(e).splitlines()[0]})")
     if not isinstance(d, dict):
         _fail(path, "not a mapping")
-    missing = [k for k in TOP_KEYS if k not in d]
+    targetless = d.get("method") == "targetless"
+    missing = [k for k in (TARGETLESS_KEYS if targetless else TOP_KEYS) if k not in d]
     if missing:
         _fail(path, f"missing keys {missing}")
     if not isinstance(d["sensors"], list) or not d["sensors"]:
@@ -258,9 +264,15 @@ def load_result(out_dir: str | Path) -> dict:
     if not np.allclose(C, C.T, atol=1e-12 + 1e-9 * np.abs(C).max(initial=0)):
         _fail(path, "covariance_rt_lidar0_sensor is not symmetric")
     d["covariance_rt_lidar0_sensor"] = C
-    for key in ("rms", "noise", "snapshots"):
+    for key in ("graph",) if targetless else ("rms", "noise", "snapshots"):
         if not isinstance(d[key], dict):
             _fail(path, f"'{key}' must be a mapping")
+    for k, b in enumerate(d.get("base_link") or []):
+        try:
+            b["T_base_link_sensor"] = np.array(b["T_base_link_sensor"], dtype=float).reshape(4, 4)
+            b["rt_base_link_sensor"] = np.array(b["rt_base_link_sensor"], dtype=float).reshape(6)
+        except (KeyError, ValueError, TypeError):
+            _fail(path, f"base_link[{k}] needs T_base_link_sensor (4x4) and rt_base_link_sensor (6)")
     return d
 
 

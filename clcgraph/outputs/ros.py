@@ -58,8 +58,12 @@ def format_for_ros(calibration: dict, tf, *, base_frame: str = "base_link", fram
     """
     ref_topic = calibration["reference"]
     ref_frame = _frame_of(ref_topic, frames)
+    # a targetless calibration may carry base_link <- reference from the ground plane: it wins
+    # over /tf_static (whose roll, pitch and height it corrected)
+    ground = {b["topic"]: b for b in calibration.get("base_link") or [] if b.get("frame", base_frame) == base_frame}
     try:
-        T_base_lidar0 = np.asarray(tf.lookup(base_frame, ref_frame), dtype=float)
+        T_base_lidar0 = (np.asarray(ground[ref_topic]["T_base_link_sensor"], dtype=float) if ref_topic in ground
+                         else np.asarray(tf.lookup(base_frame, ref_frame), dtype=float))
     except Exception as e:  # the tf tree's own error, made one line with both frames named
         raise InputError(
             f"/tf_static has no transform {base_frame} <- {ref_frame} (reference {ref_topic}): {str(e).splitlines()[0] if str(e) else type(e).__name__}"

@@ -190,15 +190,21 @@ def calibrate_targetless(bags, *, mapping_topic: str, calibration_topics, base_f
 # ------------------------------------------------------------------ outputs
 
 def calibration_dict(res: TargetlessResult) -> dict:
-    """calibration.yaml content: the ``sensors`` shape of the target-based result plus ``base_link``."""
+    """calibration.yaml content: the ``sensors`` shape of the target-based result plus ``base_link``.
+
+    The covariance is over the non-reference sensors, as `clcgraph solve` writes it; each LIDAR
+    is calibrated in its own graph, so the blocks between LIDARs are zero (their shared map
+    errors are not modelled across LIDARs).
+    """
     topics = [res.mapping_topic] + [t for t in res.T_lidar0_sensor if t != res.mapping_topic]
     n = len(topics)
-    cov = np.zeros((6 * n, 6 * n))
+    cov = np.zeros((6 * (n - 1), 6 * (n - 1)))
     sensors = []
     for i, t in enumerate(topics):
         rt = res.rt_lidar0_sensor(t)
         sd = res.stdev_rt(t)
-        cov[6 * i:6 * i + 6, 6 * i:6 * i + 6] = 0.5 * (res.covariance_rt[t] + res.covariance_rt[t].T)
+        if i > 0:
+            cov[6 * (i - 1):6 * i, 6 * (i - 1):6 * i] = 0.5 * (res.covariance_rt[t] + res.covariance_rt[t].T)
         sensors.append({"topic": t, "kind": "lidar", "rt_lidar0_sensor": rt.tolist(),
                         "T_lidar0_sensor": geo.T_from_rt(rt).tolist(), "stdev_rt": sd.tolist(),
                         "stdev_position_mm": (sd[3:] * 1e3).tolist(), "stdev_orientation_deg": np.degrees(sd[:3]).tolist()})
