@@ -162,3 +162,36 @@ def test_base_from_ground_overwrite_xy_yaw():
     assert np.allclose(over[:3, 3], [0.0, 0.0, 1.8])
     x = over[:3, :3] @ [1.0, 0.0, 0.0]
     assert abs(np.arctan2(x[1], x[0])) < 1e-9 and np.allclose(over[:3, :3] @ n_lidar, [0, 0, 1])
+
+
+def test_only_the_scans_nearest_to_keyframes_are_kept_and_they_give_the_same_frames():
+    from types import SimpleNamespace
+
+    from clcgraph.targetless.calibration_frames import make_calibration_frames, nearest_to_keyframes
+    from clcgraph.targetless.mapping import Frame, MapResult
+
+    rng = np.random.default_rng(3)
+    mp = MapResult("/top")
+    for k in range(200):  # 10 Hz, 5 cm per frame, a keyframe every 20 frames
+        T = np.eye(4)
+        T[0, 3] = 0.05 * k
+        mp.frames.append(Frame(int(k * 1e8), np.zeros((1, 3), np.float32), T, np.r_[0, 0, 0, 0.5, 0, 0.0]))
+    mp.keyframe_ids = list(range(0, 200, 20))
+    stamps = np.sort(rng.uniform(0, 2e10, 180)).astype(np.int64)  # an unsynchronised 9 Hz LIDAR
+    scans = [SimpleNamespace(stamp_ns=int(t)) for t in stamps]
+    kept = nearest_to_keyframes(mp, iter(scans))
+    assert len(kept) <= len(mp.keyframe_ids) and [s.stamp_ns for s in kept] == sorted(s.stamp_ns for s in kept)
+    o = Config().replace(targetless=dict(calibration_skip_keyframes=1)).targetless
+    full, reduced = make_calibration_frames(mp, scans, o), make_calibration_frames(mp, kept, o)
+    assert [cf.scan for cf in full] == [cf.scan for cf in reduced] and len(full) >= 8
+
+
+def test_stamp_ordered_sorts_a_log_time_stream():
+    from types import SimpleNamespace
+
+    from clcgraph.targetless.pipeline import _stamp_ordered
+
+    rng = np.random.default_rng(4)
+    stamps = np.arange(500) * 100 + rng.integers(-250, 250, 500)  # jitter of a few messages
+    out = [s.stamp_ns for s in _stamp_ordered(SimpleNamespace(stamp_ns=int(t)) for t in stamps)]
+    assert out == sorted(stamps.tolist())

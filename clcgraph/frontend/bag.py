@@ -320,6 +320,17 @@ def read_messages(paths, topics: Sequence[str], *, start_ns: int | None = None,
     yield from heapq.merge(*streams, key=lambda m: m.stamp_ns)
 
 
+def message_count(paths, topic: str) -> int:
+    """Messages of ``topic`` in all ``paths``, from the bags' indexes (nothing is read)."""
+    if isinstance(paths, (str, Path)):
+        paths = [paths]
+    n = 0
+    for p in paths:
+        with _Bag(p) as b:
+            n += sum(c.msgcount for c in b.reader.connections if c.topic == topic)
+    return n
+
+
 def first_messages(path, topics: Sequence[str]) -> dict[str, LidarScan | Image]:
     """{topic: decoded first message of that topic in this bag} (one snapshot per bag)."""
     out: dict[str, LidarScan | Image] = {}

@@ -1,7 +1,8 @@
 """Calibration frames: a calibration-LIDAR scan per keyframe with the mapping pose at its stamp.
 
 SYNOPSIS
-    cfs = make_calibration_frames(map_result, calib_scans, opts)
+    kept = nearest_to_keyframes(map_result, scan_stream)   # only the scans that can be chosen
+    cfs = make_calibration_frames(map_result, kept, opts)
     cfs[0].T_map_lidar0          # (4,4) mapping pose interpolated (SLERP + linear) to the scan stamp
     cfs[0].stats                 # interpolation statistics; cfs[0].accepted, cfs[0].reason
 """
@@ -36,6 +37,20 @@ def interpolate_pose(Ta: np.ndarray, Tb: np.ndarray, s: float) -> np.ndarray:
     T[:3, :3] = sl([s]).as_matrix()[0]
     T[:3, 3] = (1 - s) * Ta[:3, 3] + s * Tb[:3, 3]
     return T
+
+
+def nearest_to_keyframes(mp, scans) -> list:
+    """The scans (a time-ordered iterable, read once) that are the nearest in time to some keyframe:
+    all that make_calibration_frames uses, without holding a whole drive in memory."""
+    kt = mp.stamps_ns()[mp.keyframe_ids]
+    best: dict = {}  # keyframe -> (|dt| ns, scan); the earliest wins ties, as argmin does
+    for s in scans:
+        j = int(np.searchsorted(kt, s.stamp_ns))
+        for k in (j - 1, j):
+            if 0 <= k < len(kt) and (k not in best or abs(s.stamp_ns - kt[k]) < best[k][0]):
+                best[k] = (abs(s.stamp_ns - kt[k]), s)
+    kept = {id(s): s for _, s in best.values()}
+    return sorted(kept.values(), key=lambda s: s.stamp_ns)
 
 
 def make_calibration_frames(mp, calib_scans, o) -> list:

@@ -32,7 +32,7 @@ class Frame:
     """One kept mapping scan: deskewed points (lidar frame at the stamp) and its map pose."""
 
     stamp_ns: int
-    points: np.ndarray  # (N,3) deskewed, cropped (not downsampled)
+    points: np.ndarray  # (N,3) float32 deskewed, cropped (not downsampled)
     T_map_lidar: np.ndarray  # (4,4)
     twist: np.ndarray  # (6,) [omega, v] per second used for deskew
     keyframe: bool = False
@@ -128,11 +128,10 @@ def degeneracy(H: np.ndarray) -> float:
 
 
 def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult:
-    """Map the mapping LIDAR's scans (time-ordered list[LidarScan]); see the module doc."""
+    """Map the mapping LIDAR's scans (a time-ordered iterable of LidarScan, read once: a bag can
+    stream through); see the module doc."""
     o = opts
-    res = MapResult(topic=scans[0].topic if scans else "?")
-    if len(scans) < 3:
-        raise DataError(f"{res.topic}: only {len(scans)} scans; mapping needs a drive")
+    res = MapResult(topic="?")
     leaf_in = max(o.leaf_size_input, 0.05)
     map_leaf = max(o.leaf_size_local_map, 0.05)
     twist = np.zeros(6)
@@ -144,6 +143,7 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
     # progress: optional wrapper of the scan iterable (the orchestration layer's bar)
     for i, scan in enumerate(progress(scans) if progress is not None else scans):
         res.n_scans += 1
+        res.topic = scan.topic
         if len(res.frames) >= o.mapping_max_frames:
             break
         m = crop_range(scan.points, scan.valid, o.mapping_min_range, o.mapping_max_range)
@@ -158,7 +158,7 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
         if len(pick) > o.mapping_max_source_points:  # evenly thinned: GICP needs thousands, not 40k
             pick = pick[np.linspace(0, len(pick) - 1, o.mapping_max_source_points).astype(np.int64)]
         if last_stamp is None:
-            pts = deskew(raw, tau, twist)
+            pts = deskew(raw, tau, twist).astype(np.float32)
             f = Frame(scan.stamp_ns, pts, np.eye(4), twist.copy(), keyframe=True)
             res.frames.append(f)
             res.keyframe_ids.append(0)
@@ -179,7 +179,7 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
             if first_raw is not None and first_raw[1] is not None and it == n_it:
                 # the first frame (the map origin) was deskewed with zero twist: redo it, then re-register
                 f0 = res.frames[0]
-                f0.points, f0.twist = deskew(first_raw[0], first_raw[1], xi), xi.copy()
+                f0.points, f0.twist = deskew(first_raw[0], first_raw[1], xi).astype(np.float32), xi.copy()
                 local = LocalMap(f0.points, map_leaf, o)
             import small_gicp
 
@@ -199,7 +199,7 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
                 d = xi - xi_used
                 if (np.linalg.norm(d[:3]) * r_max + np.linalg.norm(d[3:])) * span < 1e-3:
                     break
-        pts = deskew(raw, tau, xi)
+        pts = deskew(raw, tau, xi).astype(np.float32)  # float32: a drive's frames are most of the memory
         first_raw = None
         H = np.asarray(r.H)
         cond = degeneracy(H)
@@ -238,6 +238,8 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
                                     + res.frames[j].T_map_lidar[:3, 3] for j in local_ids])
             local = LocalMap(voxel_down(cloud, map_leaf), map_leaf, o)
         T_last, last_stamp, twist = T, scan.stamp_ns, xi
+    if res.n_scans < 3:
+        raise DataError(f"{res.topic}: only {res.n_scans} scans; mapping needs a drive")
     if len(res.frames) < 3 and res.skipped >= res.n_scans / 2:
         raise DegenerateError(f"{res.topic}: mapping is degenerate: {res.skipped} of {res.n_scans} scans have fewer "
                               f"than min_mapping_pointcloud_size={o.min_mapping_pointcloud_size} points within "

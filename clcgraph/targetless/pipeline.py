@@ -16,6 +16,7 @@ and Marginals), ground (base_link roll/pitch/z).
 
 from __future__ import annotations
 
+import heapq
 import logging
 import os
 import shutil
@@ -29,7 +30,7 @@ import numpy as np
 from .. import geometry as geo
 from ..config import Config
 from ..errors import DegenerateError, InputError
-from .calibration_frames import make_calibration_frames
+from .calibration_frames import make_calibration_frames, nearest_to_keyframes
 from .graph import fuse
 from .mapping import build_map
 from .registration import ensemble, keyframe_edges, prepare_frames, refine_per_frame, score
@@ -79,8 +80,10 @@ def _stage(timings, name, memory=None):
 
 def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_topics, T_base_sensor_guess: dict,
                                base_frame: str | None = None, config: Config | None = None, frames: dict | None = None,
-                               progress=None) -> TargetlessResult:
-    """Calibrate from in-memory scans: ``scans[topic]`` time-ordered list[LidarScan].
+                               progress=None, counts: dict | None = None) -> TargetlessResult:
+    """Calibrate from scans: ``scans[topic]`` a time-ordered list or iterable of LidarScan, read once
+    (the mapping topic streams through the mapping; of a calibration topic only the scans nearest
+    to keyframes are kept). ``counts``: topic -> number of scans, for the progress bar.
 
     T_base_sensor_guess: topic -> (4,4) initial guess (tf_static) in a common parent frame.
     """
@@ -88,13 +91,14 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
     o = cfg.targetless
     timings: dict = {}
     memory: dict = {}
-    if mapping_topic not in scans or not scans[mapping_topic]:
+    if mapping_topic not in scans:
         raise InputError(f"{mapping_topic}: no scans of the mapping topic")
     if progress is None:
         from .. import progress as _pg
 
         def progress(items, desc=f"mapping {mapping_topic}"):
-            return _pg.progress(items, desc=desc, total=len(items), unit="scan")
+            total = len(items) if hasattr(items, "__len__") else (counts or {}).get(mapping_topic)
+            return _pg.progress(items, desc=desc, total=total, unit="scan")
     with _stage(timings, "mapping", memory):
         mp = build_map(scans[mapping_topic], o, progress=progress)
     G0 = np.asarray(T_base_sensor_guess[mapping_topic])
@@ -102,12 +106,13 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
                            {mapping_topic: np.eye(4)}, frames=dict(frames or {}), base_frame=base_frame, map_result=mp)
     edge_cache: dict = {}  # keyframe submap registrations, shared by the calibration LIDARs
     for topic in calibration_topics:
-        if topic not in scans or not scans[topic]:
-            raise InputError(f"{topic}: no scans of this calibration topic")
+        with _stage(timings, "calibration frames", memory):
+            kept = nearest_to_keyframes(mp, scans.get(topic, ()))
+            if not kept:
+                raise InputError(f"{topic}: no scans of this calibration topic")
+            cfs = make_calibration_frames(mp, kept, o)
         Tg = np.linalg.inv(G0) @ np.asarray(T_base_sensor_guess[topic])
         res.T_lidar0_sensor_guess[topic] = Tg
-        with _stage(timings, "calibration frames", memory):
-            cfs = make_calibration_frames(mp, scans[topic], o)
         with _stage(timings, "selection", memory):
             chosen = select_frames(cfs, mp, o)
         if len(chosen) < o.lidar_calibration_min_frames:
@@ -163,16 +168,14 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
 def calibrate_targetless(bags, *, mapping_topic: str, calibration_topics, base_frame: str | None = None,
                          config: Config | None = None, progress=None) -> TargetlessResult:
     """Read the bags (scans + /tf_static guess) and run :func:`calibrate_targetless_scans`."""
-    from ..frontend.bag import frame_id, read_messages, read_tf_static
+    from ..frontend.bag import frame_id, message_count, read_messages, read_tf_static
 
     bags = [bags] if isinstance(bags, (str, Path)) else list(bags)
     calibration_topics = list(calibration_topics)
     topics = [mapping_topic] + calibration_topics
-    scans = {t: [] for t in topics}
-    for m in read_messages(bags, topics):
-        scans[m.topic].append(m.data)
-    for t in topics:
-        scans[t].sort(key=lambda s: s.stamp_ns)
+    # each topic streams from the bags when its stage needs it: a drive is never all in memory
+    scans = {t: _stamp_ordered(m.data for m in read_messages(bags, [t])) for t in topics}
+    counts = {t: message_count(bags, t) for t in topics}
     frames = {t: frame_id(bags[0], t) for t in topics}
     tf = read_tf_static(bags)
     parent = base_frame or frames[mapping_topic]
@@ -184,7 +187,19 @@ def calibrate_targetless(bags, *, mapping_topic: str, calibration_topics, base_f
             raise InputError(f"{t}: no /tf_static transform from {parent} to {frames[t]} ({e})") from None
     return calibrate_targetless_scans(scans, mapping_topic=mapping_topic, calibration_topics=calibration_topics,
                                       T_base_sensor_guess=guess, base_frame=base_frame, config=config,
-                                      frames=frames, progress=progress)
+                                      frames=frames, progress=progress, counts=counts)
+
+
+def _stamp_ordered(scans, window: int = 32):
+    """Scans in header-stamp order from a stream in log-time order (drivers stamp a scan a little
+    before it is logged, not always in the same order across topics and bags)."""
+    heap: list = []
+    for n, s in enumerate(scans):
+        heapq.heappush(heap, (s.stamp_ns, n, s))
+        if len(heap) > window:
+            yield heapq.heappop(heap)[2]
+    while heap:
+        yield heapq.heappop(heap)[2]
 
 
 # ------------------------------------------------------------------ outputs
