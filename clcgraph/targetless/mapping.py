@@ -145,6 +145,8 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
         res.n_scans += 1
         res.topic = scan.topic
         if len(res.frames) >= o.mapping_max_frames:
+            log.warning("%s: mapping stops at mapping_max_frames=%d (%.1f s into the drive); the rest is not used",
+                        res.topic, o.mapping_max_frames, (scan.stamp_ns - res.frames[0].stamp_ns) * 1e-9)
             break
         m = crop_range(scan.points, scan.valid, o.mapping_min_range, o.mapping_max_range)
         if m.sum() < o.min_mapping_pointcloud_size:  # a partial or blocked scan: not worth a frame
