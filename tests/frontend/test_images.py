@@ -78,11 +78,11 @@ def test_compressed(fmt):
 
 
 def test_unknown_encoding_names_it():
-    msg = _raw(np.zeros((2, 2), np.uint8), "bayer_rggb8")
+    msg = _raw(np.zeros((2, 2), np.float32), "32FC1")  # a depth image is not a camera for us
     with pytest.raises(DataError) as e:
         decode_image(msg, topic="/cam/raw")
     s = str(e.value)
-    assert "\n" not in s and "bayer_rggb8" in s and "/cam/raw" in s
+    assert "\n" not in s and "32FC1" in s and "/cam/raw" in s
 
 
 def test_short_data_and_undecodable_compressed():
@@ -93,3 +93,38 @@ def test_short_data_and_undecodable_compressed():
     bad = SimpleNamespace(header=HEADER, format="jpeg", data=np.arange(50, dtype=np.uint8))
     with pytest.raises(DataError, match="cannot decode compressed"):
         decode_image(bad, topic="/cam")
+
+
+def _mosaic(bgr, pattern):
+    """The Bayer mosaic a camera with ``pattern`` (e.g. "rggb": row 0 = R G, row 1 = G B) records."""
+    idx = {"r": 2, "g": 1, "b": 0}
+    out = np.zeros(bgr.shape[:2], bgr.dtype)
+    for k, (dy, dx) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
+        out[dy::2, dx::2] = bgr[dy::2, dx::2, idx[pattern[k]]]
+    return out
+
+
+@pytest.mark.parametrize("pattern", ["rggb", "bggr", "gbrg", "grbg"])
+@pytest.mark.parametrize("bits", [8, 16])
+def test_bayer_mosaics_demosaic_to_the_right_colours(pattern, bits):
+    # a flat colour with different R, G, B: any pattern mix-up swaps channels
+    colour = np.array([40, 120, 220])  # B, G, R
+    scale = 16 if bits == 16 else 1  # 12-bit data in 16 bits
+    bgr = np.broadcast_to(colour * scale, (16, 20, 3)).astype(np.uint16 if bits == 16 else np.uint8)
+    img = decode_image(_raw(_mosaic(bgr, pattern), f"bayer_{pattern}{bits}", pad=2), topic="/c")
+    assert img.pixels.shape == (16, 20, 3) and img.pixels.dtype == np.uint8
+    inner = img.pixels[2:-2, 2:-2].reshape(-1, 3).mean(axis=0)
+    expect = colour if bits == 8 else colour * 255.0 / 220  # 16-bit: scaled to the image's maximum
+    np.testing.assert_allclose(inner, expect, atol=2)
+
+
+@pytest.mark.parametrize("enc", ["yuv422", "yuv422_yuy2"])
+def test_yuv422_packed_to_bgr(enc):
+    # no chroma (U = V = 128), Y = 150 packed in the encoding's byte order; video-range BT.601
+    # gives 1.164 * (150 - 16) = 156 in every channel; reading the other order would give ~130
+    h, w, y = 6, 8, 150
+    quad = [128, y, 128, y] if enc == "yuv422" else [y, 128, y, 128]  # UYVY / YUY2
+    packed = np.tile(np.array(quad, np.uint8), (h, w // 2)).reshape(h, w, 2)
+    img = decode_image(_raw(packed, enc), topic="/c")
+    assert img.pixels.shape == (h, w, 3)
+    np.testing.assert_allclose(img.pixels.astype(float), 1.164 * (y - 16), atol=2)
