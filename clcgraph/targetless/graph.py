@@ -13,11 +13,11 @@ submaps (j -> j+1 and j -> j+2, so the keyframe chain has redundancy). Frames th
 submaps are thus correlated through the X_j, not treated as independent; global drift does
 not enter (only relative keyframe poses appear).
 
-A registration bias common to all frames (the sensors sampling the same structures,
-voxel centroids on curved surfaces, deskew with estimated twists) does not show in their
-scatter; in the simulator it measured about one frame's scatter even with exact map poses.
-It is a variable ``beta`` shared by the frame factors, with prior covariance ``common_mode`` x
-one frame's covariance, so E's marginal carries it.
+A registration bias common to all frames (deskew with estimated twists, the sensors sampling
+the same structures) does not show in their scatter. In the simulator, without this term the
+errors were 1.6-2.7 sigma in the same direction on six seeds; with exact map poses the bias
+is about half a frame's scatter. It is a variable ``beta`` shared by the frame factors, with
+prior covariance ``common_mode`` x one frame's covariance, so E's marginal carries it.
 
 GICP's Hessians have arbitrary units (regularised point covariances), so each kind of factor
 has a covariance s_kind * H^-1 with s_kind estimated from the residuals by variance-component

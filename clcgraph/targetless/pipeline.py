@@ -33,7 +33,7 @@ from ..errors import DegenerateError, InputError
 from .calibration_frames import make_calibration_frames, nearest_to_keyframes
 from .graph import fuse
 from .mapping import build_map
-from .registration import ensemble, keyframe_edges, prepare_frames, refine_per_frame, score
+from .registration import deskew_sources, ensemble, keyframe_edges, prepare_frames, refine_per_frame, score
 from .selection import select_frames
 
 log = logging.getLogger(__name__)
@@ -123,6 +123,7 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
         with _stage(timings, "registration", memory):
             fr = prepare_frames(list(progress(chosen, desc=f"dense targets {topic}")), mp, Tg, o, deskew_on=o.deskew)
             T_best, cands = ensemble(fr, Tg, o)
+            deskew_sources(fr, T_best)
             meas = refine_per_frame(fr, T_best, o)
         with _stage(timings, "graph", memory):
             used = sorted({m.anchor for m in meas} | {p for m in meas for p in m.influence})
