@@ -130,6 +130,15 @@ def test_keyframe_graph_covariance_is_consistent_where_independent_fusion_is_not
     assert np.mean(zi ** 2) > 2.5
 
 
+def test_keyframes_without_edges_stay_fixed():
+    rng = np.random.default_rng(9)
+    T, meas, kfs, edges = _linked_world(rng)
+    alone, no_edges = fuse(meas), fuse(meas, kfs, [])
+    assert np.allclose(alone.T, no_edges.T, atol=1e-9) and np.allclose(alone.cov_xi, no_edges.cov_xi, rtol=1e-6)
+    linked = fuse(meas, kfs, edges)
+    assert not np.allclose(alone.cov_xi, linked.cov_xi, rtol=1e-3)  # the edges do change the answer
+
+
 def test_fusion_degenerate_hessian_raises():
     from clcgraph.errors import DegenerateError
 

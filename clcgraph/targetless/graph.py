@@ -176,6 +176,9 @@ def fuse(meas, keyframes: dict | None = None, edges=(), *, common_mode: float = 
                                   "the scene does not constrain all six degrees of freedom")
     keyframes = dict(keyframes or {})
     edges = [e for e in edges if e.a in keyframes and e.b in keyframes]
+    # a keyframe no edge reaches has nothing to be estimated from: it stays where the map put it
+    linked = {p for e in edges for p in (e.a, e.b)}
+    keyframes = {p: T for p, T in keyframes.items() if p in linked}
     scales = {"frames": 1.0, "keyframes": 1.0}
     red = {}
     for _ in range(iterations):
