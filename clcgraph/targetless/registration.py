@@ -271,7 +271,11 @@ def influence(fd: FrameData, T: np.ndarray, o) -> dict:
     np.add.at(frac, (rows, pa.pair_codes[at] % 64), pa.counts[at])
     frac /= frac.sum(axis=1, keepdims=True)
     Hj = np.einsum("pg,pi,pk->gik", frac, J, J)
-    Hinv = np.linalg.inv(Hj.sum(axis=0))
+    H = Hj.sum(axis=0)
+    w = np.linalg.eigvalsh(H)
+    if w[0] <= 1e-12 * max(w[-1], 1e-300):  # degenerate frame: no links (fuse reports the degeneracy)
+        return {}
+    Hinv = np.linalg.inv(H)
     Tinv = np.linalg.inv(T)
     return {int(pos): -Hinv @ Hj[g] @ gtsam.Pose3(Tinv @ pa.T_anchor_kf[int(pos)]).AdjointMap()
             for g, pos in enumerate(pa.positions) if Hj[g].trace() > 0}
