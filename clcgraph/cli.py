@@ -332,6 +332,48 @@ def _add_simulate(sub):
     p.set_defaults(func=run)
 
 
+@_command
+def _add_simulate_drive(sub):
+    p = sub.add_parser("simulate-drive", help="simulate a drive through a street (for clcgraph targetless), with truth.yaml")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory: drive bag + truth.yaml (replaced)")
+    p.add_argument("--duration", type=float, default=60.0, help="seconds of driving at ~2 km/h")
+    p.add_argument("--small", action="store_true", help="test-sized LIDARs (32/16 rings x 512 columns)")
+    p.add_argument("--format", default="ros1", choices=["ros1", "ros2-sqlite3", "ros2-mcap"], help="bag format")
+    p.add_argument("--layout", default="velodyne", choices=["velodyne", "ouster"],
+                   help="point layout: unorganised with float time (velodyne) or organised with t in ns (ouster)")
+    p.add_argument("--seed", type=int, default=0)
+
+    def run(args):
+        import shutil
+        import tempfile
+        from pathlib import Path
+
+        from .sim.drive import DrivePlan, simulate_drive, write_drive_bag, write_truth
+
+        plan = DrivePlan.small(duration_s=args.duration) if args.small else DrivePlan(duration_s=args.duration)
+        drive = simulate_drive(plan, seed=args.seed)
+        out = Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+        try:
+            bag = tmp / ("drive.bag" if args.format == "ros1" else "drive")
+            write_drive_bag(drive, bag, format=args.format, layout=args.layout)
+            write_truth(drive, tmp / "truth.yaml")
+            shutil.rmtree(out, ignore_errors=True)
+            tmp.rename(out)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        top, side = plan.lidars[0].topic, plan.lidars[1].topic
+        print(f"wrote {out / bag.name} ({args.duration:.0f} s, {top} and {side}; /tf_static off by "
+              f"{plan.guess_rot_deg:g} deg / {100 * plan.guess_trans_m:g} cm) and {out}/truth.yaml\n"
+              f"calibrate it with: clcgraph targetless --bag {out / bag.name} --mapping-topic {top} "
+              f"--calibration-topics {side} --base-frame base_link --out {out}-calib")
+        return 0
+
+    p.set_defaults(func=run)
+
+
 def _lidar_scans(bags, topic: str, *, every: bool = False, limit: int | None = None) -> list:
     """The scans of a PointCloud2 topic: the first of each bag (or every one); InputError if the
     topic holds something else."""

@@ -204,3 +204,20 @@ def test_stamp_ordered_sorts_a_log_time_stream():
     stamps = np.arange(500) * 100 + rng.integers(-250, 250, 500)  # jitter of a few messages
     out = [s.stamp_ns for s in _stamp_ordered(SimpleNamespace(stamp_ns=int(t)) for t in stamps)]
     assert out == sorted(stamps.tolist())
+
+
+def test_cli_simulate_drive_writes_a_bag_to_try_targetless_on(tmp_path, capsys):
+    import yaml
+
+    from clcgraph.cli import main
+    from clcgraph.frontend.bag import bag_info
+
+    rc = main(["-q", "simulate-drive", "--out", str(tmp_path / "drv"), "--duration", "1", "--small",
+               "--format", "ros2-sqlite3", "--layout", "ouster"])
+    out = capsys.readouterr().out
+    assert rc == 0 and "clcgraph targetless --bag" in out
+    counts = {t.topic: t.count for t in bag_info(tmp_path / "drv" / "drive").topics}
+    assert counts == {"/top/points": 10, "/side/points": 10, "/tf_static": 1}
+    truth = yaml.safe_load((tmp_path / "drv" / "truth.yaml").read_text())
+    assert truth["reference"] == "/top/points" and len(truth["sensors"]) == 2
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary left behind
