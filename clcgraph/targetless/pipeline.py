@@ -52,6 +52,7 @@ class TargetlessResult:
     per_frame: dict = field(default_factory=dict)  # topic -> list of dicts (score, frame, errors)
     candidates: dict = field(default_factory=dict)  # topic -> ensemble candidates
     graph: dict = field(default_factory=dict)  # topic -> size of the final graph and its noise scales
+    frame_data: dict = field(default_factory=dict, repr=False)  # topic -> registration FrameData (report pictures)
     timings_s: dict = field(default_factory=dict)
     peak_rss_mb: dict = field(default_factory=dict)  # stage -> process peak RSS after it
     notes: list = field(default_factory=list)
@@ -153,8 +154,7 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
             {"keyframe": fd.cf.keyframe_id, "stamp_ns": int(fd.cf.scan.stamp_ns), "pca": fd.cf.score,
              "score_guess": score([fd], Tg, o), "score_final": score([fd], T_final, o),
              "rt_frame": geo.rt_from_T(m.T).tolist(), **fd.cf.stats} for fd, m in zip(fr, meas)]
-        res._frame_data = getattr(res, "_frame_data", {})
-        res._frame_data[topic] = fr
+        res.frame_data[topic] = fr
     if base_frame is not None:
         from .ground import calibrate_base
 
@@ -329,7 +329,7 @@ def _plots(res: TargetlessResult, d: Path, o) -> list:
         fig.savefig(d / f"scores_{name}.png", dpi=90, bbox_inches="tight")
         plt.close(fig)
         out.append(f"scores_{name}.png")
-        fds = getattr(res, "_frame_data", {}).get(topic)
+        fds = res.frame_data.get(topic)
         if fds:
             out += _alignment_plots(res, topic, fds, d, o, plt)
     return out
