@@ -348,10 +348,12 @@ def _add_simulate_drive(sub):
         import tempfile
         from pathlib import Path
 
+        from .progress import progress
         from .sim.drive import DrivePlan, simulate_drive, write_drive_bag, write_truth
 
         plan = DrivePlan.small(duration_s=args.duration) if args.small else DrivePlan(duration_s=args.duration)
-        drive = simulate_drive(plan, seed=args.seed)
+        drive = simulate_drive(plan, seed=args.seed,
+                               progress=lambda items, desc: progress(items, desc=desc, total=len(items), unit="scan"))
         out = Path(args.out)
         out.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))

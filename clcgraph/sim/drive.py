@@ -216,7 +216,7 @@ def _scan(scene, spec: LidarSpec, plan: DrivePlan, t_start: float, t0_ns: int, r
     return scan
 
 
-def simulate_drive(plan: DrivePlan | None = None, *, seed: int = 0) -> Drive:
+def simulate_drive(plan: DrivePlan | None = None, *, seed: int = 0, progress=None) -> Drive:
     """Ray-cast every scan of every LIDAR along the drive (motion-distorted, per-column poses)."""
     plan = plan or DrivePlan.small()
     rng = np.random.default_rng(seed)
@@ -227,7 +227,8 @@ def simulate_drive(plan: DrivePlan | None = None, *, seed: int = 0) -> Drive:
     for i, spec in enumerate(plan.lidars):
         n = int(plan.duration_s * plan.rate_hz)
         starts = spec.time_offset_s + np.arange(n) / plan.rate_hz
-        scans[spec.topic] = [_scan(scene, spec, plan, s, t0_ns, rng) for s in starts]
+        it = progress(starts, desc=f"simulating {spec.topic}") if progress is not None else starts
+        scans[spec.topic] = [_scan(scene, spec, plan, s, t0_ns, rng) for s in it]
         T_true[spec.topic] = geo.T_from_rt(np.asarray(spec.rt_base_lidar))
         frames[spec.topic] = spec.frame
         if spec.topic == ref:
