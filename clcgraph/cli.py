@@ -101,14 +101,9 @@ def _add_targetless(sub):
     p.add_argument("--config", default=None, help="YAML config (section 'targetless')")
 
     def run(args):
-        from .config import Config, ConfigError
-        from .errors import InputError
         from .targetless.pipeline import calibrate_targetless, summary_table, write_targetless_outputs
 
-        try:
-            cfg = Config.from_yaml(args.config) if args.config else Config()
-        except ConfigError as e:
-            raise InputError(str(e)) from None
+        cfg = _load_config(args)
         topics = [t for t in args.calibration_topics.split(",") if t]
         res = calibrate_targetless(args.bag, mapping_topic=args.mapping_topic, calibration_topics=topics,
                                    base_frame=args.base_frame, config=cfg)
@@ -344,10 +339,9 @@ def _add_simulate_drive(sub):
     p.add_argument("--seed", type=int, default=0)
 
     def run(args):
-        import shutil
-        import tempfile
         from pathlib import Path
 
+        from .outputs.atomic import atomic_dir
         from .progress import progress
         from .sim.drive import DrivePlan, simulate_drive, write_drive_bag, write_truth
 
@@ -355,17 +349,10 @@ def _add_simulate_drive(sub):
         drive = simulate_drive(plan, seed=args.seed,
                                progress=lambda items, desc: progress(items, desc=desc, total=len(items), unit="scan"))
         out = Path(args.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
-        try:
+        with atomic_dir(out) as tmp:
             bag = tmp / ("drive.bag" if args.format == "ros1" else "drive")
             write_drive_bag(drive, bag, format=args.format, layout=args.layout)
             write_truth(drive, tmp / "truth.yaml")
-            shutil.rmtree(out, ignore_errors=True)
-            tmp.rename(out)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
         top, side = plan.lidars[0].topic, plan.lidars[1].topic
         print(f"wrote {out / bag.name} ({args.duration:.0f} s, {top} and {side}; /tf_static off by "
               f"{plan.guess_rot_deg:g} deg / {100 * plan.guess_trans_m:g} cm) and {out}/truth.yaml\n"

@@ -12,9 +12,6 @@ SYNOPSIS
 from __future__ import annotations
 
 import logging
-import os
-import shutil
-import tempfile
 from pathlib import Path
 from typing import Callable
 
@@ -25,6 +22,7 @@ from .. import __version__
 from ..errors import DataError, InputError
 from ..geometry import T_from_rt, invert_rt
 from ..types import Result, Sensor
+from .atomic import atomic_dir
 
 log = logging.getLogger(__name__)
 
@@ -152,14 +150,8 @@ def write_results(
     Raises InputError naming ``out_dir`` if it cannot be written.
     """
     out_dir = Path(out_dir).absolute()
-    parent = out_dir.parent
-    try:
-        parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=parent))
-    except OSError as e:
-        raise InputError(f"{out_dir}: cannot write the output directory ({e.strerror}); choose another --out") from None
     names: dict[str, Path] = {}
-    try:
+    with atomic_dir(out_dir) as tmp:
         (tmp / CALIBRATION_FILE).write_text(
             "# clcgraph calibration: rt_a_b maps points in frame b into frame a (mrcal rt: Rodrigues r, then t)\n"
             + yaml.safe_dump(calibration_dict(result), sort_keys=False, default_flow_style=None, width=200)
@@ -183,31 +175,8 @@ def write_results(
             else:
                 path.write_text(str(content))
             names[name] = out_dir / name
-        os.chmod(tmp, 0o755)
-        _replace_dir(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     log.info("wrote %d result files into %s", len(names), out_dir)
     return names
-
-
-def _replace_dir(tmp: Path, out_dir: Path) -> None:
-    """Move tmp to out_dir; an existing out_dir is moved aside first, then removed."""
-    old = None
-    try:
-        if out_dir.exists() or out_dir.is_symlink():
-            if not out_dir.is_dir():
-                raise InputError(f"{out_dir}: exists and is not a directory; choose another --out")
-            old = out_dir.with_name(f".{out_dir.name}.old-{os.getpid()}")
-            os.rename(out_dir, old)
-        os.rename(tmp, out_dir)
-    except OSError as e:
-        if old is not None and not out_dir.exists():
-            os.rename(old, out_dir)  # put the previous results back
-        raise InputError(f"{out_dir}: cannot write the output directory ({e.strerror}); choose another --out") from None
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
 
 
 def _fail(path, msg):

@@ -18,8 +18,6 @@ SYNOPSIS
 from __future__ import annotations
 
 import logging
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +25,7 @@ import yaml
 
 from ..errors import InputError
 from ..geometry import R_from_r, rt_from_T
+from ..outputs.atomic import atomic_dir
 from ..progress import progress
 from .bag_writer import FORMATS, BagWriter
 from .camera import render
@@ -130,10 +129,7 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
         raise InputError(f"unknown bag format {format!r}; use one of {', '.join(FORMATS)}")
     rig = rig_yaml if isinstance(rig_yaml, Rig) else load_rig(rig_yaml)
     rng = np.random.default_rng(seed)
-    out_dir = Path(out_dir).absolute()
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=out_dir.parent))
-    try:
+    with atomic_dir(out_dir) as tmp:
         static = static_meshes(rng, clutter=clutter)
         tf = _tf_static(rig, rng, tf_error)
         ext = ".bag" if format == "ros1" else ""
@@ -184,12 +180,6 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
             writer.__exit__(None, None, None)
         truth = _truth(rig, tf, snapshots, format, continuous, seed)
         (tmp / "truth.yaml").write_text(yaml.safe_dump(truth, sort_keys=False, default_flow_style=None, width=200))
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        tmp.rename(out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return truth
 
 

@@ -18,9 +18,6 @@ from __future__ import annotations
 
 import heapq
 import logging
-import os
-import shutil
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,6 +27,7 @@ import numpy as np
 from .. import geometry as geo
 from ..config import Config
 from ..errors import DegenerateError, InputError
+from ..outputs.atomic import atomic_dir
 from .calibration_frames import make_calibration_frames, nearest_to_keyframes
 from .graph import fuse
 from .mapping import build_map
@@ -382,9 +380,7 @@ def write_targetless_outputs(res: TargetlessResult, out_dir, *, config: Config |
     import yaml
 
     out_dir = Path(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=out_dir.parent))
-    try:
+    with atomic_dir(out_dir) as tmp:
         cal = calibration_dict(res)
         (tmp / "calibration.yaml").write_text(yaml.safe_dump(cal, sort_keys=False))
         (tmp / "static_tf.txt").write_text(_static_tf_lines(res))
@@ -412,14 +408,4 @@ def write_targetless_outputs(res: TargetlessResult, out_dir, *, config: Config |
                 + "".join(f'<h2>{p}</h2><img src="{p}">' for p in pngs)
                 + "".join(f"<p>{n}</p>" for n in res.notes) + "</body></html>")
         (tmp / "report.html").write_text(html)
-        old = None
-        if out_dir.exists():
-            old = out_dir.with_name(f".{out_dir.name}.old-{os.getpid()}")
-            os.rename(out_dir, old)
-        os.rename(tmp, out_dir)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return {"calibration": out_dir / "calibration.yaml", "report": out_dir / "report.html"}
