@@ -12,9 +12,10 @@ Three stages, as in the clc seed, vectorized per scan:
 3. Points: each candidate plane collects the contiguous coplanar returns of its rings and the
    rings next to it (gaps < ``max_gap_points_stage3``, no range jump). The board is then what
    fits a board-sized rectangle (``max_outside_fraction`` may stick out: a hand), keeping one
-   unbroken piece per ring, flat to within the scan's own range noise
-   (``max_plane_rms_sigmas``), not too small, not a sliver, and crossed by a ring over most of
-   its width once its rings span most of its height (a body or a post is tall and narrow).
+   unbroken piece per ring, flat to within the range noise (``max_plane_rms_sigmas`` times the
+   larger of the scan's and the plane's own along-ring noise), not too small, not a sliver, and
+   crossed by a ring over most of its width once its rings span most of its height (a body or a
+   post is tall and narrow).
    Exactly one such plane must remain (``require_unique``).
 
 Static-scene suppression (``LidarOptions.suppress_static``) runs over a session before this:
@@ -327,6 +328,25 @@ def _main_piece_per_ring(pts: np.ndarray, ring: np.ndarray, step: float, o) -> n
     return keep
 
 
+def _local_noise(pts: np.ndarray, ring: np.ndarray, k: int) -> float:
+    """The range noise of the plane's own returns: the median RMS of straight-line fits to
+    windows of ``k`` neighbouring returns along each ring, as _stage1 measures the scan's
+    (0 when no ring has ``k`` returns)."""
+    az = np.arctan2(pts[:, 1], pts[:, 0])
+    az0 = np.arctan2(np.sin(az).mean(), np.cos(az).mean())
+    order = np.lexsort(((az - az0 + np.pi) % (2 * np.pi) - np.pi, ring))
+    p, r = pts[order], ring[order]
+    starts = np.r_[0, np.flatnonzero(np.diff(r)) + 1]
+    ends = np.r_[starts[1:], len(r)]
+    first = [np.arange(a, b - k + 1, k) for a, b in zip(starts, ends) if b - a >= k]
+    if not first:
+        return 0.0
+    W = p[np.concatenate(first)[:, None] + np.arange(k)]
+    X = W - W.mean(axis=1)[:, None]
+    lam = np.linalg.eigvalsh(np.einsum("ski,skj->sij", X, X) / k)
+    return float(np.median(np.sqrt(np.maximum(lam[:, 0] + lam[:, 1], 0))) * np.sqrt(k / (k - 2)))
+
+
 def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: float, noise_m: float, o):
     """Whether ``pts`` (with their ring ranks) are the board: (None or why not, the refit plane
     (n, d, rms), the mask of the points kept)."""
@@ -360,11 +380,16 @@ def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: floa
     diag = float(np.hypot(sx, sy))
     chord, height = _chord_and_height(pts, ring, n)
     need_chord = max(o.min_chord_fraction * min(sx, sy), 0.6 * min(height, sx, sy))
+    # Flat means as flat across the board as along a few of its returns: real returns off a
+    # chessboard are noisier than the scan's walls (dark squares, range walk with intensity),
+    # so the plane's own along-ring noise counts too; a body or a curved surface is straight
+    # along 8 returns but far off one plane.
+    local_m = _local_noise(pts, ring, o.points_per_segment)
     if n_rings < o.min_rings:
         why = f"{at} crosses {n_rings} rings < min_rings {o.min_rings}"
-    elif rms > min(o.max_plane_rms_m, o.max_plane_rms_sigmas * noise_m):
+    elif rms > min(o.max_plane_rms_m, o.max_plane_rms_sigmas * max(noise_m, local_m)):
         why = (f"{at} not flat: RMS {rms * 1e3:.0f} mm > max_plane_rms_m or {o.max_plane_rms_sigmas:g} x "
-               f"the scan's {noise_m * 1e3:.0f} mm range noise")
+               f"the range noise (scan {noise_m * 1e3:.0f} mm, along this plane's rings {local_m * 1e3:.0f} mm)")
     elif tilt > o.max_tilt_deg:
         why = f"{at} tilted {tilt:.0f} deg from head-on > max_tilt_deg"
     elif diameter > o.max_plane_size_m:

@@ -105,17 +105,55 @@ def session_masks(scans, lidar_options) -> tuple[int | None, list]:
     return npoints, [None] * len(scans)
 
 
+# A cell never seen static (the board's usual place) takes its background from the static cells
+# either side along the ring, across at most this much azimuth (a 1.3 m board at 2 m spans 36 deg).
+MAX_BACKGROUND_GAP_DEG = 45.0
+
+
+def _fill_background(r_static: np.ndarray, max_gap: int) -> np.ndarray:
+    """(rings, columns) static range per cell, NaN where none: NaN runs of at most ``max_gap``
+    cells between two static cells of the same ring (wrapping around) are filled with the
+    range at which each cell's ray meets the straight line through those two cells' points
+    (a wall is straight across the shadow of a board held in front of it)."""
+    R, C = r_static.shape
+    G = np.concatenate([r_static] * 3, axis=1)  # wrap-around without special cases
+    col = np.arange(3 * C)
+    known = np.isfinite(G)
+    prev = np.maximum.accumulate(np.where(known, col, -1), axis=1)
+    nxt = np.minimum.accumulate(np.where(known, col, 3 * C)[:, ::-1], axis=1)[:, ::-1]
+    mid = slice(C, 2 * C)
+    prev, nxt, G = prev[:, mid], nxt[:, mid], G
+    fill = ~np.isfinite(r_static) & (prev >= 0) & (nxt < 3 * C) & (nxt - prev - 1 <= max_gap)
+    rows, cols = np.nonzero(fill)
+    p, n = prev[rows, cols], nxt[rows, cols]
+    a1, a2, a = (2 * np.pi / C) * p, (2 * np.pi / C) * n, (2 * np.pi / C) * (cols + C)
+    r1, r2 = G[rows, p], G[rows, n]
+    P1 = np.c_[r1 * np.cos(a1), r1 * np.sin(a1)]
+    P2 = np.c_[r2 * np.cos(a2), r2 * np.sin(a2)]
+    Dv = P2 - P1
+    u = np.c_[np.cos(a), np.sin(a)]
+    den = u[:, 0] * Dv[:, 1] - u[:, 1] * Dv[:, 0]
+    s = (P1[:, 0] * P2[:, 1] - P1[:, 1] * P2[:, 0]) / np.where(np.abs(den) > 1e-12, den, np.nan)
+    out = r_static.copy()
+    out[rows, cols] = np.where(s > 0, s, np.nan)
+    return out
+
+
 def static_masks(scans, *, npoints_per_rotation: int, quantum_m: float = 0.2, min_share: float = 0.5) -> list[np.ndarray]:
-    """Per scan, the points at their (ring, azimuth) cell's most common range over the session.
+    """Per scan, the points at their (ring, azimuth) cell's static range over the session.
 
     The board (and whoever holds it) moves between snapshots, walls and the ground do not:
-    removing the static points leaves the board standing out. A cell counts as static only
-    if its mode range holds in >= ``min_share`` of the scans. Works for bags per pose and for
+    removing the static points leaves the board standing out. A cell is static at its most
+    common range if that range holds in >= ``min_share`` of the scans. A cell the board
+    covers in most scans (held at one spot, turned from pose to pose) never is, so the wall
+    behind it would reappear, board-sized, whenever the board moves off: such cells take the
+    background of the static cells either side along the ring (``_fill_background``). A point
+    within 1.5 quanta of its cell's static range is static. Works for bags per pose and for
     the snapshots of one continuous bag alike. Fewer than 4 scans: nothing is static.
     """
     if len(scans) < 4:
         return [np.zeros(len(s.points), bool) for s in scans]
-    keys, qs = [], []
+    keys, ranges = [], []
     for s in scans:
         p = np.asarray(s.points, float)
         ring = ring_of(s)
@@ -124,26 +162,29 @@ def static_masks(scans, *, npoints_per_rotation: int, quantum_m: float = 0.2, mi
         r = np.linalg.norm(p, axis=1)
         ok = np.asarray(s.valid, bool) & np.isfinite(r) & (ring >= 0)
         keys.append(np.where(ok, cell, -1))
-        qs.append(np.where(ok, np.floor(np.nan_to_num(r) / quantum_m), -1).astype(np.int64))
+        ranges.append(np.where(ok, np.nan_to_num(r), np.nan))
     K = np.concatenate(keys)
-    Q = np.concatenate(qs)
+    Q = np.floor(np.concatenate(ranges) / quantum_m)
     good = K >= 0
-    span = int(Q[good].max()) + 1 if good.any() else 1
+    Qg = Q[good].astype(np.int64)
+    span = int(Qg.max()) + 1 if good.any() else 1
     # one int64 per (cell, range bin): a 1-D unique is much faster than a row-wise one
-    kq, counts = np.unique(K[good] * span + Q[good], return_counts=True)
+    kq, counts = np.unique(K[good] * span + Qg, return_counts=True)
     kc, qb = kq // span, kq % span
     # the most common range bin of each cell
     order = np.lexsort((-counts, kc))
     kc, qb, counts = kc[order], qb[order], counts[order]
     first = np.r_[True, kc[1:] != kc[:-1]]
     cells, mq, mc = kc[first], qb[first], counts[first]
-    n = len(scans)
+    static_cell = mc >= min_share * len(scans)
+    n_rings = int(cells.max() // npoints_per_rotation) + 1 if len(cells) else 1
+    r_static = np.full(n_rings * npoints_per_rotation, np.nan)
+    r_static[cells[static_cell]] = (mq[static_cell] + 0.5) * quantum_m
+    max_gap = int(np.radians(MAX_BACKGROUND_GAP_DEG) / (2 * np.pi) * npoints_per_rotation)
+    r_static = _fill_background(r_static.reshape(n_rings, npoints_per_rotation), max_gap).reshape(-1)
     out = []
-    for k, q in zip(keys, qs):
-        m = np.zeros(len(k), bool)
-        j = np.searchsorted(cells, k)
-        j = np.clip(j, 0, len(cells) - 1)
-        hit = (k >= 0) & (cells[j] == k)
-        m[hit] = (np.abs(q[hit] - mq[j[hit]]) <= 1) & (mc[j[hit]] >= min_share * n)
-        out.append(m)
+    for k, r in zip(keys, ranges):
+        bg = np.where(k >= 0, r_static[np.maximum(k, 0)], np.nan)
+        with np.errstate(invalid="ignore"):
+            out.append(np.abs(r - bg) <= 1.5 * quantum_m)
     return out
