@@ -121,8 +121,7 @@ def _fill_background(r_static: np.ndarray, max_gap: int) -> np.ndarray:
     known = np.isfinite(G)
     prev = np.maximum.accumulate(np.where(known, col, -1), axis=1)
     nxt = np.minimum.accumulate(np.where(known, col, 3 * C)[:, ::-1], axis=1)[:, ::-1]
-    mid = slice(C, 2 * C)
-    prev, nxt, G = prev[:, mid], nxt[:, mid], G
+    prev, nxt = prev[:, C : 2 * C], nxt[:, C : 2 * C]  # indices into G, the middle copy's neighbours
     fill = ~np.isfinite(r_static) & (prev >= 0) & (nxt < 3 * C) & (nxt - prev - 1 <= max_gap)
     rows, cols = np.nonzero(fill)
     p, n = prev[rows, cols], nxt[rows, cols]
