@@ -1,0 +1,308 @@
+"""The stress set: simulated captures that vary what real recordings vary, run through the
+CLI with DEFAULT settings (only the board described), judged against the simulator's truth.
+
+Each capture either (a) returns every sensor within the accuracy bar (target-based 0.1 deg /
+5 mm, targetless 0.02 deg / 3 mm) and within 3 of its reported sigmas, or (b) is refused:
+exit 2 with one line naming the sensor or direction and why. Anything else fails the set;
+a result off by more than 5 sigma or 5 cm is a *silent wrong answer*, the worst outcome.
+
+    python -m bench.stress                 # every capture, table on stdout
+    python -m bench.stress lidar-only-3    # the named ones
+    python -m bench stress                 # the same, as one of the benchmarks
+
+Captures are simulated once into build/stress/<name>/ (kept while the recipe is unchanged).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+BUILD = ROOT / "build" / "stress"
+
+# Lens models of the stress rigs (mrcal .cameramodel contents): name -> (lensmodel, intrinsics, imagersize)
+LENSES = {
+    "mono1024": ("LENSMODEL_OPENCV8", [1000, 1000, 511.5, 383.5, -0.05, 0.01, 0.0001, -0.0001, 0.001, 0, 0, 0],
+                 (1024, 768)),
+    "colour640": ("LENSMODEL_OPENCV4", [520, 520, 319.5, 239.5, -0.12, 0.03, 0.0003, -0.0002], (640, 480)),
+    # a 640x480 sensor 2x2-binned: half the focal length and resolution
+    "binned320": ("LENSMODEL_OPENCV4", [215, 215, 159.5, 119.5, -0.15, 0.04, 0.0002, 0.0001], (320, 240)),
+    "wide800": ("LENSMODEL_OPENCV8", [430, 430, 399.5, 299.5, -0.2, 0.04, 0.0002, -0.0003, -0.002, 0, 0, 0],
+                (800, 600)),
+}
+
+
+@dataclass(frozen=True)
+class Capture:
+    """One stress capture: a rig (the sim's rig YAML as a dict, lenses by LENSES name), how it
+    is recorded (clcgraph.sim.capture.simulate keywords), and what counts as success."""
+
+    name: str
+    what: str  # what real recordings vary here
+    rig: dict = field(default_factory=dict)
+    simulate: dict = field(default_factory=dict)
+    board: dict | None = None  # the board section of the config (None: the default board)
+    # targetless captures: simulate-drive arguments instead of a rig
+    drive: dict | None = None
+    # a capture built so that a direction is unobservable: success is exit 2, not a result
+    must_refuse: bool = False
+
+
+def _lidar(topic, model, xyz, rpy=(0, 0, 0), **kw):
+    return {"topic": topic, "model": model, "xyz": list(xyz), "rpy_deg": list(rpy), **kw}
+
+
+def _camera(topic, lens, xyz, rpy=(0, 0, 0), **kw):
+    return {"topic": topic, "model": f"{lens}.cameramodel", "xyz": list(xyz), "rpy_deg": list(rpy), **kw}
+
+
+TOP = _lidar("/lidar/top/points", "vlp16", (1.0, 0.0, 1.9))
+BUMPER = _lidar("/lidar/front/points", "hdl32", (2.3, 0.35, 0.9), (2, 8, 15), layout="ouster")
+CAM_FRONT = _camera("/cam/front/image", "mono1024", (1.6, -0.2, 1.5), (0, 4, -5))
+CAM_COLOUR = _camera("/cam/colour/image/compressed", "colour640", (1.5, 0.4, 1.55), (0, 2, 25),
+                     encoding="bgr8", compressed="jpeg")
+
+CAPTURES = [
+    Capture("baseline", "the demo's kind of rig: 2 LIDARs + 2 cameras, bag per pose",
+            rig={"lidars": [TOP, BUMPER], "cameras": [CAM_FRONT, CAM_COLOUR]}, simulate={"n_poses": 16}),
+    Capture("lidar-only-3", "LIDAR-only rig: VLP-16 front, 64-ring organised Ouster on the roof, VLP-16 rear "
+            "(front and rear never see the board together)",
+            rig={"lidars": [_lidar("/front/points", "vlp16", (3.6, 0.0, 0.7), (0, 3, 0)),
+                            _lidar("/roof/points", "os1-64", (1.2, 0.0, 2.0), (0, 0, 90), layout="ouster"),
+                            _lidar("/rear/points", "vlp16", (-1.0, 0.0, 0.7), (0, 3, 180))]},
+            simulate={"n_poses": 24}),
+    Capture("vertical-boards", "boards never tilted: a LIDAR-LIDAR vertical offset is unobservable",
+            rig={"lidars": [TOP, BUMPER]}, simulate={"n_poses": 14, "tilt_max_deg": 0.0}, must_refuse=True),
+    Capture("rolled-cameras", "cameras mounted portrait (rolled 90 deg) and upside-down",
+            rig={"lidars": [TOP],
+                 "cameras": [_camera("/cam/portrait/image", "mono1024", (1.6, -0.2, 1.5), (90, 4, -5)),
+                             _camera("/cam/upside_down/image", "colour640", (1.5, 0.4, 1.55), (180, 2, 25),
+                                     encoding="bgr8")]},
+            simulate={"n_poses": 16}),
+    Capture("small-colour-continuous", "a 320x240 2x2-binned colour camera in a continuous capture at 15 Hz",
+            rig={"lidars": [TOP], "cameras": [_camera("/cam/small/image", "binned320", (1.5, 0.3, 1.5), (0, 3, 15),
+                                                      encoding="bgr8")]},
+            simulate={"n_poses": 10, "continuous": True, "camera_hz": 15.0, "hold_s": 1.2, "move_s": 0.6,
+                      "format": "ros2-mcap"}),
+    Capture("continuous-5hz", "one continuous ROS2 bag, cameras at 5 Hz",
+            rig={"lidars": [TOP, BUMPER], "cameras": [CAM_FRONT]},
+            simulate={"n_poses": 10, "continuous": True, "camera_hz": 5.0, "hold_s": 1.5, "move_s": 0.6,
+                      "format": "ros2-sqlite3"}),
+    Capture("noisy-lidars", "LIDARs noisier than the defaults assume, with 5 % dropouts",
+            rig={"lidars": [dict(TOP, range_noise_m=0.025, dropout=0.05), dict(BUMPER, range_noise_m=0.03,
+                                                                              dropout=0.05)],
+                 "cameras": [CAM_FRONT]},
+            simulate={"n_poses": 16}),
+    Capture("wide-camera-far", "a wide 86-deg camera whose boards are small, beside a 64-ring LIDAR",
+            rig={"lidars": [_lidar("/os/points", "os1-64", (1.0, 0.0, 1.8), layout="ouster")],
+                 "cameras": [_camera("/cam/wide/image", "wide800", (1.4, 0.0, 1.5), (0, 6, 0))]},
+            simulate={"n_poses": 16}),
+    Capture("drive-short", "targetless: a 10 s drive", drive={"duration": 10.0}),
+]
+
+
+# ----------------------------------------------------------------------------------- running
+
+@dataclass
+class Outcome:
+    name: str
+    verdict: str  # ok | refused | INACCURATE | WRONG | FAILED
+    detail: str
+    rot_deg: float = float("nan")
+    trans_mm: float = float("nan")
+    sigma_deg: float = float("nan")
+    sigma_mm: float = float("nan")
+    max_z: float = float("nan")
+    seconds: float = 0.0
+
+
+def _recipe_key(c: Capture) -> str:
+    return hashlib.sha256(json.dumps([c.rig, c.simulate, c.drive, c.board, LENSES], sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _env() -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    return env
+
+
+def _clcgraph(*args, timeout=1800) -> subprocess.CompletedProcess:
+    """The real entry point (the console script beside this Python), as a user runs it."""
+    exe = Path(sys.executable).parent / "clcgraph"
+    return subprocess.run([str(exe), *map(str, args)], capture_output=True, text=True, env=_env(), timeout=timeout)
+
+
+def _write_lenses(d: Path, rig: dict) -> None:
+    import mrcal
+
+    for cam in rig.get("cameras", []):
+        lens = Path(cam["model"]).stem
+        model, intrinsics, size = LENSES[lens]
+        mrcal.cameramodel(intrinsics=(model, np.asarray(intrinsics, float)), imagersize=size).write(str(d / cam["model"]))
+
+
+def _prepare(c: Capture) -> Path:
+    """The capture's bags (simulated once per recipe)."""
+    d = BUILD / c.name
+    key = _recipe_key(c)
+    if (d / "recipe").exists() and (d / "recipe").read_text() == key and (d / "data" / "truth.yaml").exists():
+        return d
+    shutil.rmtree(d, ignore_errors=True)  # build/stress is ours alone
+    d.mkdir(parents=True)
+    if c.drive is not None:
+        r = _clcgraph("simulate-drive", "--out", d / "data", "--small", "--duration", c.drive["duration"],
+                      *(["--layout", c.drive["layout"]] if "layout" in c.drive else []))
+    else:
+        rig = {**c.rig}
+        if c.board is not None:
+            rig["board"] = c.board
+        _write_lenses(d, rig)
+        (d / "rig.yaml").write_text(yaml.safe_dump(rig, sort_keys=False))
+        from clcgraph.sim.capture import simulate
+
+        simulate(d / "rig.yaml", d / "data", seed=1, **c.simulate)
+        r = None
+    if r is not None and r.returncode != 0:
+        raise RuntimeError(f"{c.name}: simulating failed: {r.stderr.strip()[-500:]}")
+    (d / "recipe").write_text(key)
+    return d
+
+
+def _tangent_z(rt_est, rt_true, cov_rt) -> np.ndarray:
+    """Per-axis z of the error in the tangent space at the estimate (right perturbation,
+    rotation first): the rt covariance mapped through the chart's numerical Jacobian."""
+    from clcgraph.geometry import T_from_rt, rt_from_T
+    from scipy.spatial.transform import Rotation
+
+    def exp(xi):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(xi[:3]).as_matrix()
+        T[:3, 3] = xi[3:]  # first order is all the Jacobian needs
+        return T
+
+    T_est = T_from_rt(rt_est)
+    J = np.zeros((6, 6))
+    h = 1e-6
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = h
+        J[:, k] = (rt_from_T(T_est @ exp(d)) - rt_from_T(T_est @ exp(-d))) / (2 * h)
+    Jinv = np.linalg.inv(J)
+    cov_xi = Jinv @ cov_rt @ Jinv.T
+    E = np.linalg.inv(T_est) @ T_from_rt(rt_true)
+    xi = np.r_[Rotation.from_matrix(E[:3, :3]).as_rotvec(), E[:3, 3]]
+    return xi / np.sqrt(np.diag(cov_xi))
+
+
+def _judge(c: Capture, out: Path, truth: dict, bar_deg: float, bar_mm: float) -> Outcome:
+    from clcgraph.geometry import T_from_rt
+
+    cal = yaml.safe_load((out / "calibration.yaml").read_text())
+    want = {s["topic"]: np.asarray(s["rt_lidar0_sensor"], float) for s in truth["sensors"]}
+    sensors = [s for s in cal["sensors"] if s["topic"] != cal.get("reference")]
+    cov = np.asarray(cal.get("covariance_rt_lidar0_sensor") or np.zeros((0, 0)), float)
+    worst = Outcome(c.name, "ok", "")
+    rows = []
+    for k, s in enumerate(sensors):
+        rt = np.asarray(s["rt_lidar0_sensor"], float)
+        T_err = np.linalg.inv(T_from_rt(want[s["topic"]])) @ T_from_rt(rt)
+        rot = float(np.degrees(np.arccos(np.clip((np.trace(T_err[:3, :3]) - 1) / 2, -1, 1))))
+        trans = float(np.linalg.norm(T_from_rt(rt)[:3, 3] - T_from_rt(want[s["topic"]])[:3, 3]) * 1e3)
+        block = cov[6 * k:6 * k + 6, 6 * k:6 * k + 6] if cov.shape[0] >= 6 * (k + 1) else None
+        z = _tangent_z(rt, want[s["topic"]], block) if block is not None else np.full(6, np.nan)
+        sd = np.asarray(s.get("stdev_rt", [np.nan] * 6), float)
+        rows.append((s["topic"], rot, trans, float(np.degrees(np.linalg.norm(sd[:3]))),
+                     float(np.linalg.norm(sd[3:]) * 1e3), float(np.nanmax(np.abs(z)))))
+    for topic, rot, trans, sdeg, smm, mz in rows:
+        verdict = "ok"
+        if trans > 50 or not mz <= 5:
+            verdict = "WRONG"
+        elif rot > bar_deg or trans > bar_mm or not mz <= 3:
+            verdict = "INACCURATE"
+        rank = ["ok", "INACCURATE", "WRONG"]
+        if rank.index(verdict) > rank.index(worst.verdict) or (verdict == worst.verdict and mz > worst.max_z) \
+                or worst.detail == "":
+            worst = Outcome(c.name, verdict, f"worst: {topic}", rot, trans, sdeg, smm, mz)
+    return worst
+
+
+def run_capture(c: Capture) -> Outcome:
+    t0 = time.perf_counter()
+    try:
+        d = _prepare(c)
+    except Exception as e:  # noqa: BLE001 - a broken recipe is reported, the others run
+        return Outcome(c.name, "FAILED", f"simulation: {e}")
+    data = d / "data"
+    truth = yaml.safe_load((data / "truth.yaml").read_text())
+    out = d / "out"
+    shutil.rmtree(out, ignore_errors=True)
+    t0 = time.perf_counter()
+    if c.drive is not None:
+        topics = [s["topic"] for s in truth["sensors"]]
+        bag = next(p for p in data.iterdir() if p.name.startswith("drive"))
+        r = _clcgraph("targetless", "--bag", bag, "--mapping-topic", topics[0],
+                      "--calibration-topics", ",".join(topics[1:]), "--out", out)
+        bar = (0.02, 3.0)
+    else:
+        topics = truth["topics"]
+        models = [d / cam["model"] for cam in c.rig.get("cameras", [])]
+        config = []
+        if c.board is not None:
+            (d / "board.yaml").write_text(yaml.safe_dump({"board": c.board}))
+            config = ["--config", d / "board.yaml"]
+        bags = sorted(str(p) for p in data.iterdir() if p.name != "truth.yaml")
+        r = _clcgraph("solve", *sum((["--bag", b] for b in bags), []), "--topics", ",".join(topics),
+                      *models, "--out", out, *config)
+        bar = (0.1, 5.0)
+    seconds = time.perf_counter() - t0
+    err = r.stderr.strip().splitlines()
+    if r.returncode == 2 and len(err) == 1:
+        o = Outcome(c.name, "refused", err[0])
+    elif r.returncode == 0:
+        o = _judge(c, out, truth, *bar)
+        if c.must_refuse:
+            o.verdict = "WRONG" if o.verdict != "ok" else "INACCURATE"
+            o.detail = "answered where a direction is unobservable; " + o.detail
+    else:
+        o = Outcome(c.name, "FAILED", f"exit {r.returncode}: " + (err[-1] if err else "(no stderr)")
+                    + (f" [+{len(err) - 1} lines]" if len(err) > 1 else ""))
+    o.seconds = seconds
+    return o
+
+
+def table(outcomes: list[Outcome]) -> str:
+    head = f"{'capture':26s} {'outcome':10s} {'rot deg':>8s} {'1sig':>6s} {'mm':>7s} {'1sig':>6s} {'|z|max':>6s} {'s':>5s}  detail"
+    rows = [head]
+    for o in outcomes:
+        rows.append(f"{o.name:26s} {o.verdict:10s} {o.rot_deg:8.3f} {o.sigma_deg:6.3f} {o.trans_mm:7.1f} "
+                    f"{o.sigma_mm:6.1f} {o.max_z:6.2f} {o.seconds:5.0f}  {o.detail}")
+    n_ok = sum(o.verdict in ("ok", "refused") for o in outcomes)
+    n_wrong = sum(o.verdict == "WRONG" for o in outcomes)
+    rows.append(f"{n_ok}/{len(outcomes)} right or refused; silent wrong answers: {n_wrong} (must be 0)")
+    return "\n".join(rows)
+
+
+def main(argv: list[str] | None = None) -> str:
+    names = sys.argv[1:] if argv is None else argv
+    chosen = [c for c in CAPTURES if not names or c.name in names]
+    outcomes = []
+    for c in chosen:
+        o = run_capture(c)
+        print(f"  {o.name}: {o.verdict} ({o.seconds:.0f} s) {o.detail}", file=sys.stderr, flush=True)
+        outcomes.append(o)
+    return table(outcomes)
+
+
+if __name__ == "__main__":
+    print(main())
