@@ -154,7 +154,7 @@ class SolveOptions:
     # Nominal-pose priors from /tf_static: 1-sigma of the rotation (rad, per axis) and of the
     # translation (m, per axis); both set, or both None (no priors).
     prior_from_tf_static_sigma_rad: float | None = None
-    prior_from_tf_static_sigma_m: float | None = None
+    prior_from_tf_static_sigma_m: float | None = None  # the translation sigma (m), set together with _rad
     # A sensor whose 1-sigma exceeds these in some direction is not determined by the data:
     # a DegenerateError names it and the direction instead of returning a useless number.
     max_stdev_m: float = 0.1
