@@ -40,9 +40,9 @@ def run(duration_s: float = 60.0, small: bool = False, seed: int = 0) -> list[tu
         rows.append((k, v, v / duration_s, res.peak_rss_mb.get(k, float("nan"))))
     rows.append(("calibration total", total, total / duration_s, _peak_mb()))
     e = geo.rt_from_T(np.linalg.inv(drive.T_lidar0_lidar(side, top)) @ res.T_lidar0_sensor[side])
-    sd = res.stdev_rt(side)
+    sd_rot, sd_pos = geo.pose_stdevs(res.rt_lidar0_sensor(side), res.covariance_rt[side])
     rows.append((f"accuracy {side}: {np.degrees(np.linalg.norm(e[:3])):.4f} deg, {1e3 * np.linalg.norm(e[3:]):.2f} mm "
-                 f"(1-sigma {np.degrees(sd[:3]).max():.4f} deg, {1e3 * sd[3:].max():.2f} mm)", 0.0, 0.0, float("nan")))
+                 f"(1-sigma {np.degrees(sd_rot).max():.4f} deg, {1e3 * sd_pos.max():.2f} mm)", 0.0, 0.0, float("nan")))
     return rows
 
 

@@ -104,8 +104,9 @@ def classify_topics(bags: Sequence[Path], topics: Sequence[str]) -> tuple[list[s
     return lidars, cams
 
 
-def _tf_priors(bags, sensors: Sequence[Sensor], sigma: float) -> tuple[PosePrior, ...]:
-    """Nominal poses of every non-reference sensor from /tf_static, as priors of ``sigma`` (rad and m)."""
+def _tf_priors(bags, sensors: Sequence[Sensor], sigma_rad: float, sigma_m: float) -> tuple[PosePrior, ...]:
+    """Nominal poses of every non-reference sensor from /tf_static, as priors with per-axis
+    sigmas ``sigma_rad`` (rotation) and ``sigma_m`` (translation)."""
     from .frontend.bag import frame_id, read_tf_static
     from .geometry import rt_from_T
 
@@ -123,7 +124,7 @@ def _tf_priors(bags, sensors: Sequence[Sensor], sigma: float) -> tuple[PosePrior
         except Exception as e:
             raise InputError(f"--prior-from-tf-static: /tf_static has no path {frames[ref]} <- {frames[i]} "
                              f"(sensor {s.topic}): {str(e).splitlines()[0] if str(e) else ''}") from None
-        priors.append(PosePrior(sensor=i, rt_lidar0_sensor=rt_from_T(T), sigma_rt=np.full(6, float(sigma))))
+        priors.append(PosePrior(sensor=i, rt_lidar0_sensor=rt_from_T(T), sigma_rt=np.repeat([float(sigma_rad), float(sigma_m)], 3)))
     return tuple(priors)
 
 
@@ -222,8 +223,13 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
                               + "record more board poses (see `clcgraph segment` / `clcgraph detect` for why boards were missed)")
 
     priors: tuple[PosePrior, ...] = ()
-    if cfg.solve.prior_from_tf_static_sigma is not None:
-        priors = _tf_priors(paths, sensors, cfg.solve.prior_from_tf_static_sigma)
+    sig_rad, sig_m = cfg.solve.prior_from_tf_static_sigma_rad, cfg.solve.prior_from_tf_static_sigma_m
+    if sig_rad is not None or sig_m is not None:
+        if sig_rad is None or sig_m is None or not (np.isfinite(sig_rad) and np.isfinite(sig_m)
+                                                    and sig_rad > 0 and sig_m > 0):
+            raise InputError(f"solve.prior_from_tf_static_sigma_rad={sig_rad}, solve.prior_from_tf_static_sigma_m="
+                             f"{sig_m}: set both, each a positive number (--prior-from-tf-static SIGMA_RAD,SIGMA_M)")
+        priors = _tf_priors(paths, sensors, sig_rad, sig_m)
     return Problem(
         sensors=tuple(sensors),
         board=board,
@@ -368,7 +374,7 @@ def _check_writable(out: Path) -> None:
 
 def summary_table(result: Result) -> str:
     """The final table `clcgraph solve` prints: pose, 1-sigma, observations and RMS per sensor."""
-    from .geometry import R_from_r
+    from .geometry import R_from_r, pose_stdevs
 
     rows = [("sensor", "kind", "x [m]", "y [m]", "z [m]", "roll/pitch/yaw [deg]", "1-sigma [mm, deg]", "obs")]
     p = result.problem
@@ -378,8 +384,8 @@ def summary_table(result: Result) -> str:
     for i, s in enumerate(p.sensors):
         rt = np.asarray(result.rt_lidar0_sensor[i], float)
         ypr = _rpy_deg(R_from_r(rt[:3]))
-        sd = result.stdev_rt(i)
-        sigma = "reference" if i == p.reference else f"{1e3 * np.max(sd[3:]):.2f}, {np.degrees(np.max(sd[:3])):.3f}"
+        sd_rot, sd_pos = pose_stdevs(rt, result.covariance_block(i))  # the largest per-axis sigma of each
+        sigma = "reference" if i == p.reference else f"{1e3 * np.max(sd_pos):.2f}, {np.degrees(np.max(sd_rot)):.3f}"
         rows.append((s.topic, s.kind, *(f"{v:+.4f}" for v in rt[3:]), " ".join(f"{v:+.3f}" for v in ypr),
                      sigma, str(nobs[i])))
     widths = [max(len(r[k]) for r in rows) for k in range(len(rows[0]))]
@@ -390,6 +396,9 @@ def summary_table(result: Result) -> str:
                  f"{1e3 * noise.get('lidar_m', float('nan')):.1f} mm, camera {noise.get('camera_px', float('nan')):.3f} px")
     used = int(np.sum(np.all(np.isfinite(result.rt_lidar0_board), axis=1)))
     lines.append(f"{used} of {p.n_snapshots} snapshots used; {len(result.rejected)} rejections (see calibration.yaml)")
+    conv = result.stats.get("convergence") or {}
+    if conv and not conv.get("converged"):
+        lines.append("NOT CONVERGED: " + "; ".join(conv.get("warnings", ())))
     return "\n".join(lines)
 
 
@@ -419,20 +428,24 @@ def calibrate_targetless(bags, **kwargs):
 
 def compare_to_truth(result: Result, truth: dict) -> list[dict]:
     """Per sensor: rotation error (deg), translation error (mm) and their 1-sigmas against a
-    simulator truth.yaml (``truth``: its parsed dict)."""
-    from .geometry import T_from_rt
+    simulator truth.yaml (``truth``: its parsed dict).
+
+    The errors compose (angle of R_truth^T R, distance between the origins); the sigmas are the
+    root-sum-square of the per-axis sigmas (geometry.pose_stdevs): the RMS size of the error
+    the uncertainty predicts.
+    """
+    from .geometry import T_from_rt, pose_difference, pose_stdevs
 
     want = {s["topic"]: np.asarray(s["rt_lidar0_sensor"], float) for s in truth["sensors"]}
     rows = []
     for i, sensor in enumerate(result.problem.sensors):
         if sensor.topic not in want:
             continue
-        T_err = np.linalg.inv(T_from_rt(want[sensor.topic])) @ T_from_rt(result.rt_lidar0_sensor[i])
-        rot = np.degrees(np.arccos(np.clip((np.trace(T_err[:3, :3]) - 1) / 2, -1, 1)))
-        sd = result.stdev_rt(i)
-        rows.append({"topic": sensor.topic, "rotation_deg": float(rot),
-                     "translation_mm": float(np.linalg.norm(result.rt_lidar0_sensor[i][3:] - want[sensor.topic][3:]) * 1e3),
-                     "sigma_deg": float(np.degrees(np.linalg.norm(sd[:3]))), "sigma_mm": float(np.linalg.norm(sd[3:]) * 1e3)})
+        rt = np.asarray(result.rt_lidar0_sensor[i], float)
+        rot, dist = pose_difference(T_from_rt(want[sensor.topic]), T_from_rt(rt))
+        sd_rot, sd_pos = pose_stdevs(rt, result.covariance_block(i))
+        rows.append({"topic": sensor.topic, "rotation_deg": float(np.degrees(rot)), "translation_mm": dist * 1e3,
+                     "sigma_deg": float(np.degrees(np.linalg.norm(sd_rot))), "sigma_mm": float(np.linalg.norm(sd_pos) * 1e3)})
     return rows
 
 

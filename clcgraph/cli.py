@@ -464,8 +464,9 @@ def _add_solve(sub):
     p.add_argument("--threshold-valid-lidar-Npoints", type=int, default=None, metavar="N")
     p.add_argument("--uncertainty-quantification-range", type=float, default=None, metavar="M")
     p.add_argument("--rt-vehicle-lidar0", default=None, metavar="r0,r1,r2,t0,t1,t2")
-    p.add_argument("--prior-from-tf-static", type=float, default=None, metavar="SIGMA",
-                   help="nominal poses from the bags' /tf_static as priors with this sigma (rad and m)")
+    p.add_argument("--prior-from-tf-static", default=None, metavar="SIGMA_RAD,SIGMA_M",
+                   help="nominal poses from the bags' /tf_static as priors with these 1-sigmas: rotation (rad) "
+                   "and translation (m), per axis")
     p.add_argument("--detector", choices=["mrgingham", "opencv"], default=None, help="chessboard detector")
     p.add_argument("--debug-region", default=None, metavar="XMIN,XMAX,YMIN,YMAX",
                    help="report every candidate board plane in this region of a LIDAR's frame, with its verdict")
@@ -480,8 +481,15 @@ def _add_solve(sub):
              ("sectors", "threshold_valid_lidar_range_m", args.threshold_valid_lidar_range),
              ("sectors", "threshold_valid_lidar_npoints", args.threshold_valid_lidar_Npoints),
              ("sectors", "uncertainty_quantification_range_m", args.uncertainty_quantification_range),
-             ("solve", "prior_from_tf_static_sigma", args.prior_from_tf_static),
              ("detection", "detector", args.detector)]
+        if args.prior_from_tf_static is not None:
+            if "," not in args.prior_from_tf_static:
+                from .errors import InputError
+
+                raise InputError(f"--prior-from-tf-static {args.prior_from_tf_static!r}: give two sigmas, "
+                                 "SIGMA_RAD,SIGMA_M (rotation in rad, translation in m), e.g. 0.02,0.05")
+            rad, m = _floats(args.prior_from_tf_static, 2, "--prior-from-tf-static")
+            o += [("solve", "prior_from_tf_static_sigma_rad", rad), ("solve", "prior_from_tf_static_sigma_m", m)]
         if args.rt_vehicle_lidar0 is not None:
             o.append(("sectors", "rt_vehicle_lidar0", _floats(args.rt_vehicle_lidar0, 6, "--rt-vehicle-lidar0")))
         if args.debug_region is not None:

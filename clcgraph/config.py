@@ -151,8 +151,10 @@ class SolveOptions:
     seed_max_normal_deg: float = 10.0
     seed_max_center_m: float = 0.5
     seed_max_corner_px: float = 50.0
-    # Sigma of nominal-pose priors from /tf_static (rad and m); None = no priors.
-    prior_from_tf_static_sigma: float | None = None
+    # Nominal-pose priors from /tf_static: 1-sigma of the rotation (rad, per axis) and of the
+    # translation (m, per axis); both set, or both None (no priors).
+    prior_from_tf_static_sigma_rad: float | None = None
+    prior_from_tf_static_sigma_m: float | None = None  # the translation sigma (m), set together with _rad
     # A sensor whose 1-sigma exceeds these in some direction is not determined by the data:
     # a DegenerateError names it and the direction instead of returning a useless number.
     max_stdev_m: float = 0.1
@@ -353,12 +355,22 @@ def _field_comments(cls) -> dict[str, list[str]]:
     return out
 
 
+# Keys that existed once: a config that still has one gets the new names, not "unknown key".
+_REPLACED_KEYS = {
+    "solve.prior_from_tf_static_sigma": "was one sigma for both radians and metres; set "
+    "solve.prior_from_tf_static_sigma_rad and solve.prior_from_tf_static_sigma_m instead",
+}
+
+
 def _build(cls, d: dict, prefix: str):
     if not isinstance(d, dict):
         raise ConfigError(f"'{prefix.rstrip('.')}' must be a mapping")
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(d) - names)
+    for key in unknown:
+        if prefix + key in _REPLACED_KEYS:
+            raise ConfigError(f"config key '{prefix}{key}' {_REPLACED_KEYS[prefix + key]}")
     if unknown:
         raise ConfigError(
             f"unknown config key '{prefix}{unknown[0]}' (known: {', '.join(sorted(names))})"

@@ -139,6 +139,16 @@ def rt_from_pose3(pose) -> np.ndarray:
     return rt_from_T(pose.matrix())
 
 
+def so3_right_jacobian(r: np.ndarray) -> np.ndarray:
+    """Jr(r), (3,3): Exp(r + dr) = Exp(r) Exp(Jr(r) dr) to first order."""
+    r = np.asarray(r, dtype=float)
+    th = np.linalg.norm(r)
+    K = _skew(r)
+    if th < 1e-6:
+        return np.eye(3) - 0.5 * K + (K @ K) / 6.0
+    return np.eye(3) - (1.0 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * (K @ K)
+
+
 def so3_right_jacobian_inverse(r: np.ndarray) -> np.ndarray:
     """Jr^{-1}(r): d Log(Exp(r) Exp(w)) / dw at w = 0, (3,3)."""
     r = np.asarray(r, dtype=float)
@@ -160,3 +170,49 @@ def drt_dxi(rt: np.ndarray) -> np.ndarray:
     J[:3, :3] = so3_right_jacobian_inverse(rt[:3])
     J[3:, 3:] = R_from_r(rt[:3])
     return J
+
+
+def tangent_covariance_from_rt(rt: np.ndarray, covariance_rt: np.ndarray) -> np.ndarray:
+    """Covariance in rt coordinates -> covariance of GTSAM's tangent xi = [omega, v] about the
+    same poses (right perturbation ``T = T_solved Exp(xi)``: omega and v along the sensor's own
+    axes). ``rt``: (6,) or (N,6) poses; ``covariance_rt``: (6N,6N) over them in that order.
+
+    The inverse of ``drt_dxi``: Var_xi = J^-1 Var_rt J^-T, J^-1 = diag(Jr(r), R^T). Unlike the
+    diagonal of Var_rt, this is not inflated by the Rodrigues chart ((th/2)/sin(th/2)
+    perpendicular to the axis: 1.57x for a sensor turned 180 deg).
+    """
+    rts = np.asarray(rt, dtype=float).reshape(-1, 6)
+    C = np.asarray(covariance_rt, dtype=float)
+    Jinv = np.zeros_like(C)
+    for k, x in enumerate(rts):
+        Jinv[6 * k:6 * k + 3, 6 * k:6 * k + 3] = so3_right_jacobian(x[:3])
+        Jinv[6 * k + 3:6 * k + 6, 6 * k + 3:6 * k + 6] = R_from_r(x[:3]).T
+    out = Jinv @ C @ Jinv.T
+    return 0.5 * (out + out.T)
+
+
+def pose_stdevs(rt: np.ndarray, covariance_rt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-axis 1-sigmas of one pose from its (6,6) rt covariance, for people:
+    (rotation (3,) rad about the sensor's own x, y, z: the tangent omega of ``R = R_solved Exp(omega)``,
+    GTSAM's right perturbation; position (3,) m of the sensor's origin along the reference
+    frame's x, y, z: the rt translation, which is linear, so exact).
+
+    The one place orientation sigmas come from (never ``sqrt(diag(cov_rt))[:3]``, see
+    tangent_covariance_from_rt).
+    """
+    rt = np.asarray(rt, dtype=float).reshape(6)
+    C = np.asarray(covariance_rt, dtype=float).reshape(6, 6)
+    Jr = so3_right_jacobian(rt[:3])
+    rot = np.sqrt(np.maximum(np.diag(Jr @ C[:3, :3] @ Jr.T), 0.0))
+    pos = np.sqrt(np.maximum(np.diag(C[3:, 3:]), 0.0))
+    return rot, pos
+
+
+def pose_difference(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+    """(rotation angle rad, translation m) of T_a^-1 T_b: how far pose b is from pose a, by
+    composing (never by subtracting rt vectors, which jump by 2 pi near 180 deg). The
+    translation's norm is the distance between the two origins."""
+    E = np.linalg.inv(np.asarray(T_a, dtype=float)) @ np.asarray(T_b, dtype=float)
+    c = np.clip(0.5 * (np.trace(E[:3, :3]) - 1.0), -1.0, 1.0)
+    s = 0.5 * np.linalg.norm([E[2, 1] - E[1, 2], E[0, 2] - E[2, 0], E[1, 0] - E[0, 1]])
+    return float(np.arctan2(s, c)), float(np.linalg.norm(E[:3, 3]))

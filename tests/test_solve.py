@@ -10,17 +10,20 @@ import pytest
 from clcgraph.backend.solve import calibrate
 from clcgraph.config import SolveOptions
 from clcgraph.errors import DegenerateError
-from clcgraph.geometry import R_from_r
+from clcgraph.geometry import R_from_r, pose_stdevs, r_from_R
 from clcgraph.sim.observations import make_rig, simulate_problem
 
 
 def _errors(result, truth):
-    """Per sensor: rotation error (deg), translation error (m), rt error normalized by the reported sigma."""
-    e = np.asarray(result.rt_lidar0_sensor) - truth.rt_lidar0_sensor
-    rot = np.array([np.degrees(np.arccos(np.clip((np.trace(R_from_r(a[:3]).T @ R_from_r(b[:3])) - 1) / 2, -1, 1)))
-                    for a, b in zip(result.rt_lidar0_sensor, truth.rt_lidar0_sensor)])
+    """Per sensor: rotation error (deg), translation error (m), and the error normalized by the
+    reported per-axis sigmas (geometry.pose_stdevs: rotation about the sensor's axes composed as
+    R_true^T R, position along lidar0's axes)."""
+    rt, rt_true = np.asarray(result.rt_lidar0_sensor), truth.rt_lidar0_sensor
+    e = rt - rt_true
+    w = np.array([r_from_R(R_from_r(b[:3]).T @ R_from_r(a[:3])) for a, b in zip(rt, rt_true)])
+    rot = np.degrees(np.linalg.norm(w, axis=1))
     idx = result.variable_sensors()
-    z = e[idx] / np.sqrt(np.diag(result.covariance_rt)).reshape(-1, 6)
+    z = np.array([np.r_[w[i], e[i, 3:]] / np.r_[pose_stdevs(rt[i], result.covariance_block(i))] for i in idx])
     return rot, np.linalg.norm(e[:, 3:], axis=1), z
 
 

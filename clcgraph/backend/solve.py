@@ -26,9 +26,10 @@ import time
 import numpy as np
 
 from ..errors import DegenerateError, SolveError
-from ..geometry import drt_dxi, rt_from_pose3
+from ..geometry import R_from_r, drt_dxi, rt_from_pose3, tangent_covariance_from_rt
 from ..types import Problem, Rejected, Result
 from . import graph as G
+from .convergence import MAX_UNCONVERGED_STEP_SIGMA, optimize_lm, public, step_sigma
 from .seed import seed as make_seed
 
 log = logging.getLogger(__name__)
@@ -43,8 +44,9 @@ _MIN_INLIER_SHARE = 0.5
 _TIE_RATIO = 1.5  # deleted residuals this close cannot tell the culprit apart  # ... or whose points/corners are mostly beyond outlier_sigma
 
 
-def _lm(problem, active, rt_sensor, rt_board, lidar, sigma, options, nominal):
-    """LM from the given poses; ``sigma``: per-sensor noise (m for LIDARs, px for cameras)."""
+def _lm(problem, active, rt_sensor, rt_board, lidar, sigma, options, nominal, stage):
+    """LM from the given poses; ``sigma``: per-sensor noise (m for LIDARs, px for cameras).
+    Returns (rt_sensor, rt_board, convergence record of ``stage``, (graph, values))."""
     import gtsam
 
     g, v = G.build(problem, active, rt_sensor, rt_board, lidar=lidar, sigma_lidar_m=sigma,
@@ -53,9 +55,8 @@ def _lm(problem, active, rt_sensor, rt_board, lidar, sigma, options, nominal):
     params.setMaxIterations(options.max_iterations)
     params.setRelativeErrorTol(1e-10)
     params.setAbsoluteErrorTol(1e-15)
-    opt = gtsam.LevenbergMarquardtOptimizer(g, v, params)
     try:
-        out = opt.optimize()
+        out, rec = optimize_lm(g, v, params, stage=stage)
     except RuntimeError as e:  # GTSAM's IndeterminantLinearSystemException and friends
         raise DegenerateError(f"the {lidar} solve is singular: {str(e).splitlines()[0]}; "
                               "some sensor or board is not determined by the data") from None
@@ -67,7 +68,7 @@ def _lm(problem, active, rt_sensor, rt_board, lidar, sigma, options, nominal):
     used, _ = active.boards(problem)
     for k in used:
         rt_board[k] = rt_from_pose3(out.atPose3(G.board_key(k)))
-    return rt_sensor, rt_board, opt.iterations(), (g, out)
+    return rt_sensor, rt_board, rec, (g, out)
 
 
 def _mad_sigma(r: np.ndarray) -> float:
@@ -224,6 +225,13 @@ def _deleted_z(problem, active, rt_sensor, rt_board, k, kind, j, sig_l, sig_c, o
     return float(np.sqrt(np.mean(r**2)) / G.sigma_of(sig_c, problem.camera_observations[j].sensor))
 
 
+def _final_step_sigma(problem, prev, values, rt_sensor, cov_rt) -> float:
+    """How far the final LM's last iteration moved the sensor poses, in sigmas (see convergence.step_sigma)."""
+    idx = [i for i in range(len(problem.sensors)) if i != problem.reference]
+    cov_xi = tangent_covariance_from_rt(np.asarray(rt_sensor)[idx], cov_rt) if idx else np.zeros((0, 0))
+    return step_sigma(prev, values, [G.sensor_key(i) for i in idx], cov_xi)
+
+
 def _covariance(problem: Problem, g, values, rt_sensor, options) -> np.ndarray:
     """Joint covariance of the non-reference sensors in rt coordinates; DegenerateError if undetermined."""
     import gtsam
@@ -247,27 +255,30 @@ def _covariance(problem: Problem, g, values, rt_sensor, options) -> np.ndarray:
     for a, ka in enumerate(keys):
         for b, kb in enumerate(keys):
             C[6 * a:6 * a + 6, 6 * b:6 * b + 6] = jm.at(ka, kb)
-    J = np.zeros_like(C)
-    for a, i in enumerate(idx):
-        J[6 * a:6 * a + 6, 6 * a:6 * a + 6] = drt_dxi(rt_sensor[i])
-    C = J @ C @ J.T
-    C = 0.5 * (C + C.T)
     bad = []
     for a, i in enumerate(idx):
+        # judged in GTSAM's tangent (per-axis angles and metres, not Rodrigues coordinates),
+        # the direction turned from the sensor's axes into lidar0's
         blk = C[6 * a:6 * a + 6, 6 * a:6 * a + 6]
+        R = R_from_r(rt_sensor[i][:3])
         for part, lim, what in ((slice(0, 3), np.radians(options.max_stdev_deg), "rotation about"),
                                 (slice(3, 6), options.max_stdev_m, "translation along")):
             w, V = np.linalg.eigh(blk[part, part])
             sd = np.sqrt(max(w[-1], 0.0))
             if sd > lim:
-                ax = V[:, -1] * np.sign(V[np.argmax(np.abs(V[:, -1])), -1])
+                ax = R @ V[:, -1]
+                ax = ax * np.sign(ax[np.argmax(np.abs(ax))])
                 unit = f"{sd:.2g} m" if what.startswith("t") else f"{np.degrees(sd):.2g} deg"
                 bad.append(f"{problem.sensors[i].topic}: {what} lidar0 ({ax[0]:+.2f}, {ax[1]:+.2f}, {ax[2]:+.2f}), "
                            f"1-sigma {unit}")
     if singular or bad:
         raise DegenerateError("unobservable: " + ("; ".join(bad) or singular)
                               + "; capture board poses that constrain it (tilt the board in different directions)")
-    return C
+    J = np.zeros_like(C)
+    for a, i in enumerate(idx):
+        J[6 * a:6 * a + 6, 6 * a:6 * a + 6] = drt_dxi(rt_sensor[i])
+    C = J @ C @ J.T
+    return 0.5 * (C + C.T)
 
 
 def calibrate(problem: Problem, options) -> Result:
@@ -286,12 +297,18 @@ def calibrate(problem: Problem, options) -> Result:
                    float)
 
     t = time.perf_counter()
-    rt_sensor, rt_board, iters["plane"], _ = _lm(problem, active, rt_sensor, rt_board, "plane", sig, options, nominal)
-    rt_sensor, rt_board, iters["range"], (g, values) = _lm(problem, active, rt_sensor, rt_board, "range", sig,
-                                                          options, nominal)
+    stages = []  # the convergence record of every LM, in order
+    rt_sensor, rt_board, rec, _ = _lm(problem, active, rt_sensor, rt_board, "plane", sig, options, nominal,
+                                      "point-to-plane")
+    stages.append(rec)
+    rt_sensor, rt_board, rec, (g, values) = _lm(problem, active, rt_sensor, rt_board, "range", sig, options,
+                                                nominal, "range + camera")
+    stages.append(rec)
+    iters["plane"], iters["range"] = stages[0]["iterations"], stages[1]["iterations"]
     times["lm"] = time.perf_counter() - t
     t = time.perf_counter()
     iters["rounds"] = 0
+    stable = False
     for rnd in range(_MAX_ROUNDS):
         lid, cam = G.residuals(problem, rt_sensor, rt_board)
         new, before = [], _mask_signature(active)
@@ -308,17 +325,42 @@ def calibrate(problem: Problem, options) -> Result:
             sig = _reestimate(problem, active, _per_sensor_residuals(problem, lid, cam, active), sig, lidars,
                               options.noise_per_sensor)
         stable = not new and _mask_signature(active) == before and np.all(np.abs(sig / old - 1) < 0.01)
-        rt_sensor, rt_board, it, (g, values) = _lm(problem, active, rt_sensor, rt_board, "range", sig,
-                                                  options, nominal)
+        rt_sensor, rt_board, rec, (g, values) = _lm(problem, active, rt_sensor, rt_board, "range", sig, options,
+                                                    nominal, f"noise/outlier round {rnd}")
+        stages.append(rec)
         iters["rounds"] += 1
-        iters[f"round{rnd}"] = it
+        iters[f"round{rnd}"] = rec["iterations"]
         if stable:
             break
     times["noise_and_outliers"] = time.perf_counter() - t
+    warnings = [f"LM {r['stage']} did not converge: {r['reason']}" for r in stages if not r["converged"]]
+    if stable:
+        rounds = {"count": iters["rounds"], "max": _MAX_ROUNDS, "settled": True,
+                  "reason": "no new rejections, the same masks and every noise sigma within 1%"}
+    else:
+        rounds = {"count": iters["rounds"], "max": _MAX_ROUNDS, "settled": False,
+                  "reason": f"stopped after {_MAX_ROUNDS} rounds with rejections or noise sigmas still changing"}
+        warnings.append(f"the noise re-estimation / outlier rounds did not settle in {_MAX_ROUNDS} rounds "
+                        "(the last round's noise and rejections are used)")
 
     t = time.perf_counter()
     cov = _covariance(problem, g, values, rt_sensor, options)
     times["covariance"] = time.perf_counter() - t
+    final = stages[-1]
+    step = _final_step_sigma(problem, final.pop("_last_step"), values, rt_sensor, cov)
+    for r in stages:
+        r.pop("_last_step", None)
+    if not final["converged"]:
+        if not step <= MAX_UNCONVERGED_STEP_SIGMA:
+            raise SolveError(f"the final solve did not converge ({final['reason']}) and its last step moved the "
+                             f"sensor poses by {step:.2g} sigma: the result cannot be trusted; raise solve.max_iterations "
+                             f"(now {options.max_iterations})")
+        warnings.append(f"the final solve did not converge, but its last step moved the sensor poses by only "
+                        f"{step:.2g} sigma (<= {MAX_UNCONVERGED_STEP_SIGMA:g}): the result stands")
+    if warnings:  # one line on stderr; every stage's record is in calibration.yaml and the report
+        log.warning("solve: not converged everywhere: %s", "; ".join(warnings))
+    convergence = {"converged": not warnings, "final_step_sigma": step, "rounds": rounds,
+                   "stages": [public(r) for r in stages], "warnings": warnings}
 
     lid, cam = G.residuals(problem, rt_sensor, rt_board)
     rl, rc = _active_residuals(lid, cam, active)
@@ -346,7 +388,7 @@ def calibrate(problem: Problem, options) -> Result:
     noise = {"lidar_m": pooled(lidars), "camera_px": pooled(cams),
              "per_sensor": {i: float(sig[i]) for i in sorted(per)}}
     times["total"] = time.perf_counter() - t0
-    stats = {"stage": "solve", "iterations": iters, "time_s": times, "regularization_share": float(prior / max(total, 1e-300)),
+    stats = {"stage": "solve", "iterations": iters, "convergence": convergence, "time_s": times, "regularization_share": float(prior / max(total, 1e-300)),
              "n_outlier_points": int(sum(int((~m).sum()) for m in active.lidar if m is not None)),
              "n_rejected_observations": sum(1 for r in rejected if r.stage in ("outlier", "seed"))}
     if not np.all(np.isfinite(rt_sensor)):

@@ -10,17 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from clcgraph.geometry import R_from_r, skew
-
-
-def _so3_right_jacobian(r: np.ndarray) -> np.ndarray:
-    """Jr(r), (3,3): R(r + dr) = R(r) Exp(Jr(r) dr) to first order."""
-    r = np.asarray(r, dtype=float)
-    th = np.linalg.norm(r)
-    K = skew(r)
-    if th < 1e-6:
-        return np.eye(3) - 0.5 * K + (K @ K) / 6.0
-    return np.eye(3) - (1.0 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * (K @ K)
+from clcgraph.geometry import R_from_r, so3_right_jacobian
 
 
 def _skew_batch(v: np.ndarray) -> np.ndarray:
@@ -47,14 +37,14 @@ def point_transform_jacobians(rt_lidar0_sensor: np.ndarray, i: int, j: int, p_i:
     v = q - tj
     p_j = v @ Rj  # R_j^T v
     # d(R(r) p)/dr = -R [p]x Jr(r)
-    dq_dri = -np.einsum("ab,...bc,cd->...ad", Ri, _skew_batch(p_i), _so3_right_jacobian(ri))
+    dq_dri = -np.einsum("ab,...bc,cd->...ad", Ri, _skew_batch(p_i), so3_right_jacobian(ri))
     shape = p_i.shape[:-1]
     dpj_drti = np.empty(shape + (3, 6))
     dpj_drti[..., :3] = np.einsum("ba,...bc->...ac", Rj, dq_dri)
     dpj_drti[..., 3:] = Rj.T
     # R_j^T = R(-r_j): d(R(-r) v)/dr = R(-r) [v]x Jr(-r)
     dpj_drtj = np.empty(shape + (3, 6))
-    dpj_drtj[..., :3] = np.einsum("ba,...bc,cd->...ad", Rj, _skew_batch(v), _so3_right_jacobian(-rj))
+    dpj_drtj[..., :3] = np.einsum("ba,...bc,cd->...ad", Rj, _skew_batch(v), so3_right_jacobian(-rj))
     dpj_drtj[..., 3:] = -Rj.T
     return p_j, dpj_drti, dpj_drtj
 
@@ -98,8 +88,28 @@ def worst_direction_stdev(
 ) -> np.ndarray:
     """(...,) sqrt of the largest eigenvalue of point_transform_covariance (m)."""
     V = point_transform_covariance(rt_lidar0_sensor, covariance_rt, reference, i, j, p_i)
-    ev = np.linalg.eigvalsh(V)[..., -1]
-    return np.sqrt(np.maximum(ev, 0.0))
+    return np.sqrt(np.maximum(largest_eigenvalue_sym3(V), 0.0))
+
+
+def largest_eigenvalue_sym3(V: np.ndarray) -> np.ndarray:
+    """(...,3,3) symmetric -> (...,) largest eigenvalue, in closed form (the trigonometric
+    solution of the characteristic cubic).
+
+    Not np.linalg.eigvalsh: its LAPACK gives different last digits with the BLAS thread count
+    (OMP_NUM_THREADS), and the outputs must be the same bytes on every machine.
+    """
+    V = np.asarray(V, dtype=float)
+    q = np.trace(V, axis1=-2, axis2=-1) / 3.0
+    off = V[..., 0, 1] ** 2 + V[..., 0, 2] ** 2 + V[..., 1, 2] ** 2
+    d = np.diagonal(V, axis1=-2, axis2=-1) - q[..., None]
+    p = np.sqrt((np.sum(d * d, axis=-1) + 2.0 * off) / 6.0)
+    safe = np.where(p > 0, p, 1.0)
+    B = (V - q[..., None, None] * np.eye(3)) / safe[..., None, None]
+    half_det = 0.5 * (B[..., 0, 0] * (B[..., 1, 1] * B[..., 2, 2] - B[..., 1, 2] * B[..., 2, 1])
+                      - B[..., 0, 1] * (B[..., 1, 0] * B[..., 2, 2] - B[..., 1, 2] * B[..., 2, 0])
+                      + B[..., 0, 2] * (B[..., 1, 0] * B[..., 2, 1] - B[..., 1, 1] * B[..., 2, 0]))
+    phi = np.arccos(np.clip(half_det, -1.0, 1.0)) / 3.0
+    return np.where(p > 0, q + 2.0 * p * np.cos(phi), q)
 
 
 def result_point_covariance(result, i: int, j: int, p_i: np.ndarray) -> np.ndarray:

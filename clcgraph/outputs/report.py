@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
+from ..geometry import pose_stdevs
 from ..types import Result
 
 HOWTO = {
@@ -44,7 +45,7 @@ def _pose_table(result: Result) -> str:
     per = result.noise.get("per_sensor") or {}
     for i, s in enumerate(result.problem.sensors):
         rt = np.asarray(result.rt_lidar0_sensor[i], float)
-        sd = result.stdev_rt(i)
+        sd_rot, sd_pos = pose_stdevs(rt, result.covariance_block(i))
         ref = " (reference)" if i == result.problem.reference else ""
         noise = "–" if i not in per else (f"{per[i] * 1e3:.1f} mm" if s.kind == "lidar" else f"{per[i]:.3f} px")
         rows.append(
@@ -53,15 +54,31 @@ def _pose_table(result: Result) -> str:
                     i, html.escape(s.topic) + ref, s.kind,
                     " ".join(f"{x:+.4f}" for x in rt[3:]),
                     " ".join(f"{x:+.3f}" for x in np.degrees(rt[:3])),
-                    " ".join(f"{x:.2f}" for x in sd[3:] * 1e3),
-                    " ".join(f"{x:.3f}" for x in np.degrees(sd[:3])),
+                    " ".join(f"{x:.2f}" for x in sd_pos * 1e3),
+                    " ".join(f"{x:.3f}" for x in np.degrees(sd_rot)),
                     noise,
                 )
             ) + "</tr>"
         )
     head = ("<tr><th>#</th><th>topic</th><th>kind</th><th>t_lidar0_sensor (m)</th><th>r_lidar0_sensor (deg)</th>"
-            "<th>stdev position (mm)</th><th>stdev orientation (deg)</th><th>noise sigma</th></tr>")
+            "<th>stdev position along lidar0 x y z (mm)</th><th>stdev orientation about the sensor's x y z (deg)</th><th>noise sigma</th></tr>")
     return f"<table>{head}{''.join(rows)}</table>"
+
+
+def convergence_html(conv: dict) -> str:
+    """The convergence block of calibration.yaml as HTML: warnings first, then every solve stage."""
+    if not conv:
+        return "<p>No convergence record (a seed-only or replayed result).</p>"
+    warn = "".join(f"<p class='warn'>{html.escape(w)}</p>" for w in conv.get("warnings", ()))
+    ok = "<p>Every solve converged.</p>" if conv.get("converged") else ""
+    rows = "".join(f"<tr><td>{html.escape(str(r.get('stage')))}</td><td>{r.get('iterations')}</td>"
+                   f"<td>{'yes' if r.get('converged') else '<b>no</b>'}</td><td>{html.escape(str(r.get('reason')))}</td></tr>"
+                   for r in conv.get("stages", ()))
+    rounds = conv.get("rounds")
+    extra = "" if not rounds else (f"<p>Rounds: {rounds.get('count')} of at most {rounds.get('max')}"
+                                   f" ({html.escape(str(rounds.get('reason')))}).</p>")
+    return (warn + ok + extra + "<table><tr><th>stage</th><th>iterations</th><th>converged</th><th>why it stopped</th></tr>"
+            + rows + "</table>")
 
 
 def _rejections(result: Result) -> str:
@@ -84,7 +101,7 @@ def _rejections(result: Result) -> str:
 _CSS = """body{font-family:sans-serif;max-width:1200px;margin:2em auto;color:#222}
 table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #bbb;padding:3px 8px;font-size:90%;text-align:left}
 th{background:#eee}img{max-width:100%;border:1px solid #ddd}.howto{background:#f4f8ff;padding:.5em 1em;border-left:4px solid #58f}
-code{background:#f3f3f3}"""
+code{background:#f3f3f3}.warn{background:#fff3f0;padding:.5em 1em;border-left:4px solid #e43}"""
 
 
 def report_html(result: Result, plots: dict[str, Path], *, title: str = "clcgraph calibration") -> str:
@@ -107,6 +124,7 @@ def report_html(result: Result, plots: dict[str, Path], *, title: str = "clcgrap
         f"<td>{_fmt(noise.get('lidar_m'))}</td><td>{_fmt(noise.get('camera_px'))}</td></tr></table>",
         "<p class='howto'>The normalized RMS should be near 1 once the noise is re-estimated. A LIDAR RMS well above "
         "the LIDAR's range noise (typically 1–3 cm) or a camera RMS above ~1 px points at bad data.</p>",
+        "<h2>Convergence</h2>", convergence_html(result.stats.get("convergence") or {}),
         "<h2>Rejections</h2>", _rejections(result),
     ]
     for name, how in HOWTO.items():

@@ -20,7 +20,7 @@ import yaml
 
 from .. import __version__
 from ..errors import DataError, InputError
-from ..geometry import T_from_rt, invert_rt
+from ..geometry import T_from_rt, invert_rt, pose_stdevs
 from ..types import Result, Sensor
 from .atomic import atomic_dir
 
@@ -52,6 +52,23 @@ def _scalar(v):
     return None if not np.isfinite(v) else v
 
 
+# What each uncertainty field means (written into calibration.yaml as `coordinates`).
+COORDINATES = {
+    "covariance_rt_lidar0_sensor": "joint covariance of rt_lidar0_sensor (mrcal rt: Rodrigues r [rad], then t [m]) "
+    "over the non-reference sensors in sensor order; for machines (mrcal, uncertainty propagation)",
+    "stdev_rt": "sqrt of the diagonal of that covariance: rt coordinates, NOT per-axis angles (the Rodrigues "
+    "chart inflates them by (th/2)/sin(th/2) across the rotation axis)",
+    "stdev_orientation_deg": "1-sigma rotation about the sensor's own x, y, z axes: the tangent omega of "
+    "R_lidar0_sensor = R_solved Exp(omega) (GTSAM's right perturbation)",
+    "stdev_position_mm": "1-sigma of the sensor's origin along lidar0's x, y, z (the rt translation)",
+}
+
+
+def stdev_fields(sd_rot_rad: np.ndarray, sd_pos_m: np.ndarray) -> dict:
+    """The per-axis sigmas for people, as calibration.yaml writes them (see COORDINATES)."""
+    return {"stdev_orientation_deg": _floats(np.degrees(sd_rot_rad)), "stdev_position_mm": _floats(sd_pos_m * 1e3)}
+
+
 def calibration_dict(result: Result) -> dict:
     """The calibration.yaml content as a plain dict (see write_results for the shape)."""
     problem = result.problem
@@ -59,17 +76,15 @@ def calibration_dict(result: Result) -> dict:
     sensors = []
     for i, s in enumerate(problem.sensors):
         rt = np.asarray(result.rt_lidar0_sensor[i], dtype=float)
-        sd = result.stdev_rt(i)
+        sd_rot, sd_pos = pose_stdevs(rt, result.covariance_block(i))
         sensors.append(
             {
                 "topic": s.topic,
                 "kind": s.kind,
                 "rt_lidar0_sensor": _floats(rt),
                 "T_lidar0_sensor": _floats(T_from_rt(rt)),
-                "stdev_rt": _floats(sd),
-                # for humans: 1-sigma position (mm) and orientation (deg) of the sensor
-                "stdev_position_mm": _floats(sd[3:] * 1e3),
-                "stdev_orientation_deg": _floats(np.degrees(sd[:3])),
+                "stdev_rt": _floats(result.stdev_rt(i)),
+                **stdev_fields(sd_rot, sd_pos),
                 # this sensor's re-estimated noise: m (LIDAR range) or px (camera corners)
                 "noise_sigma": _scalar(result.noise.get("per_sensor", {}).get(i)),
             }
@@ -95,6 +110,8 @@ def calibration_dict(result: Result) -> dict:
         "snapshots": {"used": int(len(used)), "used_indices": [int(k) for k in used],
                       "total": int(problem.n_snapshots), "rejected": rejected},
         "sectors": sectors_dict(result),
+        "convergence": dict(result.stats.get("convergence") or {}),
+        "coordinates": COORDINATES,
     }
 
 

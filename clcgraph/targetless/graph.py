@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import geometry as geo
-from ..errors import DegenerateError
+from ..errors import DegenerateError, SolveError
 
 
 @dataclass
@@ -51,6 +51,7 @@ class Estimate:
     cov_xi: np.ndarray  # (6,6) GTSAM tangent
     scales: dict = field(default_factory=dict)  # factor kind -> estimated covariance scale
     redundancy: dict = field(default_factory=dict)  # factor kind -> degrees of freedom left
+    convergence: dict = field(default_factory=dict)  # how each LM and the noise-scale iteration stopped
 
 
 def _keys():
@@ -149,22 +150,30 @@ def _redundancy(graph, values, kinds):
     return out
 
 
-def _optimize(g, v):
+def _optimize(g, v, max_iterations: int, stage: str):
+    """(values, convergence record) of LM on the graph."""
     import gtsam
+
+    from ..backend.convergence import optimize_lm
 
     p = gtsam.LevenbergMarquardtParams()
     p.setRelativeErrorTol(1e-10)
     p.setAbsoluteErrorTol(1e-12)
-    return gtsam.LevenbergMarquardtOptimizer(g, v, p).optimize()
+    p.setMaxIterations(max_iterations)
+    return optimize_lm(g, v, p, stage=stage)
 
 
 def fuse(meas, keyframes: dict | None = None, edges=(), *, common_mode: float = 1.0, min_frames: int = 2,
-         max_cond: float = 1e6, iterations: int = 8) -> Estimate:
+         max_cond: float = 1e6, iterations: int = 8, max_iterations: int = 100) -> Estimate:
     """Fuse the per-frame registrations (and keyframe edges) into T_lidar0_sensor; DegenerateError
     if the registrations constrain too little. ``keyframes``: position -> (4,4) map pose estimate;
     ``common_mode``: prior covariance of the shared registration bias, in units of one frame's
-    covariance (0: none)."""
+    covariance (0: none); ``iterations``: of the variance-component estimation; ``max_iterations``:
+    of each LM. ``Estimate.convergence`` says how each stopped; SolveError when the final LM did
+    not converge and its last step moved E by more than a tenth of its sigma."""
     import gtsam
+
+    from ..backend.convergence import MAX_UNCONVERGED_STEP_SIGMA, public, step_sigma
 
     if len(meas) < min_frames:
         raise DegenerateError(f"only {len(meas)} usable calibration frames (< {min_frames}); "
@@ -181,9 +190,12 @@ def fuse(meas, keyframes: dict | None = None, edges=(), *, common_mode: float = 
     keyframes = {p: T for p, T in keyframes.items() if p in linked}
     scales = {"frames": 1.0, "keyframes": 1.0}
     red = {}
-    for _ in range(iterations):
+    stages = []
+    done = False
+    for it in range(iterations):
         g, v, kinds = _build(meas, keyframes, edges, scales, common_mode)
-        res = _optimize(g, v)
+        res, rec = _optimize(g, v, max_iterations, f"variance components {it}")
+        stages.append(rec)
         red = _redundancy(g, res, kinds)
         new = dict(scales)
         for kind in ("frames", "keyframes"):
@@ -197,9 +209,25 @@ def fuse(meas, keyframes: dict | None = None, edges=(), *, common_mode: float = 
         if done:
             break
     g, v, kinds = _build(meas, keyframes, edges, scales, common_mode)
-    res = _optimize(g, v)
+    res, final = _optimize(g, v, max_iterations, "final")
+    stages.append(final)
     E = _keys()[0]
     cov = gtsam.Marginals(g, res).marginalCovariance(E)
+    step = step_sigma(final["_last_step"], res, [E], cov)
+    for r in stages:
+        r.pop("_last_step", None)
+    warnings = [f"LM {r['stage']} did not converge: {r['reason']}" for r in stages if not r["converged"]]
+    if not done:
+        warnings.append(f"the noise-scale (variance component) estimation did not settle in {iterations} iterations")
+    if not final["converged"]:
+        if not step <= MAX_UNCONVERGED_STEP_SIGMA:
+            raise SolveError(f"the targetless graph did not converge ({final['reason']}) and its last step moved the "
+                             f"extrinsic by {step:.2g} sigma: the result cannot be trusted")
+        warnings.append(f"the final graph solve did not converge, but its last step moved the extrinsic by only "
+                        f"{step:.2g} sigma (<= {MAX_UNCONVERGED_STEP_SIGMA:g}): the result stands")
+    convergence = {"converged": not warnings, "final_step_sigma": step,
+                   "variance_components": {"iterations": len(stages) - 1, "max": iterations, "settled": bool(done)},
+                   "stages": [public(r) for r in stages], "warnings": warnings}
     T = res.atPose3(E).matrix()
     J = geo.drt_dxi(geo.rt_from_T(T))
-    return Estimate(T, J @ cov @ J.T, cov, scales, {k: r for k, (_, r) in red.items()})
+    return Estimate(T, J @ cov @ J.T, cov, scales, {k: r for k, (_, r) in red.items()}, convergence)

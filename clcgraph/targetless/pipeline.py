@@ -28,6 +28,8 @@ from .. import geometry as geo
 from ..config import Config
 from ..errors import DegenerateError, InputError
 from ..outputs.atomic import atomic_dir
+from ..outputs.report import convergence_html
+from ..outputs.results import COORDINATES, stdev_fields
 from .calibration_frames import make_calibration_frames, nearest_to_keyframes
 from .graph import fuse
 from .mapping import build_map
@@ -50,6 +52,7 @@ class TargetlessResult:
     per_frame: dict = field(default_factory=dict)  # topic -> list of dicts (score, frame, errors)
     candidates: dict = field(default_factory=dict)  # topic -> ensemble candidates
     graph: dict = field(default_factory=dict)  # topic -> size of the final graph and its noise scales
+    convergence: dict = field(default_factory=dict)  # topic -> how its graph solves stopped (graph.Estimate)
     frame_data: dict = field(default_factory=dict, repr=False)  # topic -> registration FrameData (report pictures)
     timings_s: dict = field(default_factory=dict)
     peak_rss_mb: dict = field(default_factory=dict)  # stage -> process peak RSS after it
@@ -134,6 +137,11 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
                             "noise_scale": {k: float(v) for k, v in est.scales.items()},
                             "redundancy": {k: float(v) for k, v in est.redundancy.items() if k in est.scales},
                             "common_mode": float(o.registration_common_mode)}
+        res.convergence[topic] = est.convergence
+        if est.convergence["warnings"]:
+            log.warning("%s: the targetless graph did not converge everywhere: %s", topic,
+                        "; ".join(est.convergence["warnings"]))
+            res.notes.append(f"{topic}: NOT CONVERGED: " + "; ".join(est.convergence["warnings"]))
         log.info("%s: graph of %d frames, %d keyframes, %d keyframe edges; noise scales %s", topic, len(meas),
                  len(keyframes), len(edges), {k: f"{v:.3g}" for k, v in est.scales.items()})
         s_guess, s_final = score(fr, Tg, o), score(fr, est.T, o)
@@ -143,8 +151,13 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
             res.notes.append(f"{topic}: initial guess kept (score {s_guess:.3g} <= {s_final:.3g}); its sigmas "
                              "include the difference to the registration estimate")
             T_final = Tg
-            d = geo.rt_from_T(Tg) - geo.rt_from_T(est.T)
-            cov = cov + np.outer(d, d)  # nothing measured the guess: it is as uncertain as it is far
+            # nothing measured the guess: it is as uncertain as it is far from the estimate (that
+            # distance composed in the tangent at the guess, then in rt coordinates there)
+            import gtsam
+
+            d = np.asarray(gtsam.Pose3(Tg).localCoordinates(gtsam.Pose3(est.T)))
+            J = geo.drt_dxi(geo.rt_from_T(Tg))
+            cov = J @ (est.cov_xi + np.outer(d, d)) @ J.T
         res.T_lidar0_sensor[topic] = T_final
         res.covariance_rt[topic] = cov
         res.candidates[topic] = cands
@@ -216,20 +229,19 @@ def calibration_dict(res: TargetlessResult) -> dict:
     sensors = []
     for i, t in enumerate(topics):
         rt = res.rt_lidar0_sensor(t)
-        sd = res.stdev_rt(t)
         if i > 0:
             cov[6 * (i - 1):6 * i, 6 * (i - 1):6 * i] = 0.5 * (res.covariance_rt[t] + res.covariance_rt[t].T)
         sensors.append({"topic": t, "kind": "lidar", "rt_lidar0_sensor": rt.tolist(),
-                        "T_lidar0_sensor": geo.T_from_rt(rt).tolist(), "stdev_rt": sd.tolist(),
-                        "stdev_position_mm": (sd[3:] * 1e3).tolist(), "stdev_orientation_deg": np.degrees(sd[:3]).tolist()})
+                        "T_lidar0_sensor": geo.T_from_rt(rt).tolist(), "stdev_rt": res.stdev_rt(t).tolist(),
+                        **stdev_fields(*geo.pose_stdevs(rt, res.covariance_rt[t]))})
     d = {"reference": res.mapping_topic, "method": "targetless", "sensors": sensors,
-         "covariance_rt_lidar0_sensor": cov.tolist()}
+         "covariance_rt_lidar0_sensor": cov.tolist(), "coordinates": COORDINATES}
     if res.base_frame is not None:
         d["base_link"] = [{"topic": t, "frame": res.base_frame, "T_base_link_sensor": np.asarray(T).tolist(),
                            "rt_base_link_sensor": geo.rt_from_T(T).tolist()} for t, T in res.T_base_sensor.items()]
     d["graph"] = res.graph
-    d["timings_s"] = {k: float(v) for k, v in res.timings_s.items()}
-    return d
+    d["convergence"] = res.convergence
+    return d  # wall-clock timings go to timings.yaml: the same inputs give the same calibration.yaml
 
 
 def summary_table(res: TargetlessResult) -> str:
@@ -241,8 +253,8 @@ def summary_table(res: TargetlessResult) -> str:
 
     rows = [("sensor", "x [m]", "y [m]", "z [m]", "roll/pitch/yaw [deg]", "1-sigma [mm, deg]", "frames")]
     for t, T in res.T_lidar0_sensor.items():
-        sd = res.stdev_rt(t)
-        sigma = "reference" if t == res.mapping_topic else f"{1e3 * sd[3:].max():.2f}, {np.degrees(sd[:3].max()):.4f}"
+        sd_rot, sd_pos = geo.pose_stdevs(res.rt_lidar0_sensor(t), res.covariance_rt[t])
+        sigma = "reference" if t == res.mapping_topic else f"{1e3 * sd_pos.max():.2f}, {np.degrees(sd_rot.max()):.4f}"
         rows.append((t, *(f"{v:+.4f}" for v in np.asarray(T)[:3, 3]), " ".join(f"{v:+.3f}" for v in rpy(T)), sigma,
                      str(res.graph.get(t, {}).get("frames", "-"))))
     for t, T in res.T_base_sensor.items():
@@ -383,6 +395,9 @@ def write_targetless_outputs(res: TargetlessResult, out_dir, *, config: Config |
     with atomic_dir(out_dir) as tmp:
         cal = calibration_dict(res)
         (tmp / "calibration.yaml").write_text(yaml.safe_dump(cal, sort_keys=False))
+        (tmp / "timings.yaml").write_text(yaml.safe_dump({"timings_s": {k: float(v) for k, v in res.timings_s.items()},
+                                                          "peak_rss_mb": {k: float(v) for k, v in res.peak_rss_mb.items()}},
+                                                         sort_keys=False))
         (tmp / "static_tf.txt").write_text(_static_tf_lines(res))
         (tmp / "urdf_snippet.xml").write_text(_urdf(res))
         if config is not None:
@@ -398,13 +413,14 @@ def write_targetless_outputs(res: TargetlessResult, out_dir, *, config: Config |
                      for t, g in res.graph.items())
         html = (f"<html><head><title>clcgraph targetless</title></head><body><h1>clcgraph targetless calibration</h1>"
                 f"<p>reference: {res.mapping_topic}</p><table border=1><tr><th>topic</th><th>rt_lidar0_sensor</th>"
-                f"<th>stdev position [mm]</th><th>stdev orientation [deg]</th></tr>{rows}</table>"
+                f"<th>stdev position along lidar0 x y z [mm]</th><th>stdev orientation about the sensor's x y z [deg]</th></tr>{rows}</table>"
                 f"<h2>final graph</h2><p>extrinsic + keyframe poses; one factor per frame, registration edges "
                 f"between keyframe submaps; noise scales estimated from the residuals (x GICP Hessian^-1); the "
                 f"sigmas include a bias shared by all frames (prior: 'common mode' x one frame's covariance).</p>"
                 f"<table border=1><tr><th>topic</th><th>frames</th><th>keyframes</th><th>edges</th>"
                 f"<th>scale frames</th><th>scale edges</th><th>common mode</th></tr>{gr}</table>"
-                f"<h2>timings [s]</h2><table border=1>{tim}</table>"
+                + "".join(f"<h2>convergence: {t}</h2>" + convergence_html(c) for t, c in res.convergence.items())
+                + f"<h2>timings [s]</h2><table border=1>{tim}</table>"
                 + "".join(f'<h2>{p}</h2><img src="{p}">' for p in pngs)
                 + "".join(f"<p>{n}</p>" for n in res.notes) + "</body></html>")
         (tmp / "report.html").write_text(html)
