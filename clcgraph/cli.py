@@ -101,7 +101,7 @@ def _add_targetless(sub):
     p.add_argument("--mapping-topic", required=True, help="the mapping LIDAR (reference, lidar0)")
     p.add_argument("--calibration-topics", required=True, help="comma-separated LIDAR topics to calibrate")
     p.add_argument("--base-frame", default=None, help="also calibrate base_link-LIDAR roll/pitch/z from the ground")
-    p.add_argument("--out", required=True, help="output directory (replaced atomically)")
+    p.add_argument("--out", required=True, help="output directory: new, empty or an earlier output of this command (replaced whole)")
     _add_force(p)
     p.add_argument("--config", default=None, help="YAML config (section 'targetless')")
 
@@ -320,7 +320,7 @@ def _add_demo(sub):
 def _add_simulate(sub):
     p = sub.add_parser("simulate", help="simulate a capture session of a rig (YAML) into bags, with truth.yaml")
     p.add_argument("rig", metavar="RIG.yaml", help="the rig: LIDARs, cameras, board (see data/synthetic/demo-rig.yaml)")
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory (replaced atomically)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory: new, empty or an earlier output of this command (replaced whole)")
     _add_force(p)
     p.add_argument("--poses", type=int, default=20, help="number of board poses")
     p.add_argument("--format", default="ros1", choices=["ros1", "ros2-sqlite3", "ros2-mcap"], help="bag format")
@@ -343,7 +343,7 @@ def _add_simulate(sub):
 @_command
 def _add_simulate_drive(sub):
     p = sub.add_parser("simulate-drive", help="simulate a drive through a street (for clcgraph targetless), with truth.yaml")
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory: drive bag + truth.yaml (replaced)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory: drive bag + truth.yaml (new, empty or an earlier simulation; replaced whole)")
     _add_force(p)
     p.add_argument("--duration", type=float, default=60.0, help="seconds of driving at ~2 km/h")
     p.add_argument("--small", action="store_true", help="test-sized LIDARs (32/16 rings x 512 columns)")
@@ -469,7 +469,7 @@ def _add_solve(sub):
     p.add_argument("models", nargs="*", metavar="MODEL.cameramodel", help="one per camera topic, in --topics order")
     p.add_argument("--bag", action="append", required=True, metavar="GLOB", help="bag file/dir or glob (repeatable)")
     p.add_argument("--topics", required=True, help="comma-separated LIDAR and camera topics; the first LIDAR is lidar0")
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory (replaced atomically)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory: new, empty or an earlier output of this command (replaced whole)")
     _add_force(p)
     p.add_argument("--config", default=None, metavar="FILE.yaml", help="settings (see `clcgraph config dump`)")
     p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one config key (repeatable)")
@@ -756,7 +756,7 @@ def _failure(args, e: BaseException, received: list) -> int:
         if args.verbose:
             log.error("clcgraph %s interrupted", args.command, exc_info=e)
         signum = received[0] if received else signal.SIGINT
-        left = "; --out is as it was before" if getattr(args, "out", None) else ""
+        left = "; nothing half-written in --out" if getattr(args, "out", None) else ""
         print(f"clcgraph {args.command}: interrupted by {signal.Signals(signum).name}{left}", file=sys.stderr)
         return _EXIT_ON_SIGNAL[signum]
     if isinstance(e, ClcgraphError):
