@@ -276,3 +276,18 @@ def test_covariance_symmetrized(tmp_path):
     got = load_result(tmp_path / "o")["covariance_rt_lidar0_sensor"]
     np.testing.assert_array_equal(got, got.T)
     np.testing.assert_allclose(got, C, atol=1e-12)
+
+
+def test_calibrate_bags_refuses_a_foreign_out_before_reading_any_bag(tmp_path):
+    """The issue's case: a note in --out was gone after calibrate_bags(..., out=...)."""
+    from clcgraph.api import calibrate_bags
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "note.txt").write_text("mine")
+    missing = str(tmp_path / "no-such-*.bag")
+    with pytest.raises(InputError, match=rf"{out}: exists and is not a clcgraph output"):
+        calibrate_bags([missing], ["/l0", "/l1"], out=out)  # refused first: the bags are never looked at
+    with pytest.raises(InputError, match="no such bag"):  # force passes the check; the work then fails
+        calibrate_bags([missing], ["/l0", "/l1"], out=out, force=True)
+    assert [p.name for p in out.iterdir()] == ["note.txt"] and (out / "note.txt").read_text() == "mine"
