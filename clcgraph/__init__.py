@@ -5,12 +5,9 @@ that ``import clcgraph`` stays cheap (no gtsam/open3d until used).
 """
 
 import logging
-import os
 
-# OpenMP workers (small_gicp, Open3D) otherwise spin after each parallel region and, on a
-# 2-core machine, starve the Python code between registrations (mapping ran 15-20 % slower).
-# Only a default: it must be set before the OpenMP runtime loads, and a user's value wins.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# Importing clcgraph changes nothing global: no environment variables, no matplotlib backend,
+# no signal handlers (the `clcgraph` command sets OMP_WAIT_POLICY=PASSIVE and its handlers).
 
 __version__ = "0.1.0"
 

@@ -300,8 +300,10 @@ def calibrate(problem: Problem, config=None, *, timings: dict | None = None) -> 
     return dataclasses.replace(result, sectors=sectors)
 
 
-def write_outputs(result: Result, out_dir, config=None) -> dict[str, Path]:
-    """calibration.yaml, .cameramodels, problem.npz, config.resolved.yaml, report.html + plots, atomically."""
+def write_outputs(result: Result, out_dir, config=None, *, force: bool = False) -> dict[str, Path]:
+    """calibration.yaml, .cameramodels, problem.npz, config.resolved.yaml, report.html + plots, atomically.
+
+    ``out_dir`` must be new, empty or a previous clcgraph output; ``force``: replace it anyway."""
     from .outputs.dump import save_problem
     from .outputs.report import write_report
     from .outputs.results import write_results
@@ -311,21 +313,25 @@ def write_outputs(result: Result, out_dir, config=None) -> dict[str, Path]:
         result, out_dir, config=cfg,
         problem_dump=lambda problem, path: save_problem(path, problem, cfg),
         extra_files={"report.html": lambda path: write_report(result, path.parent)},
+        force=force,
     )
 
 
 def calibrate_bags(bags, topics: Sequence[str], models: Sequence[str | Path] = (), *, out=None,
-                   config=None) -> Result:
-    """read_problem + calibrate (+ write_outputs when ``out`` is given): `clcgraph solve`."""
+                   config=None, force: bool = False) -> Result:
+    """read_problem + calibrate (+ write_outputs when ``out`` is given): `clcgraph solve`.
+
+    ``out`` must be new, empty or a previous clcgraph output (checked before any work);
+    ``force``: replace whatever is there."""
     cfg = _config(config)
     if out is not None:
-        _check_writable(Path(out))
+        check_out_dir(out, force=force)
     timings: dict[str, float] = {}
     result = calibrate(read_problem(bags, topics, models, config=cfg, timings=timings), cfg, timings=timings)
     result = dataclasses.replace(result, stats={**result.stats, "stage_time_s": timings})
     if out is not None:
         with _Clock(timings)("report"):
-            write_outputs(result, out, cfg)
+            write_outputs(result, out, cfg, force=force)
     return result
 
 
@@ -361,14 +367,17 @@ class _Clock:
         return stage()
 
 
-def _check_writable(out: Path) -> None:
-    """Fail before the work, not after it, when the output directory cannot be made."""
+def check_out_dir(out, *, kind: str = "results", force: bool = False) -> None:
+    """Fail before the work, not after it, when ``out`` cannot be made or is not ours to replace."""
     import os
 
-    parent = out.absolute().parent
+    from .outputs.atomic import check_out_dir as _check
+
+    target = _check(out, kind=kind, force=force)
+    parent = target.parent
     while not parent.exists():
         parent = parent.parent
-    if not os.access(parent, os.W_OK | os.X_OK) or (out.exists() and not out.is_dir()):
+    if not os.access(parent, os.W_OK | os.X_OK):
         raise InputError(f"{out}: cannot write the output directory here; choose another --out")
 
 
@@ -449,7 +458,7 @@ def compare_to_truth(result: Result, truth: dict) -> list[dict]:
     return rows
 
 
-def run_demo(out=None, *, config=None, seed: int = 0) -> tuple[Result, list[dict]]:
+def run_demo(out=None, *, config=None, seed: int = 0, force: bool = False) -> tuple[Result, list[dict]]:
     """`clcgraph demo`: simulate data/synthetic/demo if missing, calibrate it, compare to truth."""
     import yaml
 
@@ -461,7 +470,7 @@ def run_demo(out=None, *, config=None, seed: int = 0) -> tuple[Result, list[dict
     topics = [s["topic"] for s in truth["sensors"]]
     models = [DEMO_RIG.parent / s["model"] for s in truth["sensors"] if s["kind"] == "camera"]
     result = calibrate_bags([DEMO_DIR / "*.bag"], topics, models, out=out or DEMO_DIR.parent / "demo-out",
-                            config=config)
+                            config=config, force=force)
     return result, compare_to_truth(result, truth)
 
 

@@ -10,7 +10,11 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+import signal
 import sys
+import threading
+from contextlib import contextmanager
 
 log = logging.getLogger("clcgraph")
 
@@ -97,17 +101,20 @@ def _add_targetless(sub):
     p.add_argument("--mapping-topic", required=True, help="the mapping LIDAR (reference, lidar0)")
     p.add_argument("--calibration-topics", required=True, help="comma-separated LIDAR topics to calibrate")
     p.add_argument("--base-frame", default=None, help="also calibrate base_link-LIDAR roll/pitch/z from the ground")
-    p.add_argument("--out", required=True, help="output directory (replaced atomically)")
+    p.add_argument("--out", required=True, help="output directory: new, empty or an earlier output of this command (replaced whole)")
+    _add_force(p)
     p.add_argument("--config", default=None, help="YAML config (section 'targetless')")
 
     def run(args):
+        from .api import check_out_dir
         from .targetless.pipeline import calibrate_targetless, summary_table, write_targetless_outputs
 
         cfg = _load_config(args)
+        check_out_dir(args.out, force=args.force)  # before the drive is mapped, not after
         topics = [t for t in args.calibration_topics.split(",") if t]
         res = calibrate_targetless(args.bag, mapping_topic=args.mapping_topic, calibration_topics=topics,
                                    base_frame=args.base_frame, config=cfg)
-        paths = write_targetless_outputs(res, args.out, config=cfg)
+        paths = write_targetless_outputs(res, args.out, config=cfg, force=args.force)
         print(summary_table(res))
         print(f"wrote {paths['calibration']} and {paths['report']}")
         return 0
@@ -140,7 +147,11 @@ def _add_replay(sub):
             print(f"{s.topic}: rt_lidar0_sensor {np.array2string(res.rt_lidar0_sensor[i], precision=6)}"
                   f"  stdev {np.array2string(sd, precision=6)}")
         for k, v in res.noise.items():
-            print(f"noise {k}: {v:.4g}")
+            if isinstance(v, dict):  # per sensor: {sensor index: sigma}
+                v = ", ".join(f"{res.problem.sensor_name(int(i))} {s:.4g}" for i, s in v.items())
+                print(f"noise {k}: {v}")
+            else:
+                print(f"noise {k}: {v:.4g}")
         print(f"{len(res.rejected)} rejected")
         return 0
 
@@ -284,6 +295,7 @@ def _add_demo(sub):
     p = sub.add_parser("demo", help="calibrate the shipped synthetic demo rig (simulated on first use) and "
                                     "compare with the simulator's truth")
     p.add_argument("--out", default=None, metavar="DIR", help="output directory (default data/synthetic/demo-out)")
+    _add_force(p)
     p.add_argument("--config", default=None, metavar="FILE.yaml", help="settings (see `clcgraph config dump`)")
     p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one config key (repeatable)")
 
@@ -291,7 +303,7 @@ def _add_demo(sub):
         from . import api
         from .sim.capture import DEMO_DIR
 
-        result, errors = api.run_demo(args.out, config=_load_config(args))
+        result, errors = api.run_demo(args.out, config=_load_config(args), force=args.force)
         print(api.summary_table(result))
         print(f"\nagainst the simulator's truth ({DEMO_DIR}/truth.yaml):")
         print(f"{'sensor':34s} {'rotation [deg]':>15s} {'1-sigma':>8s} {'translation [mm]':>17s} {'1-sigma':>8s}")
@@ -308,7 +320,8 @@ def _add_demo(sub):
 def _add_simulate(sub):
     p = sub.add_parser("simulate", help="simulate a capture session of a rig (YAML) into bags, with truth.yaml")
     p.add_argument("rig", metavar="RIG.yaml", help="the rig: LIDARs, cameras, board (see data/synthetic/demo-rig.yaml)")
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory (replaced atomically)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory: new, empty or an earlier output of this command (replaced whole)")
+    _add_force(p)
     p.add_argument("--poses", type=int, default=20, help="number of board poses")
     p.add_argument("--format", default="ros1", choices=["ros1", "ros2-sqlite3", "ros2-mcap"], help="bag format")
     p.add_argument("--continuous", action="store_true", help="one continuous bag (the board moves between poses)")
@@ -319,7 +332,7 @@ def _add_simulate(sub):
         from . import api
 
         truth = api.simulate(args.rig, args.out, n_poses=args.poses, format=args.format,
-                             continuous=args.continuous, seed=args.seed, compress=args.compress)
+                             continuous=args.continuous, seed=args.seed, compress=args.compress, force=args.force)
         print(f"wrote {len(truth['snapshots'])} board poses of {len(truth['sensors'])} sensors into {args.out} "
               f"(truth in {args.out}/truth.yaml)")
         return 0
@@ -330,7 +343,8 @@ def _add_simulate(sub):
 @_command
 def _add_simulate_drive(sub):
     p = sub.add_parser("simulate-drive", help="simulate a drive through a street (for clcgraph targetless), with truth.yaml")
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory: drive bag + truth.yaml (replaced)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory: drive bag + truth.yaml (new, empty or an earlier simulation; replaced whole)")
+    _add_force(p)
     p.add_argument("--duration", type=float, default=60.0, help="seconds of driving at ~2 km/h")
     p.add_argument("--small", action="store_true", help="test-sized LIDARs (32/16 rings x 512 columns)")
     p.add_argument("--format", default="ros1", choices=["ros1", "ros2-sqlite3", "ros2-mcap"], help="bag format")
@@ -341,15 +355,16 @@ def _add_simulate_drive(sub):
     def run(args):
         from pathlib import Path
 
-        from .outputs.atomic import atomic_dir
+        from .outputs.atomic import atomic_dir, check_out_dir
         from .progress import progress
         from .sim.drive import DrivePlan, simulate_drive, write_drive_bag, write_truth
 
+        check_out_dir(args.out, kind="session", force=args.force)  # before the ray casting
         plan = DrivePlan.small(duration_s=args.duration) if args.small else DrivePlan(duration_s=args.duration)
         drive = simulate_drive(plan, seed=args.seed,
                                progress=lambda items, desc: progress(items, desc=desc, total=len(items), unit="scan"))
         out = Path(args.out)
-        with atomic_dir(out) as tmp:
+        with atomic_dir(out, kind="session", force=args.force) as tmp:
             bag = tmp / ("drive.bag" if args.format == "ros1" else "drive")
             write_drive_bag(drive, bag, format=args.format, layout=args.layout)
             write_truth(drive, tmp / "truth.yaml")
@@ -419,6 +434,12 @@ def _floats(text: str, n: int, flag: str) -> list:
     return v
 
 
+def _add_force(p) -> None:
+    p.add_argument("--force", action="store_true",
+                   help="replace --out even if it is not a previous clcgraph output of this command (its contents "
+                        "are deleted); without it, --out must be new, empty or such an output")
+
+
 def _section_flags(p, section_cls, section: str, group_title: str):
     """One --flag per field of a config section (names follow the config keys)."""
     import dataclasses
@@ -448,7 +469,8 @@ def _add_solve(sub):
     p.add_argument("models", nargs="*", metavar="MODEL.cameramodel", help="one per camera topic, in --topics order")
     p.add_argument("--bag", action="append", required=True, metavar="GLOB", help="bag file/dir or glob (repeatable)")
     p.add_argument("--topics", required=True, help="comma-separated LIDAR and camera topics; the first LIDAR is lidar0")
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory (replaced atomically)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory: new, empty or an earlier output of this command (replaced whole)")
+    _add_force(p)
     p.add_argument("--config", default=None, metavar="FILE.yaml", help="settings (see `clcgraph config dump`)")
     p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one config key (repeatable)")
     p.add_argument("--exclude-bag", default=None, metavar="REGEX", help="skip bags whose path matches")
@@ -502,7 +524,7 @@ def _add_solve(sub):
 
         cfg = _load_config(args)
         topics = [t for t in args.topics.split(",") if t.strip()]
-        result = api.calibrate_bags(args.bag, topics, args.models, out=args.out, config=cfg)
+        result = api.calibrate_bags(args.bag, topics, args.models, out=args.out, config=cfg, force=args.force)
         print(api.summary_table(result))
         print(f"wrote {args.out}/calibration.yaml and report.html")
         return 0
@@ -535,6 +557,7 @@ def _add_format_for_ros(sub):
     p.add_argument("--calibration", required=True, metavar="DIR", help="the --out directory of clcgraph solve or targetless")
     p.add_argument("--base-frame", default="base_link", help="parent frame of the published transforms")
     p.add_argument("--out", default=None, metavar="DIR", help="write ros.yaml, URDF and launch snippets here")
+    _add_force(p)
 
     def run(args):
         from pathlib import Path
@@ -549,11 +572,14 @@ def _add_format_for_ros(sub):
         frames = infer_frames(topics, tf.frames, frame_ids={t: frame_id(args.bag, t) for t in topics})
         ros = format_for_ros(cal, tf, base_frame=args.base_frame, frames=frames)
         if args.out:
-            out = Path(args.out)
-            out.mkdir(parents=True, exist_ok=True)
-            for name, text in ros_files(ros).items():
-                (out / name).write_text(text)
-                print(f"wrote {out / name}")
+            from .outputs.atomic import atomic_dir
+
+            files = ros_files(ros)
+            with atomic_dir(args.out, kind="ros", force=args.force) as tmp:
+                for name, text in files.items():
+                    (tmp / name).write_text(text)
+            for name in files:
+                print(f"wrote {Path(args.out) / name}")
         else:
             print(ros_yaml(ros), end="")
         return 0
@@ -679,7 +705,38 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _Terminated(BaseException):
+    """SIGTERM, raised in the main thread like KeyboardInterrupt so that cleanups run."""
+
+
+_EXIT_ON_SIGNAL = {signal.SIGINT: 130, signal.SIGTERM: 143}  # the shells' 128 + signal number
+
+
+@contextmanager
+def _signals_raise(received: list):
+    """SIGINT -> KeyboardInterrupt, SIGTERM -> _Terminated, recording which came (a worker may
+    turn the interruption into another exception); the previous handlers are put back."""
+
+    def handler(signum, frame):
+        received.append(signum)
+        raise KeyboardInterrupt if signum == signal.SIGINT else _Terminated
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    saved = {s: signal.signal(s, handler) for s in _EXIT_ON_SIGNAL}
+    try:
+        yield
+    finally:
+        for s, h in saved.items():
+            signal.signal(s, h if h is not None else signal.SIG_DFL)
+
+
 def main(argv: list[str] | None = None) -> int:
+    # OpenMP workers (small_gicp, Open3D) otherwise spin after each parallel region and, on a
+    # 2-core machine, starve the Python code between registrations (mapping ran 15-20 % slower).
+    # A default for this process only, set before any OpenMP runtime loads; a user's value wins.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     parser = build_parser()
     args = parser.parse_args(argv)
     # progress notes are for someone watching: piped or logged runs get warnings and errors only
@@ -691,22 +748,35 @@ def main(argv: list[str] | None = None) -> int:
     progress.set_enabled(not args.quiet)
     from .errors import ClcgraphError
 
+    received: list[int] = []
     try:
-        return int(args.func(args) or 0)
-    except ClcgraphError as e:
+        with _signals_raise(received):
+            return int(args.func(args) or 0)
+    except (KeyboardInterrupt, _Terminated, Exception) as e:
+        return _failure(args, e, received)
+
+
+def _failure(args, e: BaseException, received: list) -> int:
+    """One line on stderr for a command that did not finish (a traceback only with --verbose)."""
+    from .errors import ClcgraphError
+
+    if received or isinstance(e, KeyboardInterrupt):
         if args.verbose:
-            log.exception("clcgraph %s failed", args.command)
+            log.error("clcgraph %s interrupted", args.command, exc_info=e)
+        signum = received[0] if received else signal.SIGINT
+        left = "; nothing half-written in --out" if getattr(args, "out", None) else ""
+        print(f"clcgraph {args.command}: interrupted by {signal.Signals(signum).name}{left}", file=sys.stderr)
+        return _EXIT_ON_SIGNAL[signum]
+    if isinstance(e, ClcgraphError):
+        if args.verbose:
+            log.error("clcgraph %s failed", args.command, exc_info=e)
         print(f"clcgraph {args.command}: error: {e}", file=sys.stderr)
         return e.exit_code
-    except KeyboardInterrupt:
-        print(f"clcgraph {args.command}: interrupted", file=sys.stderr)
-        return 130
-    except Exception as e:  # an internal error: still one line unless --verbose
-        if args.verbose:
-            log.exception("clcgraph %s: internal error", args.command)
-        hint = "" if args.verbose else " (rerun with --verbose for a traceback)"
-        print(f"clcgraph {args.command}: internal error: {type(e).__name__}: {e}{hint}", file=sys.stderr)
-        return 1
+    if args.verbose:  # an internal error: still one line unless --verbose
+        log.error("clcgraph %s: internal error", args.command, exc_info=e)
+    hint = "" if args.verbose else " (rerun with --verbose for a traceback)"
+    print(f"clcgraph {args.command}: internal error: {type(e).__name__}: {e}{hint}", file=sys.stderr)
+    return 1
 
 
 if __name__ == "__main__":

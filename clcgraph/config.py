@@ -3,7 +3,7 @@
 Unknown keys are rejected (with their dotted path); values are type-checked and
 never silently "fixed". ``Config().to_dict()`` is what ``clcgraph config dump`` prints.
 Each section documents its fields in comments next to the defaults. This module
-imports nothing of clcgraph.
+imports nothing of clcgraph but ``errors`` (which imports nothing at all).
 
 SYNOPSIS
     cfg = Config.from_yaml("my.yaml")          # unknown key -> ConfigError naming it
@@ -20,9 +20,11 @@ from pathlib import Path
 
 import yaml
 
+from .errors import InputError
 
-class ConfigError(ValueError):
-    """A bad configuration value or key; errors.py wraps it into an InputError at the API."""
+
+class ConfigError(InputError, ValueError):
+    """A bad configuration value or key (an InputError, so ``except ClcgraphError`` catches it)."""
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,8 @@
 """The exception hierarchy. The CLI turns any ClcgraphError into one line on stderr.
 
 Messages name the file, topic or sensor involved and, where it helps, what to do.
+This module imports nothing, so every module may import it (config.py's ConfigError is an
+InputError; the layering test allows errors.py where it allows nothing else of ours).
 """
 
 

@@ -12,6 +12,7 @@ import yaml
 from clcgraph.config import Config
 from clcgraph.errors import DataError, InputError
 from clcgraph.geometry import R_from_r, T_from_rt, compose_rt, invert_rt, r_from_R, transform
+from clcgraph.outputs.atomic import marker_kind
 from clcgraph.outputs.results import load_result, write_results
 from clcgraph.types import (BoardGeometry, CameraBoardObservation, LidarBoardObservation, Problem, Rejected, Result,
                             SectorReport, Sensor)
@@ -195,13 +196,47 @@ def test_atomic_failure_keeps_previous_results(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["out"]
 
 
-def test_rewrite_replaces_old_dir(tmp_path):
+def test_rewrite_replaces_a_previous_output_whole(tmp_path):
+    out = tmp_path / "out"
+    write_results(make_result(), out)
+    assert marker_kind(out) == "results"
+    (out / "stale.txt").write_text("from the previous run")  # a file only the old output had
+    write_results(make_result(1), out)
+    assert not (out / "stale.txt").exists() and (out / "calibration.yaml").is_file()
+    assert marker_kind(out) == "results"
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]
+
+
+def test_a_directory_clcgraph_did_not_write_is_refused(tmp_path):
+    out = tmp_path / "capture"
+    out.mkdir()
+    (out / "note.txt").write_text("mine")
+    with pytest.raises(InputError, match=rf"{out}: .*not a clcgraph output.*--force"):
+        write_results(make_result(), out)
+    assert [p.name for p in out.iterdir()] == ["note.txt"] and (out / "note.txt").read_text() == "mine"
+    assert [p.name for p in tmp_path.iterdir()] == ["capture"]  # no temporary, no lock file left
+
+
+def test_force_replaces_a_foreign_directory_and_empty_is_fine(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
-    (out / "stale.txt").write_text("old")
-    write_results(make_result(), out)
-    assert not (out / "stale.txt").exists() and (out / "calibration.yaml").is_file()
-    assert [p.name for p in tmp_path.iterdir()] == ["out"]
+    (out / "note.txt").write_text("mine")
+    write_results(make_result(), out, force=True)
+    assert not (out / "note.txt").exists() and (out / "calibration.yaml").is_file()
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    write_results(make_result(), empty)
+    assert (empty / "calibration.yaml").is_file()
+
+
+def test_a_calibration_never_replaces_simulated_bags(tmp_path):
+    from clcgraph.outputs.atomic import atomic_dir
+
+    with atomic_dir(tmp_path / "sim", kind="session") as tmp:
+        (tmp / "pose000.bag").write_bytes(b"bag")
+    with pytest.raises(InputError, match="simulated bags, not calibration results"):
+        write_results(make_result(), tmp_path / "sim")
+    assert (tmp_path / "sim" / "pose000.bag").read_bytes() == b"bag"
 
 
 def test_unwritable_dir_is_input_error(tmp_path):
@@ -241,3 +276,18 @@ def test_covariance_symmetrized(tmp_path):
     got = load_result(tmp_path / "o")["covariance_rt_lidar0_sensor"]
     np.testing.assert_array_equal(got, got.T)
     np.testing.assert_allclose(got, C, atol=1e-12)
+
+
+def test_calibrate_bags_refuses_a_foreign_out_before_reading_any_bag(tmp_path):
+    """The issue's case: a note in --out was gone after calibrate_bags(..., out=...)."""
+    from clcgraph.api import calibrate_bags
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "note.txt").write_text("mine")
+    missing = str(tmp_path / "no-such-*.bag")
+    with pytest.raises(InputError, match=rf"{out}: exists and is not a clcgraph output"):
+        calibrate_bags([missing], ["/l0", "/l1"], out=out)  # refused first: the bags are never looked at
+    with pytest.raises(InputError, match="no such bag"):  # force passes the check; the work then fails
+        calibrate_bags([missing], ["/l0", "/l1"], out=out, force=True)
+    assert [p.name for p in out.iterdir()] == ["note.txt"] and (out / "note.txt").read_text() == "mine"

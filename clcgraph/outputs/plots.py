@@ -1,4 +1,5 @@
-"""Diagnostic PNG plots (matplotlib, Agg backend: no display needed).
+"""Diagnostic PNG plots (matplotlib Figure objects drawn by the Agg canvas: no display needed, and
+no pyplot state, so importing this module leaves a notebook's or an application's backend alone).
 
 Residuals are read from ``Result.residuals`` (keys any solver may fill; missing ones
 give a plot that says so):
@@ -18,23 +19,37 @@ import logging
 from pathlib import Path
 
 import matplotlib
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.cm import ScalarMappable
+from matplotlib.colors import Normalize
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from ..geometry import T_from_rt, transform  # noqa: E402
-from ..types import Result  # noqa: E402
+from ..geometry import T_from_rt, transform
+from ..types import Result
 
 log = logging.getLogger(__name__)
 
 _DPI = 100
 
 
+def _figure(**kwargs) -> Figure:
+    """A Figure with its own Agg canvas (pyplot's figure manager never sees it)."""
+    fig = Figure(**kwargs)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def subplots(*grid, figsize, layout=None, **kwargs):
+    """pyplot.subplots without pyplot's global state: (figure, axes); save with ``fig.savefig``.
+    ``kwargs`` go to ``Figure.subplots`` (sharex, squeeze, gridspec_kw, height_ratios, ...)."""
+    fig = _figure(figsize=figsize, layout=layout)
+    return fig, fig.subplots(*grid, **kwargs)
+
+
 def _save(fig, path) -> Path:
     path = Path(path)
     fig.savefig(path, dpi=_DPI, bbox_inches="tight")
-    plt.close(fig)
     return path
 
 
@@ -43,13 +58,13 @@ def _labels(result: Result) -> list[str]:
 
 
 def _colors(n):
-    cmap = plt.get_cmap("tab10")
+    cmap = matplotlib.colormaps["tab10"]
     return [cmap(i % 10) for i in range(n)]
 
 
 def plot_residual_histograms(result: Result, path) -> Path:
     """Histograms of LIDAR (m) and camera (px) residuals with the Gaussian of the re-estimated sigma."""
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    fig, axes = subplots(1, 2, figsize=(11, 4))
     for ax, key, unit, noise_key in ((axes[0], "lidar_m", "m", "lidar_m"), (axes[1], "camera_px", "px", "camera_px")):
         x = np.asarray(result.residuals.get(key, []), dtype=float).ravel()
         out_mask = np.asarray(result.residuals.get(key.split("_")[0] + "_outlier", np.zeros(x.shape, bool)), bool).ravel()
@@ -125,7 +140,7 @@ def plot_residuals_per_snapshot(result: Result, path) -> Path:
     n = len(result.problem.sensors)
     colors = _colors(n)
     labels = _labels(result)
-    fig, axes = plt.subplots(2, 1, figsize=(11, 6), sharex=True)
+    fig, axes = subplots(2, 1, figsize=(11, 6), sharex=True)
     for ax, kind, unit, nk in ((axes[0], "lidar", "m", "lidar_m"), (axes[1], "camera", "px", "camera_px")):
         plotted = set()
         for o in obs:
@@ -180,7 +195,7 @@ def _set_equal_3d(ax, pts):
 
 def plot_geometry(result: Result, path, *, with_boards: bool = True, axis_len_m: float = 0.3) -> Path:
     """3D view in lidar0: sensor axes triads (x red, y green, z blue) with labels, boards as outlines."""
-    fig = plt.figure(figsize=(9, 8))
+    fig = _figure(figsize=(9, 8))
     ax = fig.add_subplot(111, projection="3d")
     pts = []
     colors = _colors(len(result.problem.sensors))
@@ -218,7 +233,7 @@ def plot_geometry(result: Result, path, *, with_boards: bool = True, axis_len_m:
 def plot_sectors(result: Result, path) -> Path:
     """Polar map around the vehicle: worst-pair stdev and observations per sector; last snapshot's sector marked."""
     s = result.sectors
-    fig = plt.figure(figsize=(12, 5.5))
+    fig = _figure(figsize=(12, 5.5))
     if s is None:
         ax = fig.add_subplot(111)
         ax.text(0.5, 0.5, "no sector feedback in this result", ha="center", va="center")
@@ -237,8 +252,8 @@ def plot_sectors(result: Result, path) -> Path:
         finite = np.isfinite(vals)
         vmax = np.nanmax(vals[finite]) if finite.any() else 1.0
         vmax = vmax if vmax > 0 else 1.0
-        norm = plt.Normalize(0, vmax)
-        cm = plt.get_cmap(cmap)
+        norm = Normalize(0, vmax)
+        cm = matplotlib.colormaps[cmap]
         colors = [cm(norm(v)) if np.isfinite(v) else (0.8, 0.2, 0.2, 1) for v in vals]
         heights = np.where(finite, vals, vmax)
         ax.bar(theta, heights, width=width, color=colors, edgecolor="k", lw=0.3)
@@ -249,7 +264,7 @@ def plot_sectors(result: Result, path) -> Path:
         ax.set_theta_zero_location("N")  # vehicle forward (+x) up, counter-clockwise = toward +y (left)
         ax.set_rlabel_position(112.5)
         ax.set_title(f"{title} ({unit})\nforward = up, left = left", fontsize=10)
-        sm = plt.cm.ScalarMappable(norm=norm, cmap=cm)
+        sm = ScalarMappable(norm=norm, cmap=cm)
         fig.colorbar(sm, ax=ax, shrink=0.7, pad=0.1, label=unit)
     return _save(fig, path)
 
@@ -258,7 +273,7 @@ def plot_coverage(result: Result, path) -> Path:
     """Per sensor: board centres in the sensor frame (top view); cameras: detected corners in the image."""
     problem = result.problem
     n = len(problem.sensors)
-    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 4.2), squeeze=False)
+    fig, axes = subplots(1, n, figsize=(4.2 * n, 4.2), squeeze=False)
     centre_b = np.mean(_board_outline(problem.board)[:4], axis=0)
     rtb = np.asarray(result.rt_lidar0_board, float).reshape(-1, 6)
     for i, (ax, s) in enumerate(zip(axes[0], problem.sensors)):
@@ -305,7 +320,7 @@ def plot_uncertainty_grid(stdev_m: np.ndarray, xs: np.ndarray, ys: np.ndarray, p
     ``sensor_xy``: label -> (x, y) sensor positions to mark.
     """
     stdev_mm = np.asarray(stdev_m, float) * 1e3
-    fig, ax = plt.subplots(figsize=(7, 6))
+    fig, ax = subplots(figsize=(7, 6))
     vmax = None if cbmax_m is None else cbmax_m * 1e3
     im = ax.pcolormesh(xs, ys, stdev_mm, shading="nearest", cmap="viridis", vmin=0, vmax=vmax)
     cs = ax.contour(xs, ys, stdev_mm, colors="w", linewidths=0.6, levels=6)
@@ -349,7 +364,7 @@ def render_aligned_clouds(clouds: dict, rt_lidar0_sensor: dict, path_png, *, vie
         if v not in _VIEWS:
             raise ValueError(f"unknown view {v!r}; one of {sorted(_VIEWS)}")
     moved = align_clouds(clouds, rt_lidar0_sensor, max_points=max_points, seed=seed)
-    fig, axes = plt.subplots(1, len(views), figsize=(7 * len(views), 6.5), squeeze=False)
+    fig, axes = subplots(1, len(views), figsize=(7 * len(views), 6.5), squeeze=False)
     colors = _colors(len(clouds))
     for ax, v in zip(axes[0], views):
         a, b, la, lb = _VIEWS[v]
@@ -381,14 +396,13 @@ def plot_all(result: Result, out_dir) -> dict[str, Path]:
             out[name] = fn(result, Path(out_dir) / name)
         except Exception:  # a diagnostic plot must never lose the calibration
             log.exception("could not draw %s", name)
-            plt.close("all")
     return out
 
 
 def plot_scan_preview(scan, path, *, title: str = "") -> Path:
     """One LIDAR scan: top view coloured by height, and a ring x azimuth range image."""
     pts = np.asarray(scan.points, float)[np.asarray(scan.valid, bool)]
-    fig, (a, b) = plt.subplots(1, 2, figsize=(13, 5), gridspec_kw={"width_ratios": [1, 1.6]})
+    fig, (a, b) = subplots(1, 2, figsize=(13, 5), gridspec_kw={"width_ratios": [1, 1.6]})
     if len(pts):
         s = a.scatter(pts[:, 0], pts[:, 1], c=pts[:, 2], s=0.3, cmap="viridis")
         fig.colorbar(s, ax=a, label="z [m]")
@@ -414,7 +428,7 @@ def plot_image_preview(image, path, *, title: str = "") -> Path:
     """One camera image as it was decoded (mono shown in gray, colour as RGB)."""
     px = np.asarray(image.pixels)
     h, w = px.shape[:2]
-    fig, ax = plt.subplots(figsize=(8, 8 * h / max(w, 1) + 0.5))
+    fig, ax = subplots(figsize=(8, 8 * h / max(w, 1) + 0.5))
     if px.ndim == 3:
         ax.imshow(px[..., ::-1])  # BGR -> RGB
     else:
@@ -429,7 +443,7 @@ def plot_segmentation(scan, debug, result, path) -> Path:
     the accepted board, and a zoom on the board (or the best candidate) from the sensor."""
     pts = np.asarray(scan.points, float)
     ok = np.asarray(scan.valid, bool)
-    fig, (a, b) = plt.subplots(1, 2, figsize=(14, 6))
+    fig, (a, b) = subplots(1, 2, figsize=(14, 6))
     a.scatter(pts[ok, 0], pts[ok, 1], s=0.2, c="0.75")
     if debug.segments is not None and len(debug.segments):
         s = debug.segments

@@ -158,17 +158,19 @@ def write_results(
     config=None,
     problem_dump: Callable[[object, Path], None] | None = None,
     extra_files: dict | None = None,
+    force: bool = False,
 ) -> dict[str, Path]:
     """Write all result files into ``out_dir`` atomically; returns {name: final path}.
 
     ``problem_dump(problem, path)`` writes the replayable dump (to ``problem.npz``);
     ``extra_files`` maps file names to str/bytes contents or to a callable(path) that
-    writes the file (the report uses this). An existing ``out_dir`` is replaced as a whole.
+    writes the file (the report uses this). A previous clcgraph output in ``out_dir`` is
+    replaced as a whole; anything else there is refused unless ``force`` (outputs/atomic.py).
     Raises InputError naming ``out_dir`` if it cannot be written.
     """
     out_dir = Path(out_dir).absolute()
     names: dict[str, Path] = {}
-    with atomic_dir(out_dir) as tmp:
+    with atomic_dir(out_dir, force=force) as tmp:
         (tmp / CALIBRATION_FILE).write_text(
             "# clcgraph calibration: rt_a_b maps points in frame b into frame a (mrcal rt: Rodrigues r, then t)\n"
             + yaml.safe_dump(calibration_dict(result), sort_keys=False, default_flow_style=None, width=200)

@@ -119,9 +119,10 @@ def _write(w: BagWriter, rig: Rig, scans, images):
 
 def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str = "ros1", continuous: bool = False,
              tilt_max_deg: float = 40.0, tf_error=(1.0, 0.03), hold_s: float = 2.0, move_s: float = 1.0,
-             camera_hz: float = 5.0, clutter: bool = True, compress: bool = False) -> dict:
+             camera_hz: float = 5.0, clutter: bool = True, compress: bool = False, force: bool = False) -> dict:
     """Simulate a capture session of the rig in ``rig_yaml`` into ``out_dir`` (replaced atomically).
     ``compress``: lz4-compressed ROS1 bags (as `rosbag record --lz4` writes them).
+    ``force``: replace ``out_dir`` even if it is not a previous simulated session.
 
     Returns the truth dict that is also written to ``out_dir/truth.yaml``.
     """
@@ -129,7 +130,7 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
         raise InputError(f"unknown bag format {format!r}; use one of {', '.join(FORMATS)}")
     rig = rig_yaml if isinstance(rig_yaml, Rig) else load_rig(rig_yaml)
     rng = np.random.default_rng(seed)
-    with atomic_dir(out_dir) as tmp:
+    with atomic_dir(out_dir, kind="session", force=force) as tmp:
         static = static_meshes(rng, clutter=clutter)
         tf = _tf_static(rig, rng, tf_error)
         ext = ".bag" if format == "ros1" else ""

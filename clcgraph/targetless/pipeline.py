@@ -300,16 +300,13 @@ def _urdf(res: TargetlessResult) -> str:
 
 
 def _plots(res: TargetlessResult, d: Path, o) -> list:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from ..outputs.plots import subplots  # Figure objects: the user's matplotlib backend is left alone
 
     out = []
     mp = res.map_result
     P = mp.poses()
     kf = np.array(mp.keyframe_ids)
-    fig, ax = plt.subplots(figsize=(8, 6))
+    fig, ax = subplots(figsize=(8, 6))
     from .mapping import voxel_down
 
     near = [mp.frames[k].points[np.linalg.norm(mp.frames[k].points, axis=1) <= o.viz_max_range] for k in kf]
@@ -324,11 +321,10 @@ def _plots(res: TargetlessResult, d: Path, o) -> list:
     ax.set_title("map (top view) and trajectory")
     ax.legend(loc="upper left", bbox_to_anchor=(1, 1))
     fig.savefig(d / "map_top.png", dpi=90, bbox_inches="tight")
-    plt.close(fig)
     out.append("map_top.png")
     for topic, rows in res.per_frame.items():
         name = topic.strip("/").replace("/", "_")
-        fig, ax = plt.subplots(figsize=(7, 3.5))
+        fig, ax = subplots(figsize=(7, 3.5))
         x = np.arange(len(rows))
         ax.bar(x - 0.2, [r["score_guess"] for r in rows], 0.4, label="initial guess")
         ax.bar(x + 0.2, [r["score_final"] for r in rows], 0.4, label="final")
@@ -337,17 +333,17 @@ def _plots(res: TargetlessResult, d: Path, o) -> list:
         ax.set_title(f"{topic}: per-frame scores")
         ax.legend()
         fig.savefig(d / f"scores_{name}.png", dpi=90, bbox_inches="tight")
-        plt.close(fig)
         out.append(f"scores_{name}.png")
         fds = res.frame_data.get(topic)
         if fds:
-            out += _alignment_plots(res, topic, fds, d, o, plt)
+            out += _alignment_plots(res, topic, fds, d, o)
     return out
 
 
-def _alignment_plots(res: TargetlessResult, topic: str, fds, d: Path, o, plt) -> list:
+def _alignment_plots(res: TargetlessResult, topic: str, fds, d: Path, o) -> list:
     """Before/after views of one frame near the sensor (top and side), and the distances of all
     frames' points to the dense map before and after."""
+    from ..outputs.plots import subplots
     from .mapping import voxel_down
 
     name = topic.strip("/").replace("/", "_")
@@ -357,7 +353,7 @@ def _alignment_plots(res: TargetlessResult, topic: str, fds, d: Path, o, plt) ->
     box = 10.0  # m around the sensor: far enough for structure, near enough to see centimetres
     tg = voxel_down(fd.target_pts, o.calibration_viz_leaf_size / 3)
     tg = tg[np.all(np.abs(tg[:, :2] - c[:2]) < box, axis=1)]
-    fig, axs = plt.subplots(2, 2, figsize=(13, 8), height_ratios=[2, 1], layout="constrained")
+    fig, axs = subplots(2, 2, figsize=(13, 8), height_ratios=[2, 1], layout="constrained")
     for col, (T, title) in enumerate(((before, "before (tf_static)"), (after, "after"))):
         s = fd.source_pts @ T[:3, :3].T + T[:3, 3]
         s = s[np.all(np.abs(s[:, :2] - c[:2]) < box, axis=1)]
@@ -371,8 +367,7 @@ def _alignment_plots(res: TargetlessResult, topic: str, fds, d: Path, o, plt) ->
             a.set_title(f"{title}: {'top' if row == 0 else 'side'} view, {box:.0f} m around the sensor")
     axs[0, 1].legend(loc="upper left", bbox_to_anchor=(1, 1))
     fig.savefig(d / f"aligned_{name}.png", dpi=90, bbox_inches="tight")
-    plt.close(fig)
-    fig, ax = plt.subplots(figsize=(7, 3.5))
+    fig, ax = subplots(figsize=(7, 3.5))
     bins = np.linspace(0, o.calibration_eval_max_corr_distance * 3, 61)
     for T, lab, col in ((before, "before", "C0"), (after, "after", "C3")):
         dist = np.concatenate([f.kdtree.query(f.source_pts[::4] @ T[:3, :3].T + T[:3, 3])[0] for f in fds])
@@ -383,16 +378,17 @@ def _alignment_plots(res: TargetlessResult, topic: str, fds, d: Path, o, plt) ->
     ax.set_title(f"{topic}: all {len(fds)} calibration frames")
     ax.legend()
     fig.savefig(d / f"distances_{name}.png", dpi=90, bbox_inches="tight")
-    plt.close(fig)
     return [f"aligned_{name}.png", f"distances_{name}.png"]
 
 
-def write_targetless_outputs(res: TargetlessResult, out_dir, *, config: Config | None = None) -> dict:
-    """Write calibration.yaml, static_tf.txt, urdf_snippet.xml, report.html (+ PNGs) atomically into out_dir."""
+def write_targetless_outputs(res: TargetlessResult, out_dir, *, config: Config | None = None,
+                             force: bool = False) -> dict:
+    """Write calibration.yaml, static_tf.txt, urdf_snippet.xml, report.html (+ PNGs) atomically into out_dir
+    (a previous clcgraph output there is replaced; anything else only with ``force``)."""
     import yaml
 
     out_dir = Path(out_dir)
-    with atomic_dir(out_dir) as tmp:
+    with atomic_dir(out_dir, force=force) as tmp:
         cal = calibration_dict(res)
         (tmp / "calibration.yaml").write_text(yaml.safe_dump(cal, sort_keys=False))
         (tmp / "timings.yaml").write_text(yaml.safe_dump({"timings_s": {k: float(v) for k, v in res.timings_s.items()},
