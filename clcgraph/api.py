@@ -455,14 +455,18 @@ def compare_to_truth(result: Result, truth: dict) -> list[dict]:
 
 
 def run_demo(out=None, *, config=None, seed: int = 0) -> tuple[Result, list[dict]]:
-    """`clcgraph demo`: simulate data/synthetic/demo if missing, calibrate it, compare to truth."""
+    """`clcgraph demo`: simulate data/synthetic/demo if missing (or of another board), calibrate it,
+    compare to truth."""
     import yaml
 
     from .sim.capture import DEMO_DIR, DEMO_RIG, simulate_demo
+    from .sim.rig import load_rig
 
-    if not (DEMO_DIR / "truth.yaml").exists():
+    truth_path = DEMO_DIR / "truth.yaml"
+    # simulated once; again when the rig's board changed (a session simulated by an older clcgraph)
+    if not truth_path.exists() or yaml.safe_load(truth_path.read_text()).get("board") != load_rig(DEMO_RIG).board.spec():
         simulate_demo(seed=seed)
-    truth = yaml.safe_load((DEMO_DIR / "truth.yaml").read_text())
+    truth = yaml.safe_load(truth_path.read_text())
     topics = [s["topic"] for s in truth["sensors"]]
     models = [DEMO_RIG.parent / s["model"] for s in truth["sensors"] if s["kind"] == "camera"]
     result = calibrate_bags([DEMO_DIR / "*.bag"], topics, models, out=out or DEMO_DIR.parent / "demo-out",

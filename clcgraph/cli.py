@@ -324,6 +324,9 @@ def _add_simulate(sub):
                              continuous=args.continuous, seed=args.seed, compress=args.compress)
         print(f"wrote {len(truth['snapshots'])} board poses of {len(truth['sensors'])} sensors into {args.out} "
               f"(truth in {args.out}/truth.yaml)")
+        b = truth["board"]
+        print(f"board: {{corners: {b['corners']}, square_m: {b['square_m']}, size_m: {b['size_m']}, "
+              f"pattern_offset_m: {b['pattern_offset_m']}}}  (the config's board: section to solve these bags)")
         return 0
 
     p.set_defaults(func=run)

@@ -153,3 +153,21 @@ def test_cli_detect(tmp_path, clean, capsys):
     assert "found 100 corners" in out and "rejected: no full 10x10 chessboard" in out
     assert "1/2 images with a chessboard" in out
     assert len(list((tmp_path / "png").glob("*.png"))) == 2
+
+
+def test_detector_follows_the_board(monkeypatch):
+    """auto: mrgingham for a square grid, OpenCV for a non-square one (mrgingham finds only NxN
+    grids) or when mrgingham is not installed; a named detector is used as named, and naming
+    mrgingham for a non-square board is a one-line InputError."""
+    from clcgraph.errors import InputError
+    from clcgraph.frontend import camera_board
+
+    nonsquare = BoardGeometry.from_spec(corners=[7, 5], square_m=0.095, size_m=[0.85, 0.61])
+    assert camera_board.choose_detector(DetectionOptions(), BOARD) == "mrgingham"
+    assert camera_board.choose_detector(DetectionOptions(), nonsquare) == "opencv"
+    assert camera_board.choose_detector(DetectionOptions(detector="opencv"), BOARD) == "opencv"
+    with pytest.raises(InputError, match=r"^detection.detector: mrgingham finds only square grids, the board has "
+                                         r"7x5 inner corners: use detector auto or opencv$"):
+        camera_board.choose_detector(DetectionOptions(detector="mrgingham"), nonsquare)
+    monkeypatch.setattr(camera_board.shutil, "which", lambda name: None)
+    assert camera_board.choose_detector(DetectionOptions(), BOARD) == "opencv"
