@@ -153,6 +153,7 @@ class BoardGeometry:
 
     @property
     def is_square_grid(self) -> bool:
+        """NxN inner corners (what mrgingham can find)."""
         return self.corners_x == self.corners_y
 
 

@@ -229,7 +229,7 @@ def choose_detector(options, board: BoardGeometry) -> str:
     handles the board (mrgingham: square grids only, when installed; else OpenCV)."""
     if options.detector not in ("auto", "mrgingham", "opencv"):
         raise InputError(f"unknown detector {options.detector!r}: use auto, mrgingham or opencv")
-    square = board.corners_x == board.corners_y
+    square = board.is_square_grid
     if options.detector == "auto":
         if square and shutil.which(MRGINGHAM) is None:
             _warn_once("mrgingham not installed (apt install mrgingham): detecting chessboards with OpenCV")
