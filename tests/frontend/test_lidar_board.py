@@ -39,7 +39,7 @@ def _cut(scan, hit) -> bool:
     """Whether something in front (a pole) cuts the board: a ring's board returns (ray-caster
     truth) break off for more than 3 azimuth steps."""
     az, ring = np.arctan2(scan.points[hit, 1], scan.points[hit, 0]), scan.ring[hit]
-    step = 2 * np.pi / (len(scan.points) / (ring.max() + 1))
+    step = 2 * np.pi * (scan.ring.max() + 1) / len(scan.points)  # points per ring and rotation
     for r in np.unique(ring):
         a = az[ring == r]
         a = np.sort((a - np.arctan2(np.sin(a).mean(), np.cos(a).mean()) + np.pi) % (2 * np.pi))
