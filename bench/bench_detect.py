@@ -22,7 +22,7 @@ def _render(r, t, rng, S=3):
     board = BoardGeometry()
     R, _ = cv2.Rodrigues(np.asarray(r, float))
     t = np.asarray(t, float)
-    s, n = board.spacing_m, board.corners_x
+    s, n = board.square_m, board.corners_x
     cx, cy = (W - 1) / 2, (H - 1) / 2
     off = (np.arange(S) + 0.5) / S - 0.5
     uu, vv = np.meshgrid((np.arange(W)[:, None] + off).ravel(), (np.arange(H)[:, None] + off).ravel())
@@ -45,7 +45,7 @@ def main() -> str:
 
     from clcgraph.config import DetectionOptions
     from clcgraph.frontend.camera_board import detect_corners
-    from clcgraph.types import Image
+    from clcgraph.types import BoardGeometry, Image
 
     rng = np.random.default_rng(0)
     imgs, truth = [], []
@@ -58,7 +58,7 @@ def main() -> str:
         for jobs in (1, 2):
             o = replace(DetectionOptions(), detector=det, jobs=jobs)
             t0 = time.perf_counter()
-            out = detect_corners(imgs, o)
+            out = detect_corners(imgs, o, BoardGeometry())
             dt = time.perf_counter() - t0
             found = [(c, q) for c, q in zip(out, truth) if isinstance(c, np.ndarray)]
             rms = np.sqrt(np.mean([np.mean(np.sum((c - q) ** 2, axis=1)) for c, q in found])) if found else np.nan

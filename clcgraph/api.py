@@ -54,7 +54,11 @@ _DETECT_BATCH = 16
 
 
 def expand_bags(patterns: Sequence[str | Path]) -> list[Path]:
-    """Bag paths from globs or paths, sorted, duplicates dropped; InputError for no match."""
+    """Bag paths from globs, paths or directories, sorted, duplicates dropped; InputError for no match.
+
+    A directory that is not itself a ROS2 bag (no metadata.yaml) means the bags in it: its
+    ROS1 ``*.bag`` files and its ROS2 bag subdirectories.
+    """
     out: list[Path] = []
     for pat in patterns:
         matches = sorted(glob.glob(str(pat)))
@@ -63,8 +67,21 @@ def expand_bags(patterns: Sequence[str | Path]) -> list[Path]:
                 matches = [str(pat)]
             else:
                 raise InputError(f"{pat}: no such bag (nothing matches this path or glob)")
-        out.extend(Path(m) for m in matches if Path(m) not in out)
+        for m in map(Path, matches):
+            inside = [m]
+            if m.is_dir() and not (m / "metadata.yaml").exists():
+                inside = sorted(p for p in m.iterdir()
+                                if (p.suffix == ".bag" and p.is_file()) or (p / "metadata.yaml").exists())
+                if not inside:
+                    raise InputError(f"{m}: a directory with no ROS1 .bag file and no ROS2 bag (a directory "
+                                     "with metadata.yaml) in it")
+            out.extend(p for p in inside if p not in out)
     return out
+
+
+def board_geometry(config=None) -> BoardGeometry:
+    """The physical board of the config's ``board`` section."""
+    return BoardGeometry.from_spec(**dataclasses.asdict(_config(config).board))
 
 
 def _config(config) -> Config:
@@ -139,7 +156,7 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
     """
     clock = _Clock(timings)
     from . import cameras
-    from .frontend.camera_board import detect_corners
+    from .frontend.camera_board import choose_detector, detect_corners
     from .frontend.snapshots import assemble_snapshots
 
     cfg = _config(config)
@@ -154,6 +171,9 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
     if len(sensors) < 2:
         raise InputError(f"only one sensor ({sensors[0].topic}): calibration needs >= 2 sensors")
 
+    board = board_geometry(cfg)
+    if camera_topics:  # a detector that cannot handle the board fails here, before the bags are read
+        log.info("board %s; chessboard detector %s", board.spec(), choose_detector(cfg.detection, board))
     with clock("read"):
         snaps, rejected = assemble_snapshots(paths, lidar_topics, camera_topics, cfg.snapshots,
                                              progress=lambda it: progress(it, desc="reading bags", unit="bag"))
@@ -161,8 +181,6 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
     if not snaps:
         raise DataError(f"no usable snapshot in {len(paths)} bag(s): "
                         + (rejected[0].reason if rejected else "no messages on the topics"))
-    d = cfg.detection
-    board = BoardGeometry(corners_x=d.corners_x, corners_y=d.corners_y, spacing_m=d.spacing_m, margin_m=d.margin_m)
 
     lidar_obs: list[LidarBoardObservation] = []
     visibility: dict[int, np.ndarray] = {}
@@ -195,7 +213,7 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
                                 f"{models[j]} is {w}x{h}; give the model of this camera")
         batches = [ims[k:k + _DETECT_BATCH] for k in range(0, len(ims), _DETECT_BATCH)]
         found = [r for batch in progress(batches, desc=f"detecting {t}", unit="batch")
-                 for r in detect_corners([im for _, im in batch], d)]
+                 for r in detect_corners([im for _, im in batch], cfg.detection, board)]
         for (k, _), r in zip(ims, found):
             if isinstance(r, Rejected):
                 rejected.append(dataclasses.replace(r, sensor=i, snapshot=k))
@@ -268,19 +286,19 @@ def segment(scans, *, config=None, sensor: int = 0, snapshots: Sequence[int] | N
     from .frontend.lidar_board import segment_many
 
     cfg = _config(config)
-    if board is None:
-        d = cfg.detection
-        board = BoardGeometry(corners_x=d.corners_x, corners_y=d.corners_y, spacing_m=d.spacing_m, margin_m=d.margin_m)
+    board = board_geometry(cfg) if board is None else board
     snapshots = list(range(len(scans))) if snapshots is None else list(snapshots)
     bar = lambda it, n: progress(it, desc=f"segmenting LIDAR {sensor}", total=n, unit="scan")  # noqa: E731
     return segment_many(scans, cfg.segmentation, cfg.lidar, board, sensor=sensor, snapshots=snapshots, progress=bar)
 
 
-def detect(images, *, config=None) -> list:
-    """Chessboard corners per image ((N,2) pixels in board order) or Rejected(reason)."""
+def detect(images, *, config=None, board: BoardGeometry | None = None) -> list:
+    """Chessboard corners per image ((N,2) pixels in board order) or Rejected(reason);
+    ``board`` defaults to the config's ``board`` section."""
     from .frontend.camera_board import detect_corners
 
-    return detect_corners(list(images), _config(config).detection)
+    cfg = _config(config)
+    return detect_corners(list(images), cfg.detection, board_geometry(cfg) if board is None else board)
 
 
 # ---------------------------------------------------------------- solve
@@ -459,14 +477,18 @@ def compare_to_truth(result: Result, truth: dict) -> list[dict]:
 
 
 def run_demo(out=None, *, config=None, seed: int = 0, force: bool = False) -> tuple[Result, list[dict]]:
-    """`clcgraph demo`: simulate data/synthetic/demo if missing, calibrate it, compare to truth."""
+    """`clcgraph demo`: simulate data/synthetic/demo if missing (or of another board), calibrate it,
+    compare to truth."""
     import yaml
 
     from .sim.capture import DEMO_DIR, DEMO_RIG, simulate_demo
+    from .sim.rig import load_rig
 
-    if not (DEMO_DIR / "truth.yaml").exists():
+    truth_path = DEMO_DIR / "truth.yaml"
+    # simulated once; again when the rig's board changed (a session simulated by an older clcgraph)
+    if not truth_path.exists() or yaml.safe_load(truth_path.read_text()).get("board") != load_rig(DEMO_RIG).board.spec():
         simulate_demo(seed=seed)
-    truth = yaml.safe_load((DEMO_DIR / "truth.yaml").read_text())
+    truth = yaml.safe_load(truth_path.read_text())
     topics = [s["topic"] for s in truth["sensors"]]
     models = [DEMO_RIG.parent / s["model"] for s in truth["sensors"] if s["kind"] == "camera"]
     result = calibrate_bags([DEMO_DIR / "*.bag"], topics, models, out=out or DEMO_DIR.parent / "demo-out",

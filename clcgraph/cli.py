@@ -36,13 +36,16 @@ def _command(add):
 @_command
 def _add_show_bag(sub):
     p = sub.add_parser("show-bag", help="topics, types, counts, time spans and PointCloud2 layouts of bags")
-    p.add_argument("bags", nargs="+", metavar="BAG", help="ROS1 .bag files or ROS2 bag directories")
+    p.add_argument("bags", nargs="+", metavar="BAG",
+                   help="ROS1 .bag files, ROS2 bag directories, globs, or directories of bags")
     p.add_argument("--png", default=None, metavar="DIR",
                    help="also draw each LIDAR's first scan and each camera's first image into DIR")
 
     def run(args):
+        from .api import expand_bags
         from .frontend.bag import POINTCLOUD2, bag_info, first_raw_message
 
+        args.bags = expand_bags(args.bags)
         if args.png:
             _bag_previews(args.bags, args.png)
 
@@ -161,34 +164,31 @@ def _add_replay(sub):
 @_command
 def _add_detect(sub):
     p = sub.add_parser("detect", help="chessboard detection in the images of a topic: found or rejected (why)")
-    p.add_argument("bags", nargs="+", metavar="BAG", help="bag files/dirs")
+    p.add_argument("bags", nargs="+", metavar="BAG", help="bag files/dirs, globs, or directories of bags")
     p.add_argument("--topic", required=True, help="the image topic")
     p.add_argument("--png", default=None, metavar="DIR", help="write an annotated PNG per image here")
-    p.add_argument("--detector", default=None, choices=["mrgingham", "opencv"], help="override the config")
+    p.add_argument("--detector", default=None, choices=["auto", "mrgingham", "opencv"], help="override the config")
     p.add_argument("--every", action="store_true", help="every image, not just the first of each bag")
-    p.add_argument("--config", default=None, help="YAML config (section 'detection')")
+    p.add_argument("--config", default=None, help="YAML config (sections 'board', 'detection')")
+    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE",
+                   help="override one config key (repeatable), e.g. 'board.corners=[7,5]'")
 
     def run(args):
-        from dataclasses import replace
         from pathlib import Path
 
         import cv2
         import numpy as np
 
-        from .config import Config, ConfigError
-        from .errors import InputError
+        from .api import board_geometry, expand_bags
         from .frontend.camera_board import detect_in_bags, draw_detection
 
-        try:
-            cfg = Config.from_yaml(args.config) if args.config else Config()
-        except ConfigError as e:
-            raise InputError(str(e)) from None
-        opts = cfg.detection if args.detector is None else replace(cfg.detection, detector=args.detector)
+        cfg = _load_config(args)
         outdir = Path(args.png) if args.png else None
         if outdir:
             outdir.mkdir(parents=True, exist_ok=True)
         nfound = ntotal = 0
-        for k, (im, res) in enumerate(detect_in_bags(args.bags, args.topic, opts, every=args.every)):
+        for k, (im, res) in enumerate(detect_in_bags(expand_bags(args.bags), args.topic, cfg.detection,
+                                                     board_geometry(cfg), every=args.every)):
             ntotal += 1
             if isinstance(res, np.ndarray):
                 nfound += 1
@@ -200,7 +200,7 @@ def _add_detect(sub):
         print(f"{nfound}/{ntotal} images with a chessboard")
         return 0
 
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, overrides=lambda a: [("detection", "detector", a.detector)] if a.detector else [])
 
 
 @_command
@@ -208,13 +208,15 @@ def _add_segment(sub):
     from .config import SegmentationOptions
 
     p = sub.add_parser("segment", help="LIDAR board segmentation of a topic: the board's plane or why not, per scan")
-    p.add_argument("bags", nargs="+", metavar="BAG", help="bag files/dirs (one scan per bag unless --every)")
+    p.add_argument("bags", nargs="+", metavar="BAG",
+                   help="bag files/dirs, globs, or directories of bags (one scan per bag unless --every)")
     p.add_argument("--topic", required=True, help="the PointCloud2 topic")
     p.add_argument("--every", action="store_true", help="every scan, not just the first of each bag")
     p.add_argument("--dump", default=None, metavar="FILE.npz",
                    help="intermediate stages: segments, clusters, candidate planes with verdicts, accepted points")
     p.add_argument("--png", default=None, metavar="DIR", help="a picture of each scan's segmentation here")
-    p.add_argument("--config", default=None, metavar="FILE.yaml", help="settings (sections 'lidar', 'segmentation')")
+    p.add_argument("--config", default=None, metavar="FILE.yaml",
+                   help="settings (sections 'board', 'lidar', 'segmentation')")
     p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one config key (repeatable)")
     p.add_argument("--debug-region", default=None, metavar="XMIN,XMAX,YMIN,YMAX",
                    help="report every candidate board plane in this region of the LIDAR's frame, with its verdict")
@@ -225,14 +227,14 @@ def _add_segment(sub):
 
         import numpy as np
 
+        from .api import board_geometry
         from .frontend.lidar_board import Debug, segment_many
         from .outputs.plots import plot_segmentation
-        from .types import BoardGeometry, LidarBoardObservation
+        from .types import LidarBoardObservation
 
         cfg = _load_config(args)
         scans = _lidar_scans(args.bags, args.topic, every=args.every)
-        d = cfg.detection
-        board = BoardGeometry(corners_x=d.corners_x, corners_y=d.corners_y, spacing_m=d.spacing_m, margin_m=d.margin_m)
+        board = board_geometry(cfg)
         outdir = Path(args.png) if args.png else None
         if outdir:
             outdir.mkdir(parents=True, exist_ok=True)
@@ -276,7 +278,7 @@ def _add_segment(sub):
 @_command
 def _add_infer_lidar_spacing(sub):
     p = sub.add_parser("infer-lidar-spacing", help="number of rings and Npoints_per_rotation of a LIDAR topic")
-    p.add_argument("bags", nargs="+", metavar="BAG", help="bag files/dirs")
+    p.add_argument("bags", nargs="+", metavar="BAG", help="bag files/dirs, globs, or directories of bags")
     p.add_argument("--topic", required=True, help="the PointCloud2 topic")
 
     def run(args):
@@ -335,6 +337,9 @@ def _add_simulate(sub):
                              continuous=args.continuous, seed=args.seed, compress=args.compress, force=args.force)
         print(f"wrote {len(truth['snapshots'])} board poses of {len(truth['sensors'])} sensors into {args.out} "
               f"(truth in {args.out}/truth.yaml)")
+        b = truth["board"]
+        print(f"board: {{corners: {b['corners']}, square_m: {b['square_m']}, size_m: {b['size_m']}, "
+              f"pattern_offset_m: {b['pattern_offset_m']}}}  (the config's board: section to solve these bags)")
         return 0
 
     p.set_defaults(func=run)
@@ -467,7 +472,8 @@ def _add_solve(sub):
                        description="Calibrate LIDARs and cameras from bags of a moving chessboard. "
                        "Writes calibration.yaml, one .cameramodel per sensor, report.html and a replayable dump.")
     p.add_argument("models", nargs="*", metavar="MODEL.cameramodel", help="one per camera topic, in --topics order")
-    p.add_argument("--bag", action="append", required=True, metavar="GLOB", help="bag file/dir or glob (repeatable)")
+    p.add_argument("--bag", action="append", required=True, metavar="GLOB",
+                   help="bag file/dir, glob, or directory of bags (repeatable)")
     p.add_argument("--topics", required=True, help="comma-separated LIDAR and camera topics; the first LIDAR is lidar0")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory: new, empty or an earlier output of this command (replaced whole)")
     _add_force(p)
@@ -489,7 +495,8 @@ def _add_solve(sub):
     p.add_argument("--prior-from-tf-static", default=None, metavar="SIGMA_RAD,SIGMA_M",
                    help="nominal poses from the bags' /tf_static as priors with these 1-sigmas: rotation (rad) "
                    "and translation (m), per axis")
-    p.add_argument("--detector", choices=["mrgingham", "opencv"], default=None, help="chessboard detector")
+    p.add_argument("--detector", choices=["auto", "mrgingham", "opencv"], default=None,
+                   help="chessboard detector (default auto: mrgingham for square grids, else OpenCV)")
     p.add_argument("--debug-region", default=None, metavar="XMIN,XMAX,YMIN,YMAX",
                    help="report every candidate board plane in this region of a LIDAR's frame, with its verdict")
     seg_flags = _section_flags(p, SegmentationOptions, "segmentation", "LIDAR segmentation")

@@ -91,11 +91,13 @@ class SegmentationOptions:
     point_plane_tolerance_m: float = 0.05
     max_gap_points_stage3: int = 5
     # Post-processing checks.
+    # Board sizes come from the 'board' section (the physical board, border included).
     # A plane with more than this share of its points outside a board-sized rectangle continues
     # past the board (a wall, a car); a smaller share touching it (a hand) is cut off.
     max_outside_fraction: float = 0.1
-    # ...and no board is larger than this across.
-    max_plane_size_m: float = 1.8
+    # ...and no board is larger than this across (m; None: the diagonal of board.size_m plus the
+    # edges' blooming by a point spacing).
+    max_plane_size_m: float | None = None
     # ...smaller than this fraction of the board's diagonal is something else (a crate, a sign).
     min_plane_size_fraction: float = 0.5
     # ...narrower than this fraction of the board's short side is a sliver (seed: 2nd dimension check).
@@ -114,17 +116,59 @@ class SegmentationOptions:
     debug_region: list | None = None
 
 
+def _pair(value, path: str, kind, *, positive: bool) -> list:
+    """[a, b] of ints or numbers, checked (a 2-list in a ``board`` key)."""
+    ok_type = (lambda v: isinstance(v, int) and not isinstance(v, bool)) if kind is int else \
+        (lambda v: isinstance(v, (int, float)) and not isinstance(v, bool))
+    if not (isinstance(value, (list, tuple)) and len(value) == 2 and all(map(ok_type, value))):
+        raise ConfigError(f"'{path}' must be two {'integers' if kind is int else 'numbers'} [along the width, "
+                          f"along the height], got {value!r}")
+    if positive and min(value) <= 0:
+        raise ConfigError(f"'{path}' must be positive, got {value!r}")
+    return [kind(v) for v in value]
+
+
+@dataclass(frozen=True)
+class BoardOptions:
+    # The chessboard as you measure it. Inner corners along the board's width and height (where
+    # four squares meet; a 10x10 board has 11x11 squares).
+    corners: list = field(default_factory=lambda: [10, 10])
+    # Square size (m).
+    square_m: float = 0.1
+    # The physical board, width x height (m): the pattern plus its white border (the default has
+    # a 0.1 m border beyond the outer squares). LIDARs see the whole board: measure its edges.
+    size_m: list = field(default_factory=lambda: [1.3, 1.3])
+    # The pattern's centre relative to the board's centre, along the width and height (m).
+    pattern_offset_m: list = field(default_factory=lambda: [0.0, 0.0])
+
+    def __post_init__(self):
+        corners = _pair(self.corners, "board.corners", int, positive=True)
+        size = _pair(self.size_m, "board.size_m", float, positive=True)
+        offset = _pair(self.pattern_offset_m, "board.pattern_offset_m", float, positive=False)
+        if min(corners) < 2:
+            raise ConfigError(f"'board.corners' must be >= 2 each (inner corners), got {self.corners!r}")
+        if self.square_m <= 0:
+            raise ConfigError(f"'board.square_m' must be positive, got {self.square_m!r}")
+        for k, axis in enumerate(("width", "height")):
+            pattern = (corners[k] + 1) * self.square_m
+            if abs(offset[k]) + pattern / 2 > size[k] / 2 + 1e-9:
+                raise ConfigError(f"'board.size_m': the pattern ({corners[k] + 1} squares of {self.square_m:g} m = "
+                                  f"{pattern:.3f} m along the {axis}, offset {offset[k]:g} m) does not fit on a "
+                                  f"{size[k]:g} m {axis}; size_m is the whole physical board")
+        object.__setattr__(self, "corners", corners)  # tuples from the API become plain lists
+        object.__setattr__(self, "size_m", size)
+        object.__setattr__(self, "pattern_offset_m", offset)
+
+
 @dataclass(frozen=True)
 class DetectionOptions:
-    detector: str = "mrgingham"  # or "opencv"
+    # auto: mrgingham for square grids (NxN inner corners), OpenCV for the others (mrgingham
+    # handles only square grids); or name one of them.
+    detector: typing.Literal["auto", "mrgingham", "opencv"] = "auto"
     # With mrgingham: try OpenCV on the images where mrgingham found nothing (small boards).
     fallback_opencv: bool = True
     # Refine the detected corners to the image's saddle points (cv2.cornerSubPix).
     refine_subpix: bool = True
-    corners_x: int = 10
-    corners_y: int = 10
-    spacing_m: float = 0.1
-    margin_m: float = 0.1
     jobs: int = 2
     # Reject a grid whose neighbour steps change by more than this fraction of a step.
     max_grid_irregularity: float = 0.5
@@ -285,6 +329,7 @@ class Config:
     snapshots: SnapshotOptions = field(default_factory=SnapshotOptions)
     lidar: LidarOptions = field(default_factory=LidarOptions)
     segmentation: SegmentationOptions = field(default_factory=SegmentationOptions)
+    board: BoardOptions = field(default_factory=BoardOptions)
     detection: DetectionOptions = field(default_factory=DetectionOptions)
     solve: SolveOptions = field(default_factory=SolveOptions)
     sectors: SectorOptions = field(default_factory=SectorOptions)
@@ -357,10 +402,14 @@ def _field_comments(cls) -> dict[str, list[str]]:
     return out
 
 
-# Keys that existed once: a config that still has one gets the new names, not "unknown key".
+# Keys that existed once: a config that still has one gets where it went, not "unknown key".
+_BOARD_HINT = ("moved to the 'board' section, which describes the physical board: board: {corners: [nx, ny], "
+               "square_m: s, size_m: [width, height]} (the old margin_m was counted from the outer inner corners: "
+               "width = (nx - 1) * s + 2 * margin_m)")
 _REPLACED_KEYS = {
     "solve.prior_from_tf_static_sigma": "was one sigma for both radians and metres; set "
     "solve.prior_from_tf_static_sigma_rad and solve.prior_from_tf_static_sigma_m instead",
+    **{f"detection.{k}": _BOARD_HINT for k in ("corners_x", "corners_y", "spacing_m", "margin_m")},
 }
 
 
@@ -371,8 +420,8 @@ def _build(cls, d: dict, prefix: str):
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(d) - names)
     for key in unknown:
-        if prefix + key in _REPLACED_KEYS:
-            raise ConfigError(f"config key '{prefix}{key}' {_REPLACED_KEYS[prefix + key]}")
+        if prefix + str(key) in _REPLACED_KEYS:
+            raise ConfigError(f"'{prefix}{key}' {_REPLACED_KEYS[prefix + str(key)]}")
     if unknown:
         raise ConfigError(
             f"unknown config key '{prefix}{unknown[0]}' (known: {', '.join(sorted(names))})"

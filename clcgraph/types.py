@@ -79,40 +79,82 @@ class Snapshot:
 
 @dataclass(frozen=True)
 class BoardGeometry:
-    """A chessboard: ``corners_x`` by ``corners_y`` inner corners, ``spacing_m`` apart.
+    """A chessboard as people measure it: ``corners_x`` by ``corners_y`` inner corners
+    ``square_m`` apart, printed on a ``width_m`` x ``height_m`` board (pattern and white
+    border) whose pattern centre sits ``pattern_offset_m`` (along the width, the height)
+    from the board's centre.
 
-    Board frame: corner (row i, column j) at (j*spacing, i*spacing, 0), row-major
-    like mrgingham and mrcal; the board is the plane z = 0 and extends ``margin_m``
-    beyond the outer corners.
+    Board frame: corner (row i, column j) at (j*square_m, i*square_m, 0), row-major like
+    mrgingham and mrcal; x runs along the board's width, y along its height; the board is
+    the plane z = 0. The pattern's outer squares reach one square beyond the outer corners.
+    The default is a 10x10 board of 0.1 m squares with a 0.1 m border: 1.3 m square.
+
+    SYNOPSIS
+        b = BoardGeometry.from_spec(corners=[7, 5], square_m=0.095, size_m=[0.85, 0.61])
+        b.extent()   # (xmin, xmax, ymin, ymax) of the physical board in the board frame
+        b.spec()     # the same dict back, as the config's ``board:`` section writes it
     """
 
     corners_x: int = 10
     corners_y: int = 10
-    spacing_m: float = 0.1
-    margin_m: float = 0.1
+    square_m: float = 0.1
+    width_m: float = 1.3
+    height_m: float = 1.3
+    pattern_offset_m: tuple[float, float] = (0.0, 0.0)
+
+    def __post_init__(self):
+        pw, ph = self.pattern_size_m
+        ox, oy = self.pattern_offset_m
+        if min(self.corners_x, self.corners_y) < 2 or self.square_m <= 0:
+            raise ValueError(f"a board needs >= 2x2 inner corners and a positive square size, got "
+                             f"{self.corners_x}x{self.corners_y}, {self.square_m} m")
+        if abs(ox) + pw / 2 > self.width_m / 2 + 1e-9 or abs(oy) + ph / 2 > self.height_m / 2 + 1e-9:
+            raise ValueError(f"the {pw:.3f} x {ph:.3f} m pattern (offset {ox:g}, {oy:g} m) does not fit on the "
+                             f"{self.width_m:g} x {self.height_m:g} m board")
+
+    @classmethod
+    def from_spec(cls, *, corners, square_m, size_m, pattern_offset_m=(0.0, 0.0)) -> "BoardGeometry":
+        """From the config's ``board:`` keys (corners [nx, ny], square_m, size_m [w, h], pattern_offset_m)."""
+        return cls(int(corners[0]), int(corners[1]), float(square_m), float(size_m[0]), float(size_m[1]),
+                   (float(pattern_offset_m[0]), float(pattern_offset_m[1])))
+
+    def spec(self) -> dict:
+        """The config's ``board:`` keys (plain lists and floats, for YAML and JSON)."""
+        return {"corners": [self.corners_x, self.corners_y], "square_m": self.square_m,
+                "size_m": [self.width_m, self.height_m], "pattern_offset_m": list(self.pattern_offset_m)}
 
     def corners(self) -> np.ndarray:
         """(corners_y*corners_x, 3) corner positions in the board frame."""
         i, j = np.mgrid[0 : self.corners_y, 0 : self.corners_x]
         xyz = np.zeros((self.corners_y, self.corners_x, 3))
-        xyz[..., 0] = j * self.spacing_m
-        xyz[..., 1] = i * self.spacing_m
+        xyz[..., 0] = j * self.square_m
+        xyz[..., 1] = i * self.square_m
         return xyz.reshape(-1, 3)
+
+    @property
+    def pattern_size_m(self) -> tuple[float, float]:
+        """The printed squares' extent: (corners + 1) squares each way."""
+        return ((self.corners_x + 1) * self.square_m, (self.corners_y + 1) * self.square_m)
+
+    def centre(self) -> np.ndarray:
+        """(3,) the physical board's centre in the board frame."""
+        return np.array([(self.corners_x - 1) * self.square_m / 2 - self.pattern_offset_m[0],
+                         (self.corners_y - 1) * self.square_m / 2 - self.pattern_offset_m[1], 0.0])
 
     def extent(self) -> tuple[float, float, float, float]:
         """(xmin, xmax, ymin, ymax) of the physical board in the board frame."""
-        m = self.margin_m
-        return (
-            -m,
-            (self.corners_x - 1) * self.spacing_m + m,
-            -m,
-            (self.corners_y - 1) * self.spacing_m + m,
-        )
+        cx, cy, _ = self.centre()
+        return (cx - self.width_m / 2, cx + self.width_m / 2, cy - self.height_m / 2, cy + self.height_m / 2)
 
     @property
     def size_m(self) -> tuple[float, float]:
-        xmin, xmax, ymin, ymax = self.extent()
-        return (xmax - xmin, ymax - ymin)
+        """(width, height) of the physical board."""
+        return (self.width_m, self.height_m)
+
+    @property
+    def is_square_grid(self) -> bool:
+        """NxN inner corners (what mrgingham can find)."""
+        return self.corners_x == self.corners_y
 
 
 @dataclass(frozen=True, eq=False)

@@ -21,7 +21,7 @@ def render(r, t, *, blur=0.0, noise=2.0, seed=0, S=3):
     """(H,W) uint8 image of the board at rt_cam_board = (r, t), and (100,2) truth corners."""
     R, _ = cv2.Rodrigues(np.asarray(r, float))
     t = np.asarray(t, float)
-    s, n = BOARD.spacing_m, BOARD.corners_x
+    s, n = BOARD.square_m, BOARD.corners_x
     cx, cy = (W - 1) / 2, (H - 1) / 2
     off = (np.arange(S) + 0.5) / S - 0.5
     uu, vv = np.meshgrid((np.arange(W)[:, None] + off).ravel(), (np.arange(H)[:, None] + off).ravel())
@@ -61,7 +61,7 @@ def clean():
 @pytest.mark.parametrize("detector", DETECTORS)
 def test_clean_images_found_within_0p3px(clean, detector):
     imgs = [Image("cam", k, px, "mono8") for k, (px, _) in enumerate(clean)]
-    out = detect_corners(imgs, DetectionOptions(detector=detector))
+    out = detect_corners(imgs, DetectionOptions(detector=detector), BOARD)
     for o, (_, q) in zip(out, clean):
         assert isinstance(o, np.ndarray), o
         err = o - q  # same order as the board frame: the board is seen upright
@@ -77,7 +77,7 @@ def test_blurred_and_half_visible_rejected(detector):
     blurred, _ = render(r, t, blur=4.0)
     half, _ = render(r, (1.3, t[1], t[2]))  # board crosses the right image edge
     imgs = [Image("cam", i, px, "mono8") for i, px in enumerate([sharp_blur, blurred, half])]
-    out = detect_corners(imgs, DetectionOptions(detector=detector))
+    out = detect_corners(imgs, DetectionOptions(detector=detector), BOARD)
     assert isinstance(out[0], np.ndarray)
     assert not isinstance(out[1], np.ndarray) and "blur" in out[1].reason
     assert not isinstance(out[2], np.ndarray) and "no full" in out[2].reason
@@ -91,7 +91,7 @@ def test_colour_and_16bit(clean, detector):
     m16 = px.astype(np.uint16) * 16
     m16[5, 5:20] = 65535
     imgs = [Image("cam", 0, bgr, "bgr8"), Image("cam", 1, m16, "mono16")]
-    out = detect_corners(imgs, DetectionOptions(detector=detector))
+    out = detect_corners(imgs, DetectionOptions(detector=detector), BOARD)
     for o in out:
         assert isinstance(o, np.ndarray), o
         assert np.sqrt(np.mean(np.sum((o - q) ** 2, axis=1))) < 0.3
@@ -102,7 +102,7 @@ def test_rolled_board_canonical_order():
     """A board rolled by ~100 deg: ordering rotated by 90 deg so rows run left-to-right."""
     r, t = np.array([0, 0, np.pi / 2 + 0.2]), (0.4, -0.5, 2.5)
     px, q = render(r, t)
-    out = detect_corners([Image("cam", 0, px, "mono8")], DetectionOptions())[0]
+    out = detect_corners([Image("cam", 0, px, "mono8")], DetectionOptions(), BOARD)[0]
     assert isinstance(out, np.ndarray), out
     g = q.reshape(10, 10, 2)
     expected = np.swapaxes(g, 0, 1)[:, ::-1].reshape(-1, 2)  # truth, rotated by 90 deg
@@ -153,3 +153,21 @@ def test_cli_detect(tmp_path, clean, capsys):
     assert "found 100 corners" in out and "rejected: no full 10x10 chessboard" in out
     assert "1/2 images with a chessboard" in out
     assert len(list((tmp_path / "png").glob("*.png"))) == 2
+
+
+def test_detector_follows_the_board(monkeypatch):
+    """auto: mrgingham for a square grid, OpenCV for a non-square one (mrgingham finds only NxN
+    grids) or when mrgingham is not installed; a named detector is used as named, and naming
+    mrgingham for a non-square board is a one-line InputError."""
+    from clcgraph.errors import InputError
+    from clcgraph.frontend import camera_board
+
+    nonsquare = BoardGeometry.from_spec(corners=[7, 5], square_m=0.095, size_m=[0.85, 0.61])
+    assert camera_board.choose_detector(DetectionOptions(), BOARD) == "mrgingham"
+    assert camera_board.choose_detector(DetectionOptions(), nonsquare) == "opencv"
+    assert camera_board.choose_detector(DetectionOptions(detector="opencv"), BOARD) == "opencv"
+    with pytest.raises(InputError, match=r"^detection.detector: mrgingham finds only square grids, the board has "
+                                         r"7x5 inner corners: use detector auto or opencv$"):
+        camera_board.choose_detector(DetectionOptions(detector="mrgingham"), nonsquare)
+    monkeypatch.setattr(camera_board.shutil, "which", lambda name: None)
+    assert camera_board.choose_detector(DetectionOptions(), BOARD) == "opencv"

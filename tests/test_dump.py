@@ -24,7 +24,7 @@ def _problem():
     corners[3] = np.nan
     camera = (CameraBoardObservation(2, 0, corners), CameraBoardObservation(2, 2, rng.normal(size=(12, 2))))
     return Problem(
-        sensors, BoardGeometry(4, 3, 0.0254, 0.05), lidar, camera, np.array([10, 2**62 + 7, 30], np.int64),
+        sensors, BoardGeometry(4, 3, 0.0254, 0.2, 0.15, (0.01, -0.005)), lidar, camera, np.array([10, 2**62 + 7, 30], np.int64),
         rejected=(Rejected("no board", "segmentation", 1, 2), Rejected("blurry", "snapshot")),
         priors=(PosePrior(1, rng.normal(size=6), np.full(6, 0.1)),),
         lidar_visibility_points={0: rng.normal(size=(100, 3)), 1: np.zeros((0, 3))},
@@ -73,15 +73,44 @@ def test_no_pickle_and_versioning(tmp_path):
         arrays = {k: z[k] for k in z.files}
     assert all(a.dtype != object for a in arrays.values())
     meta = json.loads(str(arrays["meta"]))
-    assert meta["version"] == 1
-    meta["version"] = 2
+    assert meta["version"] == 2
+    meta["version"] = 3
     arrays["meta"] = np.array(json.dumps(meta))
     np.savez(tmp_path / "new.npz", **arrays)
-    with pytest.raises(DataError, match=r"new\.npz.*version 2"):
+    with pytest.raises(DataError, match=r"new\.npz.*version 3"):
         load_problem(tmp_path / "new.npz")
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
     with pytest.raises(DataError, match="junk.npz"):
         load_problem(tmp_path / "junk.npz")
+
+
+def _as_version_1(path, out, margin_m):
+    """A copy of dump ``path`` in format version 1 (board and config as version 1 wrote them)."""
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(str(arrays["meta"]))
+    b = meta["board"]
+    old = dict(corners_x=b["corners"][0], corners_y=b["corners"][1], spacing_m=b["square_m"], margin_m=margin_m)
+    meta["config"].pop("board")
+    meta["config"]["detection"].update(old, detector="mrgingham")
+    meta.update(version=1, board=old)
+    arrays["meta"] = np.array(json.dumps(meta))
+    np.savez(out, **arrays)
+    return out
+
+
+def test_version_1_dumps_still_load(tmp_path):
+    """A version 1 dump (board margin counted from the outer inner corners) loads as the physical
+    board it described; one whose margin is narrower than a square (a board smaller than its
+    pattern) is refused in one line."""
+    save_problem(tmp_path / "p.npz", _problem())
+    q, cfg = load_problem(_as_version_1(tmp_path / "p.npz", tmp_path / "v1.npz", 0.05))
+    s = 0.0254
+    assert (q.board.corners_x, q.board.corners_y, q.board.square_m) == (4, 3, s)
+    assert np.allclose(q.board.extent(), (-0.05, 3 * s + 0.05, -0.05, 2 * s + 0.05))
+    assert cfg.board.corners == [4, 3] and np.allclose(cfg.board.size_m, [3 * s + 0.1, 2 * s + 0.1])
+    with pytest.raises(DataError, match=r"v1bad\.npz: a version 1 dump whose board margin \(0\.01 m\)"):
+        load_problem(_as_version_1(tmp_path / "p.npz", tmp_path / "v1bad.npz", 0.01))
 
 
 def test_exclude_snapshots_keeps_indices():

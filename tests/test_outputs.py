@@ -26,7 +26,7 @@ CAMERA_RT = compose_rt(np.r_[0, 0, 0, 0.3, -0.2, -0.1], np.r_[r_from_R(_R_cam), 
 def make_result(seed: int = 0, *, n_snapshots: int = 8) -> Result:
     """A hand-built 3-sensor Result (lidar0, lidar1, camera) with consistent observations."""
     rng = np.random.default_rng(seed)
-    board = BoardGeometry(corners_x=8, corners_y=6, spacing_m=0.1, margin_m=0.1)
+    board = BoardGeometry(corners_x=8, corners_y=6, square_m=0.1, width_m=1.0, height_m=0.8)
     cam = Sensor("/cam/image", "camera", lensmodel="LENSMODEL_OPENCV4",
                  intrinsics=np.array([600.0, 600.0, 640.0, 400.0, 0.01, -0.01, 0.0, 0.0]), imagersize=(1280, 800))
     sensors = (Sensor("/lidar/front/points", "lidar"), Sensor("/lidar/rear/points", "lidar"), cam)

@@ -13,7 +13,7 @@ def _result():
     rts[1] = [0, 0, np.pi / 2, 0.0, 1.0, 0.0]  # lidar1 rotated 90 deg left
     R_l0_cam = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float)  # camera looks along +x
     rts[2, :3] = r_from_R(R_l0_cam)
-    board = BoardGeometry(corners_x=3, corners_y=3, spacing_m=0.5, margin_m=0.0)  # centre (0.5,0.5)
+    board = BoardGeometry(corners_x=3, corners_y=3, square_m=0.5, width_m=2.0, height_m=2.0)  # centre (0.5,0.5)
     # Boards at azimuth 45 deg (two) and 135 deg (last): board centre = t + (0.5,0.5,0).
     rt_boards = np.array([
         [0, 0, 0, 4.5, 4.5, 0],

@@ -3,10 +3,14 @@
 SYNOPSIS
 
     from clcgraph.frontend.camera_board import detect_corners
-    out = detect_corners(images, DetectionOptions(detector="mrgingham"))
+    out = detect_corners(images, DetectionOptions(), BoardGeometry())   # detector "auto"
     for o in out:
         if isinstance(o, Rejected): print(o.reason)
         else: o.shape == (corners_y*corners_x, 2)
+
+Detector: ``auto`` (the default) picks mrgingham for a square grid of inner corners and
+OpenCV otherwise (mrgingham finds only NxN grids), and OpenCV when mrgingham is not
+installed; a named detector is used as named.
 
 Pixel convention: mrcal's (the centre of pixel (u, v) is at integer (u, v)).
 
@@ -25,6 +29,7 @@ rotated by a multiple of 90 deg and the solver must resolve that (e.g. by trying
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import shutil
@@ -35,7 +40,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from clcgraph.errors import DependencyError, InputError
-from clcgraph.types import Image, Rejected
+from clcgraph.types import BoardGeometry, Image, Rejected
 
 log = logging.getLogger(__name__)
 
@@ -214,23 +219,43 @@ def refine_corners(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int) -> n
 # ---------------------------------------------------------------- mrgingham
 
 
-def _run_mrgingham(grays: list[np.ndarray], options) -> list[np.ndarray | None]:
-    """Corners (N,2) or None per image, from ONE mrgingham run over all the images."""
+@functools.lru_cache(maxsize=None)
+def _warn_once(message: str) -> None:
+    log.warning(message)
+
+
+def choose_detector(options, board: BoardGeometry) -> str:
+    """The detector to run: the one named in ``options.detector``, or for ``auto`` the one that
+    handles the board (mrgingham: square grids only, when installed; else OpenCV)."""
+    if options.detector not in ("auto", "mrgingham", "opencv"):
+        raise InputError(f"unknown detector {options.detector!r}: use auto, mrgingham or opencv")
+    square = board.is_square_grid
+    if options.detector == "auto":
+        if square and shutil.which(MRGINGHAM) is None:
+            _warn_once("mrgingham not installed (apt install mrgingham): detecting chessboards with OpenCV")
+            return "opencv"
+        return MRGINGHAM if square else "opencv"
+    if options.detector == MRGINGHAM and not square:
+        raise InputError(f"detection.detector: mrgingham finds only square grids, the board has "
+                         f"{board.corners_x}x{board.corners_y} inner corners: use detector auto or opencv")
+    return options.detector
+
+
+def _run_mrgingham(grays: list[np.ndarray], n: int, jobs: int) -> list[np.ndarray | None]:
+    """Corners (N,2) or None per image of an n x n grid, from ONE mrgingham run over all the images."""
     import cv2
 
     exe = shutil.which(MRGINGHAM)
     if exe is None:
-        raise DependencyError("mrgingham command-line tool not found (apt install mrgingham)")
-    if options.corners_x != options.corners_y:
-        raise InputError(f"mrgingham needs a square grid, got {options.corners_x}x"
-                         f"{options.corners_y} corners: use detector: opencv")
+        raise DependencyError("mrgingham command-line tool not found (apt install mrgingham, "
+                              "or set detection.detector: opencv)")
     with tempfile.TemporaryDirectory(prefix="clcgraph-mrg-") as tmp:
         names = []
         for i, g in enumerate(grays):
             name = os.path.join(tmp, f"{i:06d}.png")
             cv2.imwrite(name, g, [cv2.IMWRITE_PNG_COMPRESSION, 1])
             names.append(name)
-        cmd = [exe, "--jobs", str(max(1, options.jobs)), "--gridn", str(options.corners_x),
+        cmd = [exe, "--jobs", str(max(1, jobs)), "--gridn", str(n),
                os.path.join(tmp, "*.png")]
         r = subprocess.run(cmd, capture_output=True, text=True)
         if r.returncode != 0:
@@ -262,15 +287,14 @@ def _opencv_one(args) -> np.ndarray | None:
     return c.reshape(-1, 2).astype(float)
 
 
-def _run_opencv(grays: list[np.ndarray], options) -> list[np.ndarray | None]:
-    nx, ny = options.corners_x, options.corners_y
+def _run_opencv(grays: list[np.ndarray], nx: int, ny: int, jobs: int) -> list[np.ndarray | None]:
     args = [(g, nx, ny) for g in grays]
-    if options.jobs <= 1 or len(grays) < 4:
+    if jobs <= 1 or len(grays) < 4:
         return [_opencv_one(a) for a in args]
     # threads: OpenCV releases the GIL while detecting (and worker processes would fork a
     # threaded process or re-import the caller's script)
-    with ThreadPoolExecutor(max_workers=options.jobs) as ex:
-        return list(ex.map(_opencv_one, args, chunksize=max(1, len(args) // (4 * options.jobs))))
+    with ThreadPoolExecutor(max_workers=jobs) as ex:
+        return list(ex.map(_opencv_one, args, chunksize=max(1, len(args) // (4 * jobs))))
 
 
 # Added to the detectors' output to get mrcal's convention (measured against rendered
@@ -278,28 +302,28 @@ def _run_opencv(grays: list[np.ndarray], options) -> list[np.ndarray | None]:
 _OFFSET_PX = {"mrgingham": np.zeros(2), "opencv": np.zeros(2)}
 
 
-def detect_corners(images: list[Image], options) -> list[np.ndarray | Rejected]:
+def detect_corners(images: list[Image], options, board: BoardGeometry) -> list[np.ndarray | Rejected]:
     """Chessboard corners per image: (corners_y*corners_x, 2) pixels, or Rejected(reason).
 
-    options: ``config.DetectionOptions``. Corners are in canonical board order (module
-    docstring) in mrcal's pixel convention. The mrgingham detector runs one batched
-    command-line call (``--jobs``); OpenCV runs in ``jobs`` threads.
+    options: ``config.DetectionOptions``; ``board``: its inner-corner grid is searched for.
+    Corners are in canonical board order (module docstring) in mrcal's pixel convention. The
+    mrgingham detector runs one batched command-line call (``--jobs``); OpenCV runs in
+    ``jobs`` threads.
     """
     import cv2
 
-    if options.detector not in _OFFSET_PX:
-        raise InputError(f"unknown detector {options.detector!r}: use mrgingham or opencv")
+    detector = choose_detector(options, board)
     if not images:
         return []
     grays = [to_gray8(im.pixels) for im in images]
-    nx, ny = options.corners_x, options.corners_y
-    if options.detector == "mrgingham":
-        raw = [None if c is None else c + _OFFSET_PX["mrgingham"] for c in _run_mrgingham(grays, options)]
+    nx, ny, jobs = board.corners_x, board.corners_y, options.jobs
+    if detector == MRGINGHAM:
+        raw = [None if c is None else c + _OFFSET_PX["mrgingham"] for c in _run_mrgingham(grays, nx, jobs)]
         # mrgingham misses small boards (squares of 5-8 px): it finds them in the image upsampled 2x
         missed = [k for k, c in enumerate(raw) if c is None]
         up = {k: cv2.resize(grays[k], None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC) for k in missed}
         if missed:
-            for k, c in zip(missed, _run_mrgingham([up[k] for k in missed], options)):
+            for k, c in zip(missed, _run_mrgingham([up[k] for k in missed], nx, jobs)):
                 if c is not None:  # pixel centres at integers in both images
                     raw[k] = (c + _OFFSET_PX["mrgingham"] + 0.5) / 2 - 0.5
         # ... and where it still finds nothing, OpenCV's sector-based detector may (its grid
@@ -308,10 +332,10 @@ def detect_corners(images: list[Image], options) -> list[np.ndarray | Rejected]:
         missed = [k for k, c in enumerate(raw) if c is None]
         if missed and options.fallback_opencv:
             missed = [k for k in missed if cv2.checkChessboard(up[k], (nx, ny))]
-            for k, c in zip(missed, _run_opencv([grays[k] for k in missed], options)):
+            for k, c in zip(missed, _run_opencv([grays[k] for k in missed], nx, ny, jobs)):
                 raw[k] = None if c is None else c + _OFFSET_PX["opencv"]
     else:
-        raw = [None if c is None else c + _OFFSET_PX["opencv"] for c in _run_opencv(grays, options)]
+        raw = [None if c is None else c + _OFFSET_PX["opencv"] for c in _run_opencv(grays, nx, ny, jobs)]
     out = []
     for im, g, c in zip(images, grays, raw):
         r = _validate(c, g, nx, ny, options, f"no full {nx}x{ny} chessboard found")
@@ -321,7 +345,7 @@ def detect_corners(images: list[Image], options) -> list[np.ndarray | Rejected]:
     return out
 
 
-def detect_in_bags(bags, topic: str, options, *, every: bool = False, batch: int = 32):
+def detect_in_bags(bags, topic: str, options, board: BoardGeometry, *, every: bool = False, batch: int = 32):
     """Yield (Image, corners (N,2) | Rejected) for the images of ``topic`` in ``bags``.
 
     Default: the first image of each bag (one snapshot per bag); ``every``: all images,
@@ -345,10 +369,10 @@ def detect_in_bags(bags, topic: str, options, *, every: bool = False, batch: int
             raise InputError(f"topic {topic} is not an image topic")
         buf.append(im)
         if len(buf) == batch:
-            yield from zip(buf, detect_corners(buf, options))
+            yield from zip(buf, detect_corners(buf, options, board))
             buf = []
     if buf:
-        yield from zip(buf, detect_corners(buf, options))
+        yield from zip(buf, detect_corners(buf, options, board))
 
 
 def draw_detection(image: Image, result) -> np.ndarray:

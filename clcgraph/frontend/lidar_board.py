@@ -354,10 +354,11 @@ def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: floa
     n, d, rms = fit_plane(pts)
     c = pts.mean(axis=0)
     at = f"plane at {np.linalg.norm(c):.1f} m"
-    sx, sy = board.size_m
+    sx, sy = board.size_m  # the physical board (width, height), border included
     # edges bloom by about one point spacing and the range noise
     spacing_m = float(np.linalg.norm(pts, axis=1).mean() * step)
     slack = 0.05 + 2.0 * spacing_m
+    max_size = o.max_plane_size_m if o.max_plane_size_m is not None else float(np.hypot(sx + slack, sy + slack))
     keep = _board_window(pts, n, sx, sy, slack)
     if (~keep).mean() > o.max_outside_fraction:
         return (f"{at} is {_extents(pts, n)[0]:.2f} m across, {(~keep).mean():.0%} of it outside any "
@@ -392,8 +393,8 @@ def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: floa
                f"the range noise (scan {noise_m * 1e3:.0f} mm, along this plane's rings {local_m * 1e3:.0f} mm)")
     elif tilt > o.max_tilt_deg:
         why = f"{at} tilted {tilt:.0f} deg from head-on > max_tilt_deg"
-    elif diameter > o.max_plane_size_m:
-        why = f"{at} is {diameter:.2f} m across > max_plane_size_m"
+    elif diameter > max_size:
+        why = f"{at} is {diameter:.2f} m across > max_plane_size_m {max_size:.2f} m"
     elif diameter < o.min_plane_size_fraction * diag:
         why = f"{at} is {diameter:.2f} m across, smaller than {o.min_plane_size_fraction:g} of the board diagonal"
     elif width < o.min_width_fraction * min(sx, sy):

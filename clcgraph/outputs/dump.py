@@ -1,10 +1,12 @@
 """Problem dumps: save a Problem + Config to a versioned, pickle-free .npz, load it, replay it.
 
-File layout (``FORMAT_VERSION`` 1): one ``.npz`` (numpy's zip of ``.npy`` arrays, read with
+File layout (``FORMAT_VERSION`` 2; version 1 dumps, whose board was corners_x/corners_y/
+spacing_m/margin_m, are read and converted): one ``.npz`` (numpy's zip of ``.npy`` arrays, read with
 ``allow_pickle=False``) holding
 
 - ``meta``: a 0-d unicode array with a JSON document: format name and version, the config
-  dict, the sensors (topic, kind, lensmodel, imagersize), the board, rejections, and the
+  dict, the sensors (topic, kind, lensmodel, imagersize), the board (the config's ``board``
+  keys: corners, square_m, size_m, pattern_offset_m), rejections, and the
   scalar/ragged bookkeeping of the observations;
 - plain numeric arrays: concatenated LIDAR points (with per-observation counts), planes,
   indices, camera corners, priors, visibility points, snapshot stamps, intrinsics.
@@ -36,7 +38,8 @@ from clcgraph.types import (
 log = logging.getLogger(__name__)
 
 FORMAT_NAME = "clcgraph-problem"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+_READABLE_VERSIONS = (1, 2)
 
 
 def _concat(arrays, shape_tail, dtype=float):
@@ -51,7 +54,7 @@ def _split(data, counts):
 
 
 def save_problem(path: str | Path, problem: Problem, config: Config | None = None) -> None:
-    """Write ``problem`` and ``config`` (default Config()) to ``path`` (.npz, format v1)."""
+    """Write ``problem`` and ``config`` (default Config()) to ``path`` (.npz, format v2)."""
     config = config or Config()
     arrays: dict[str, np.ndarray] = {}
     sensors = []
@@ -87,7 +90,7 @@ def save_problem(path: str | Path, problem: Problem, config: Config | None = Non
         version=FORMAT_VERSION,
         config=config.to_dict(),
         sensors=sensors,
-        board=dict(corners_x=b.corners_x, corners_y=b.corners_y, spacing_m=b.spacing_m, margin_m=b.margin_m),
+        board=b.spec(),
         rejected=[dict(reason=r.reason, stage=r.stage, sensor=r.sensor, snapshot=r.snapshot)
                   for r in problem.rejected],
         lidar_has_indices=has_idx,
@@ -119,12 +122,14 @@ def load_problem(path: str | Path) -> tuple[Problem, Config]:
         raise DataError(f"{path}: not a clcgraph problem dump (no metadata)") from None
     if meta.get("format") != FORMAT_NAME:
         raise DataError(f"{path}: not a clcgraph problem dump (format {meta.get('format')!r})")
-    if meta.get("version") != FORMAT_VERSION:
+    if meta.get("version") not in _READABLE_VERSIONS:
         raise DataError(
             f"{path}: problem dump format version {meta.get('version')!r} is not supported "
-            f"(this clcgraph reads version {FORMAT_VERSION})"
+            f"(this clcgraph reads versions {', '.join(map(str, _READABLE_VERSIONS))})"
         )
     try:
+        if meta["version"] == 1:
+            meta = _upgrade_v1(meta, path)
         sensors = tuple(
             Sensor(topic=s["topic"], kind=s["kind"], lensmodel=s["lensmodel"],
                    intrinsics=a[f"intrinsics_{i}"] if s["has_intrinsics"] else None,
@@ -149,7 +154,7 @@ def load_problem(path: str | Path) -> tuple[Problem, Config]:
         )
         problem = Problem(
             sensors=sensors,
-            board=BoardGeometry(**meta["board"]),
+            board=BoardGeometry.from_spec(**meta["board"]),
             lidar_observations=lidar,
             camera_observations=camera,
             snapshot_stamps_ns=a["snapshot_stamps_ns"],
@@ -161,6 +166,25 @@ def load_problem(path: str | Path) -> tuple[Problem, Config]:
     except (KeyError, TypeError, ValueError) as e:
         raise DataError(f"{path}: corrupt problem dump ({type(e).__name__}: {e})") from None
     return problem, config
+
+
+def _upgrade_v1(meta: dict, path: Path) -> dict:
+    """A version 1 dump's metadata in version 2 terms: its board (margin_m counted from the outer
+    inner corners, pattern centred) as the physical board, in the config too."""
+    old = meta["board"]
+    if old["margin_m"] < old["spacing_m"]:
+        raise DataError(f"{path}: a version 1 dump whose board margin ({old['margin_m']:g} m) is narrower than a square "
+                        f"({old['spacing_m']:g} m) describes a board smaller than its pattern: calibrate again "
+                        "with the board: section")
+    board = {"corners": [old["corners_x"], old["corners_y"]], "square_m": old["spacing_m"],
+             "size_m": [(old["corners_x"] - 1) * old["spacing_m"] + 2 * old["margin_m"],
+                        (old["corners_y"] - 1) * old["spacing_m"] + 2 * old["margin_m"]],
+             "pattern_offset_m": [0.0, 0.0]}
+    config = dict(meta["config"])
+    config["detection"] = {k: v for k, v in config.get("detection", {}).items()
+                           if k not in ("corners_x", "corners_y", "spacing_m", "margin_m")}
+    config["board"] = board
+    return {**meta, "board": board, "config": config, "version": 2}
 
 
 def renoise_problem(

@@ -34,6 +34,13 @@ HOWTO = {
 }
 
 
+def _board_line(board) -> str:
+    ox, oy = board.pattern_offset_m
+    return (f"Board: {board.corners_x} x {board.corners_y} inner corners, {board.square_m * 1e3:g} mm squares, "
+            f"{board.width_m * 1e3:g} x {board.height_m * 1e3:g} mm (width x height), pattern centre offset "
+            f"({ox * 1e3:g}, {oy * 1e3:g}) mm from the board's centre.")
+
+
 def _fmt(v, f="{:.3g}"):
     if v is None or (isinstance(v, float) and not np.isfinite(v)):
         return "–"
@@ -113,6 +120,7 @@ def report_html(result: Result, plots: dict[str, Path], *, title: str = "clcgrap
         f"<h1>{html.escape(title)}</h1>",
         f"<p>clcgraph {__version__}. Reference frame: lidar0 = <code>{html.escape(result.problem.sensors[result.problem.reference].topic)}</code>. "
         f"Snapshots used: {used} of {result.problem.n_snapshots}.</p>",
+        f"<p>{html.escape(_board_line(result.problem.board))}</p>",
         "<h2>Poses</h2>", _pose_table(result),
         "<p class='howto'>Poses are <code>rt_lidar0_sensor</code>: the sensor's position and orientation (Rodrigues "
         "vector, in degrees) in the lidar0 frame. The stdevs are 1-sigma marginals computed with the re-estimated "

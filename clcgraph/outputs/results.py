@@ -102,6 +102,8 @@ def calibration_dict(result: Result) -> dict:
     return {
         "clcgraph_version": __version__,
         "reference": problem.sensors[ref].topic,
+        # the chessboard as configured (inner corners, square, physical size, pattern offset)
+        "board": problem.board.spec(),
         "sensors": sensors,
         # symmetrized: marginals come out of the solver symmetric only to rounding
         "covariance_rt_lidar0_sensor": _floats(0.5 * (np.asarray(result.covariance_rt, float) + np.asarray(result.covariance_rt, float).T)),

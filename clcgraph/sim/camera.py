@@ -1,4 +1,5 @@
-"""Lens-exact camera images of the scene: any mrcal lens model, an anti-aliased chessboard.
+"""Lens-exact camera images of the scene: any mrcal lens model, an anti-aliased chessboard with
+its white border.
 
 Every pixel's ray comes from mrcal's unprojection of that pixel through the camera's own
 lens model, so a detector run on the picture sees exactly the geometry the solver assumes.
@@ -22,11 +23,13 @@ BLACK, WHITE = 25.0, 225.0
 
 
 def board_shade(board: BoardGeometry, xy: np.ndarray) -> np.ndarray:
-    """Gray level of board-frame points (…,2): chess squares around the inner corners, white margin."""
-    s = board.spacing_m
+    """Gray level of board-frame points (…,2): the pattern's (corners + 1) x (corners + 1) squares,
+    edges through the inner corners, reaching one square beyond the outer corners; white border
+    around them (to the board's edge, ``board.extent()``)."""
+    s = board.square_m
     x, y = xy[..., 0], xy[..., 1]
-    i, j = np.floor(x / s), np.floor(y / s)  # square edges through the corners; half squares at the border
-    inside = (x >= -0.5 * s) & (x <= (board.corners_x - 0.5) * s) & (y >= -0.5 * s) & (y <= (board.corners_y - 0.5) * s)
+    i, j = np.floor(x / s), np.floor(y / s)
+    inside = (i >= -1) & (i <= board.corners_x - 1) & (j >= -1) & (j <= board.corners_y - 1)
     return np.where(inside & ((i + j) % 2 == 0), BLACK, WHITE)
 
 

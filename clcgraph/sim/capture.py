@@ -5,7 +5,8 @@ Two schemes, as people record them:
   scans per LIDAR (10 Hz) and two images per camera, stamps unsynchronised by a few ms;
 - ``continuous=True``: one bag; the board holds each pose ``hold_s`` and moves to the next
   over ``move_s``; LIDARs at 10 Hz, cameras at ``camera_hz``.
-Board poses are drawn 2.5-9 m from a sensor (half of them in front of a camera), tilted up
+Board poses are drawn 2.5-9 m from a sensor (a board smaller than 1.3 m proportionally
+closer; half of them in front of a camera), tilted up
 to ``tilt_max_deg``, and kept if >= 2 sensors see the board (>= 3 rings / the whole corner
 grid). /tf_static holds base_link -> every sensor frame, off the truth by ``tf_error``
 (deg, m) like a CAD drawing. ``truth.yaml`` next to the bags has the true poses.
@@ -41,13 +42,17 @@ DEMO_DIR = DEMO_RIG.parent / "demo"
 
 
 def _board_pose(rng, rig: Rig, tilt_max_deg: float) -> np.ndarray:
-    """T_world_board: in front of a random camera (half the time) or anywhere around a LIDAR."""
+    """T_world_board: in front of a random camera (half the time) or anywhere around a LIDAR;
+    2.5-9 m away for a 1.3 m board, a smaller board proportionally closer (as people hold it)."""
+    far = max(4.0, 9.0 * min(1.0, float(np.hypot(*rig.board.size_m)) / np.hypot(1.3, 1.3)))
     if rig.cameras and rng.uniform() < 0.5:
         cam = rig.cameras[rng.integers(len(rig.cameras))]
         fwd = cam.T_base_sensor[:3, :3] @ R_from_r(rng.normal(0, 0.25, 3)) @ np.array([0.0, 0.0, 1.0])
-        return random_board_pose(rng, rig.board, cam.T_base_sensor[:3, 3], tilt_max_deg=tilt_max_deg, forward=fwd)
+        return random_board_pose(rng, rig.board, cam.T_base_sensor[:3, 3], tilt_max_deg=tilt_max_deg, forward=fwd,
+                                 distance_m=(2.5, far))
     L = rig.lidars[rng.integers(len(rig.lidars))]
-    return random_board_pose(rng, rig.board, L.T_base_sensor[:3, 3], tilt_max_deg=tilt_max_deg)
+    return random_board_pose(rng, rig.board, L.T_base_sensor[:3, 3], tilt_max_deg=tilt_max_deg,
+                             distance_m=(2.5, far))
 
 
 def _lowest_z(rig: Rig, T: np.ndarray) -> float:
@@ -221,13 +226,15 @@ def _truth(rig: Rig, tf, snapshots, format, continuous, seed) -> dict:
                         **({"model": str(s.model_path)} if s in rig.cameras else {})})
     return {"rig": str(rig.path), "format": format, "continuous": continuous, "seed": seed,
             "reference": rig.lidars[0].topic, "topics": rig.topics,
-            "board": {"corners_x": rig.board.corners_x, "corners_y": rig.board.corners_y,
-                      "spacing_m": rig.board.spacing_m, "margin_m": rig.board.margin_m},
+            "board": rig.board.spec(),  # the config's board: section for this session
             "sensors": sensors,
             "tf_static": [{"parent": p, "child": c, "T": T.tolist()} for p, c, T in tf],
             "snapshots": snapshots}
 
 
 def simulate_demo(out_dir=None, *, seed: int = 0, n_poses: int = 20) -> dict:
-    """The demo session: data/synthetic/demo-rig.yaml, 20 bag-per-pose ROS1 bags (lz4, ~95 MB)."""
-    return simulate(DEMO_RIG, out_dir or DEMO_DIR, n_poses=n_poses, seed=seed, compress=True)
+    """The demo session: data/synthetic/demo-rig.yaml, 20 bag-per-pose ROS1 bags (lz4, ~95 MB).
+    The default folder (git-ignored, written only by this function) is replaced even when an older
+    clcgraph wrote it without the output marker."""
+    return simulate(DEMO_RIG, out_dir or DEMO_DIR, n_poses=n_poses, seed=seed, compress=True,
+                    force=out_dir is None)

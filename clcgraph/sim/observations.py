@@ -219,10 +219,15 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
 
 def _corrupt(lidar_obs, camera_obs, fraction, rng):
     """Corrupt ``fraction`` of every sensor's observations: at most one per snapshot, and only
-    in snapshots that >= 3 sensors saw (with two, nothing can tell which one is wrong)."""
+    in snapshots that >= 3 sensors saw (with two, nothing can tell which one is wrong); a
+    camera's only where another camera saw the board too (LIDARs see its plane, not where on
+    the plane it is: a shifted grid alone is just the board moved within its plane)."""
     count: dict[int, int] = {}
+    cams: dict[int, int] = {}
     for o in [*lidar_obs, *camera_obs]:
         count[o.snapshot] = count.get(o.snapshot, 0) + 1
+    for o in camera_obs:
+        cams[o.snapshot] = cams.get(o.snapshot, 0) + 1
     lidar_obs, camera_obs = list(lidar_obs), list(camera_obs)
     allobs = [("l", i, o) for i, o in enumerate(lidar_obs)] + [("c", i, o) for i, o in enumerate(camera_obs)]
     corrupted, taken = [], set()
@@ -233,7 +238,7 @@ def _corrupt(lidar_obs, camera_obs, fraction, rng):
             if want == 0:
                 break
             kind, i, o = mine[idx]
-            if o.snapshot in taken or count[o.snapshot] < 3:
+            if o.snapshot in taken or count[o.snapshot] < 3 or (kind == "c" and cams[o.snapshot] < 2):
                 continue
             taken.add(o.snapshot)
             want -= 1

@@ -19,7 +19,8 @@
         frame_id: cam_left
         xyz: [1.3, 0.3, 1.6]
         rpy_deg: [0, 5, 10]          # of a front-left-up frame; the optical axes follow mrcal
-    board: {corners_x: 10, corners_y: 10, spacing_m: 0.1, margin_m: 0.1}
+    board: {corners: [10, 10], square_m: 0.1, size_m: [1.3, 1.3]}   # as the config's board:
+                                     # section (default: this board); pattern_offset_m: [x, y] too
 
 The first LIDAR is lidar0. Errors name the file and the key.
 
@@ -30,6 +31,7 @@ SYNOPSIS
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -37,6 +39,7 @@ import numpy as np
 import yaml
 
 from .. import cameras
+from ..config import Config, ConfigError
 from ..errors import InputError
 from ..types import BoardGeometry, Sensor
 from .lidar import LidarModel
@@ -169,8 +172,10 @@ def load_rig(path) -> Rig:
     b = d.get("board") or {}
     if not isinstance(b, dict):
         raise InputError(f"{path}: 'board' must be a mapping")
-    _unknown(b, {"corners_x", "corners_y", "spacing_m", "margin_m"}, "board", path)
-    board = BoardGeometry(**b)
+    try:  # the same keys and checks as the config's board section
+        board = BoardGeometry.from_spec(**dataclasses.asdict(Config.from_dict({"board": b}).board))
+    except ConfigError as e:
+        raise InputError(f"{path}: {e}") from None
     topics = [x.topic for x in lidars] + [c.topic for c in cams]
     if len(set(topics)) != len(topics):
         raise InputError(f"{path}: a topic is listed twice")

@@ -31,3 +31,32 @@ def test_segment_dump_and_spacing(capsys, tmp_path, good):
     assert "scans with a board" in capsys.readouterr().out
     assert "scan0_segments" in np.load(tmp_path / "d.npz").files
     assert len(list((tmp_path / "png").iterdir())) == 1
+
+
+def test_a_directory_of_bags(capsys, tmp_path, bag_factory):
+    """A directory means the ROS1 .bag files (and ROS2 bag directories) in it, for every command
+    that takes bags; a directory without bags is a one-line error naming it."""
+    d = tmp_path / "capture"
+    d.mkdir()
+    for name in ("b.bag", "a.bag"):
+        bag_factory(d / name)
+    (d / "notes.txt").write_text("not a bag")
+    assert main(["segment", str(d), "--topic", "/lidar0"]) == 0
+    assert "/2 scans with a board" in capsys.readouterr().out
+    assert main(["show-bag", str(d)]) == 0
+    out = capsys.readouterr().out
+    assert out.index("a.bag:") < out.index("b.bag:") and "notes.txt" not in out
+    assert main(["detect", str(d), "--topic", "/cam0", "--set", "board.corners=[7,5]",
+                 "--set", "board.square_m=0.095", "--set", "board.size_m=[0.85,0.61]"]) == 0
+    assert "0/2 images with a chessboard" in capsys.readouterr().out
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["segment", str(empty), "--topic", "/lidar0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(empty) in err[0] and "no ROS1 .bag file" in err[0], err
+
+
+def test_old_board_keys_are_one_line_errors(capsys, good):
+    assert main(["segment", str(good), "--topic", "/lidar0", "--set", "detection.margin_m=0.1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "'detection.margin_m' moved to the 'board' section" in err[0], err

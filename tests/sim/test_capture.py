@@ -59,12 +59,12 @@ def test_board_on_the_expected_rings(session):
 
 @pytest.mark.parametrize("fallback", [False, True], ids=["mrgingham", "mrgingham+opencv"])
 def test_visible_chessboards_found_within_0p3px(session, fallback):
-    out, truth, _ = session
+    out, truth, rig = session
     found = missed = 0
     for snap in truth["snapshots"]:
         for topic, corners in snap["corners_px"].items():
             im = first_messages(out / snap["bag"], [topic])[topic]
-            r = detect_corners([im], DetectionOptions(fallback_opencv=fallback))[0]
+            r = detect_corners([im], DetectionOptions(fallback_opencv=fallback), rig.board)[0]
             if not isinstance(r, np.ndarray):
                 missed += 1
                 continue
