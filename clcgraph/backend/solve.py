@@ -28,6 +28,7 @@ import numpy as np
 from ..errors import DegenerateError, SolveError
 from ..geometry import drt_dxi, rt_from_pose3
 from ..types import Problem, Rejected, Result
+from . import consistency
 from . import graph as G
 from .seed import seed as make_seed
 
@@ -56,9 +57,8 @@ def _lm(problem, active, rt_sensor, rt_board, lidar, sigma, options, nominal):
     opt = gtsam.LevenbergMarquardtOptimizer(g, v, params)
     try:
         out = opt.optimize()
-    except RuntimeError as e:  # GTSAM's IndeterminantLinearSystemException and friends
-        raise DegenerateError(f"the {lidar} solve is singular: {str(e).splitlines()[0]}; "
-                              "some sensor or board is not determined by the data") from None
+    except RuntimeError:  # GTSAM's IndeterminantLinearSystemException: name the free direction
+        raise consistency.unobservable_error(problem, consistency.linearize(problem, g, v)) from None
     rt_sensor = rt_sensor.copy()
     rt_board = np.full_like(rt_board, np.nan)
     for i in range(len(problem.sensors)):
@@ -234,13 +234,8 @@ def _covariance(problem: Problem, g, values, rt_sensor, options) -> np.ndarray:
     keys = [G.sensor_key(i) for i in idx]
     try:
         marg = gtsam.Marginals(g, values)
-        singular = None
-    except RuntimeError as e:
-        singular = str(e).splitlines()[0]
-        g2 = gtsam.NonlinearFactorGraph(g)  # find the direction: weak priors make it finite
-        for k in keys:
-            g2.add(gtsam.PriorFactorPose3(k, values.atPose3(k), gtsam.noiseModel.Isotropic.Sigma(6, 1e3)))
-        marg = gtsam.Marginals(g2, values)
+    except RuntimeError:  # GTSAM's "Indeterminate linear system": name the free direction
+        raise consistency.unobservable_error(problem, consistency.linearize(problem, g, values)) from None
     jm = marg.jointMarginalCovariance(gtsam.KeyVector(keys))
     n = len(keys)
     C = np.zeros((6 * n, 6 * n))
@@ -264,8 +259,8 @@ def _covariance(problem: Problem, g, values, rt_sensor, options) -> np.ndarray:
                 unit = f"{sd:.2g} m" if what.startswith("t") else f"{np.degrees(sd):.2g} deg"
                 bad.append(f"{problem.sensors[i].topic}: {what} lidar0 ({ax[0]:+.2f}, {ax[1]:+.2f}, {ax[2]:+.2f}), "
                            f"1-sigma {unit}")
-    if singular or bad:
-        raise DegenerateError("unobservable: " + ("; ".join(bad) or singular)
+    if bad:
+        raise DegenerateError("unobservable: " + "; ".join(bad)
                               + "; capture board poses that constrain it (tilt the board in different directions)")
     return C
 
@@ -319,6 +314,9 @@ def calibrate(problem: Problem, options) -> Result:
     t = time.perf_counter()
     cov = _covariance(problem, g, values, rt_sensor, options)
     times["covariance"] = time.perf_counter() - t
+    t = time.perf_counter()
+    verdict = consistency.check(problem, consistency.linearize(problem, g, values), alpha=options.consistency_alpha)
+    times["consistency"] = time.perf_counter() - t
 
     lid, cam = G.residuals(problem, rt_sensor, rt_board)
     rl, rc = _active_residuals(lid, cam, active)
@@ -348,7 +346,8 @@ def calibrate(problem: Problem, options) -> Result:
     times["total"] = time.perf_counter() - t0
     stats = {"stage": "solve", "iterations": iters, "time_s": times, "regularization_share": float(prior / max(total, 1e-300)),
              "n_outlier_points": int(sum(int((~m).sum()) for m in active.lidar if m is not None)),
-             "n_rejected_observations": sum(1 for r in rejected if r.stage in ("outlier", "seed"))}
+             "n_rejected_observations": sum(1 for r in rejected if r.stage in ("outlier", "seed")),
+             "consistency": verdict}
     if not np.all(np.isfinite(rt_sensor)):
         raise SolveError("the solve produced non-finite sensor poses")
     log.info("solve: %d rounds, sigma LIDAR %.4f m, camera %.3f px, %.2f s", iters["rounds"], noise["lidar_m"],
