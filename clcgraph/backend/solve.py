@@ -270,6 +270,7 @@ def calibrate(problem: Problem, options) -> Result:
     t0 = time.perf_counter()
     times, iters = {}, {}
     s = make_seed(problem, options)
+    problem = s.problem  # camera corners relabelled where a camera saw the grid turned
     times["seed"] = time.perf_counter() - t0
     rt_sensor, rt_board = s.rt_lidar0_sensor.copy(), s.rt_lidar0_board.copy()
     nominal = s.rt_lidar0_board.copy()
