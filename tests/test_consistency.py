@@ -224,3 +224,22 @@ def test_rolled_camera_is_relabelled_at_seeding(roll_deg, board):
     e = _errors(r, truth.rt_lidar0_sensor)
     print(roll_deg, e)
     assert all(deg < 0.1 and mm < 10 and z < 3.5 for deg, mm, z in e.values()), e
+
+
+def test_verdict_is_written_to_calibration_yaml_and_report():
+    import yaml
+
+    from clcgraph.outputs.report import report_html
+    from clcgraph.outputs.results import calibration_dict
+
+    problem, _ = simulate_problem(rig=make_rig(3, 0), n_snapshots=20, seed=31)
+    r = calibrate(problem, SolveOptions())
+    d = yaml.safe_load(yaml.safe_dump(calibration_dict(r)))["consistency"]
+    assert d["passed"] is True and d["n_checks"] >= 20
+    assert 0 <= d["snapshots"]["worst_sigma"] < 4.5 and d["p_limit"] == pytest.approx(1e-3 / d["n_checks"])
+    assert set(d["weakest"]) == {"/lidar1", "/lidar2"}
+    w = d["weakest"]["/lidar1"]
+    assert w["weakest_translation_stdev_mm"] == pytest.approx(1e3 * np.sqrt(np.linalg.eigvalsh(
+        r.covariance_block(1)[3:, 3:])[-1]), rel=0.05)  # rt and tangent translations agree to first order
+    html = report_html(r, {})
+    assert "<h2>Consistency</h2>" in html and "self-consistent" in html

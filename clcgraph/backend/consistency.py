@@ -27,6 +27,7 @@ Units: GTSAM's Pose3 tangent [omega, v] (right perturbation T Exp(xi)) turned in
 axes (R omega, R v) for naming; information is whitened by the solve's noise sigmas.
 
 SYNOPSIS
+    verdict = verify(problem, graph, values)   # linearize + check, as the solve calls it
     lin = linearize(problem, graph, values)
     verdict = check(problem, lin)          # dict for calibration.yaml; SolveError if inconsistent
     raise unobservable_error(problem, lin) # DegenerateError naming sensor and direction
@@ -98,6 +99,21 @@ class Linearized:
         return 6 * len(self.sensors)
 
 
+class _Unsupported(Exception):
+    """A factor the board-by-board split cannot place (an extension factor on two boards)."""
+
+
+def verify(problem: Problem, graph, values, *, alpha: float = FAMILY_ALPHA) -> dict:
+    """linearize + check: the solve's hook. A graph the checks cannot split (an extension
+    factor linking boards) is reported as unchecked, with a warning, not refused."""
+    try:
+        lin = linearize(problem, graph, values)
+    except _Unsupported as e:
+        log.warning("consistency checks skipped: %s", e)
+        return {"passed": None, "skipped": str(e)}
+    return check(problem, lin, alpha=alpha)
+
+
 def linearize(problem: Problem, graph, values) -> Linearized:
     """Per-factor normal-equation blocks of ``graph`` at ``values`` (see Linearized)."""
     import gtsam
@@ -123,7 +139,7 @@ def linearize(problem: Problem, graph, values) -> Linearized:
             g_global[idx] += Ak.T @ b
             continue
         if len(boards) != 1 or len(sens) > 1:
-            raise SolveError("consistency: a factor on several boards or sensors is not supported")
+            raise _Unsupported(f"a {type(graph.at(f)).__name__} on {len(boards)} boards and {len(sens)} sensors")
         k = boards[0]
         Ab = A[:, cols[("b", k)]]
         is_prior = "CustomFactor" not in type(graph.at(f)).__name__
@@ -151,19 +167,24 @@ def _pinv_psd(H: np.ndarray, floor: float = 0.0) -> np.ndarray:
 def _schur(lin: Linearized, group: list) -> tuple[np.ndarray, np.ndarray]:
     """(information (n,n), gradient (n,)) on the sensors of one board's observations
     ``group``, that board profiled out (its own copy: the group's alone)."""
-    n = lin.n
-    Hss, Hsb, gs = np.zeros((n, n)), np.zeros((n, 6)), np.zeros(n)
+    sens = sorted({o.sensor for o in group if o.Hss is not None})
+    m = 6 * len(sens)
+    Hss, Hsb, gs = np.zeros((m, m)), np.zeros((m, 6)), np.zeros(m)
     Hbb, gb = np.zeros((6, 6)), np.zeros(6)
     for o in group:
         Hbb += o.Hbb
         gb += o.gb
         if o.Hss is not None:
-            c = lin.col(o.sensor)
-            Hss[c, c] += o.Hss
-            Hsb[c] += o.Hsb
-            gs[c] += o.gs
+            j = 6 * sens.index(o.sensor)
+            Hss[j:j + 6, j:j + 6] += o.Hss
+            Hsb[j:j + 6] += o.Hsb
+            gs[j:j + 6] += o.gs
     P = _pinv_psd(Hbb)
-    return Hss - Hsb @ P @ Hsb.T, gs - Hsb @ P @ gb
+    H, g = np.zeros((lin.n, lin.n)), np.zeros(lin.n)
+    idx = np.concatenate([np.arange(lin.col(i).start, lin.col(i).stop) for i in sens]) if sens else np.zeros(0, int)
+    H[np.ix_(idx, idx)] = Hss - Hsb @ P @ Hsb.T
+    g[idx] = gs - Hsb @ P @ gb
+    return H, g
 
 
 def information(lin: Linearized) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -184,17 +205,18 @@ class Comparison:
     size: str  # its size, e.g. "41 mm" or "0.3 deg"
 
 
-def leverage(H: np.ndarray, H_k: np.ndarray) -> tuple[float, np.ndarray]:
+def leverage(H: np.ndarray, H_k: np.ndarray, *, Li: np.ndarray | None = None) -> tuple[float, np.ndarray]:
     """(largest share in [0, 1] of the information ``H`` that ``H_k`` supplies in one
-    direction, that direction in tangent coordinates): max v'H_k v / v'H v."""
-    L = np.linalg.cholesky(0.5 * (H + H.T))
-    Li = np.linalg.inv(L)
+    direction, that direction in tangent coordinates): max v'H_k v / v'H v.
+    ``Li``: inv(cholesky(H)), when already computed."""
+    if Li is None:
+        Li = np.linalg.inv(np.linalg.cholesky(0.5 * (H + H.T)))
     w, V = np.linalg.eigh(Li @ H_k @ Li.T)
     v = Li.T @ V[:, -1]
     return float(np.clip(w[-1], 0.0, 1.0)), v / np.linalg.norm(v)
 
 
-def undetectable(lin: Linearized, H: np.ndarray, H_k: np.ndarray, z_limit: float):
+def undetectable(lin: Linearized, H: np.ndarray, H_k: np.ndarray, z_limit: float, *, Li=None):
     """The largest shift of the solution that an error in one snapshot (information H_k of
     the total H) can cause while its leave-one-out test stays below ``z_limit``.
 
@@ -203,23 +225,24 @@ def undetectable(lin: Linearized, H: np.ndarray, H_k: np.ndarray, z_limit: float
     as b sqrt(h (1 - h)) (1-D: both in units of the solution's sigma), so up to
     z_limit sqrt(h / (1 - h)) sigmas go unseen. Returns (sigmas, tangent shift, h).
     """
-    h, v = leverage(H, H_k)
+    h, v = leverage(H, H_k, Li=Li)
     v = v / np.sqrt(max(float(v @ H @ v), 1e-300))
     n_sig = z_limit * np.sqrt(h / max(1.0 - h, 1e-12))
     return float(n_sig), n_sig * v, h
 
 
-def compare(lin: Linearized, H_a, g_a, H_b, g_b) -> Comparison | None:
+def compare(lin: Linearized, H_a, g_a, H_b, g_b, *, sum_pinv: np.ndarray | None = None) -> Comparison | None:
     """Do two independent parts of the data (information, gradient at the solution) agree?
 
     Each part's estimate is one Gauss-Newton step, x = H^+ g; their difference is weighed
     by the parallel sum H_a (H_a + H_b)^+ H_b, which counts only directions both parts
     determine. None when they share no such direction (nothing to check).
+    ``sum_pinv``: (H_a + H_b)^+, when already computed.
     """
     from scipy.special import chdtrc, ndtri  # not scipy.stats: 2 s to import
 
     delta = _pinv_psd(H_a, _MIN_INFORMATION) @ g_a - _pinv_psd(H_b, _MIN_INFORMATION) @ g_b
-    M = H_a @ _pinv_psd(H_a + H_b) @ H_b
+    M = H_a @ (_pinv_psd(H_a + H_b) if sum_pinv is None else sum_pinv) @ H_b
     w, V = np.linalg.eigh(0.5 * (M + M.T))
     keep = w > _MIN_INFORMATION
     if not keep.any():
@@ -323,8 +346,9 @@ def check(problem: Problem, lin: Linearized, *, alpha: float = FAMILY_ALPHA) -> 
     H, g, per = information(lin)
     names = problem.sensors
     snap_tests = {}
+    H_pinv = _pinv_psd(H)
     for k, (Hk, gk) in sorted(per.items()):
-        c = compare(lin, Hk, gk, H - Hk, g - gk)
+        c = compare(lin, Hk, gk, H - Hk, g - gk, sum_pinv=H_pinv)
         if c is not None:
             snap_tests[k] = c
     pair_tests, bridges = {}, []
@@ -377,11 +401,13 @@ def check(problem: Problem, lin: Linearized, *, alpha: float = FAMILY_ALPHA) -> 
 
     failures = []
     z_limit = float(-ndtri(limit / 2))
-    unverified = []
+    unverified, shares = [], []
+    Li = np.linalg.inv(np.linalg.cholesky(0.5 * (H + H.T)))  # H is definite: the covariance passed
     for k, (Hk, _) in sorted(per.items()):
         if k not in snap_tests:
             continue
-        n_sig, u, h = undetectable(lin, H, Hk, z_limit)
+        n_sig, u, h = undetectable(lin, H, Hk, z_limit, Li=Li)
+        shares.append(h)
         i, what, vec = _dominant(lin, u)
         mag = float(np.linalg.norm(vec))
         if n_sig > _SILENT_SIGMAS:
@@ -390,8 +416,7 @@ def check(problem: Problem, lin: Linearized, *, alpha: float = FAMILY_ALPHA) -> 
             unverified.append((not material, -n_sig, k, f"snapshot {k} alone carries {100 * h:.0f}% of the information on "
                                          f"{lin.topics[i]} {what} lidar0 {axis_words(vec)}: an error of up to "
                                          f"{size} ({n_sig:.0f} sigma) there would pass every check"))
-    verdict["snapshots"]["max_leverage"] = max((leverage(H, Hk)[0] for k, (Hk, _) in per.items() if k in snap_tests),
-                                               default=0.0)
+    verdict["snapshots"]["max_leverage"] = max(shares, default=0.0)
     unverified.sort()
     verdict["unverified"] = [why for _, _, _, why in unverified]
     unverified = [u for u in unverified if not u[0]]  # the material ones refuse the result

@@ -316,7 +316,7 @@ def calibrate(problem: Problem, options) -> Result:
     cov = _covariance(problem, g, values, rt_sensor, options)
     times["covariance"] = time.perf_counter() - t
     t = time.perf_counter()
-    verdict = consistency.check(problem, consistency.linearize(problem, g, values), alpha=options.consistency_alpha)
+    verdict = consistency.verify(problem, g, values, alpha=options.consistency_alpha)
     times["consistency"] = time.perf_counter() - t
 
     lid, cam = G.residuals(problem, rt_sensor, rt_board)
