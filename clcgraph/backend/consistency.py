@@ -41,7 +41,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import DegenerateError, SolveError
-from ..geometry import R_from_r, rt_from_pose3
 from ..types import Problem
 
 log = logging.getLogger(__name__)
@@ -205,12 +204,22 @@ class Comparison:
     size: str  # its size, e.g. "41 mm" or "0.3 deg"
 
 
+def _inverse_sqrt(H: np.ndarray) -> np.ndarray:
+    """L^-1 with L L' = H (Cholesky), or a pseudo-inverse square root if H is not definite."""
+    try:
+        return np.linalg.inv(np.linalg.cholesky(0.5 * (H + H.T)))
+    except np.linalg.LinAlgError:
+        w, V = np.linalg.eigh(0.5 * (H + H.T))
+        ok = w > 1e-12 * max(w[-1], 1e-300)
+        return (V[:, ok] / np.sqrt(w[ok])).T
+
+
 def leverage(H: np.ndarray, H_k: np.ndarray, *, Li: np.ndarray | None = None) -> tuple[float, np.ndarray]:
     """(largest share in [0, 1] of the information ``H`` that ``H_k`` supplies in one
     direction, that direction in tangent coordinates): max v'H_k v / v'H v.
     ``Li``: inv(cholesky(H)), when already computed."""
     if Li is None:
-        Li = np.linalg.inv(np.linalg.cholesky(0.5 * (H + H.T)))
+        Li = _inverse_sqrt(H)
     w, V = np.linalg.eigh(Li @ H_k @ Li.T)
     v = Li.T @ V[:, -1]
     return float(np.clip(w[-1], 0.0, 1.0)), v / np.linalg.norm(v)
@@ -285,8 +294,8 @@ def _dominant(lin: Linearized, x: np.ndarray) -> tuple[int, str, np.ndarray]:
     best = None
     for i in lin.sensors:
         rot, tr = _sensor_block_lidar0(lin, x, i)
-        # 1 mm against 0.1 mrad: a rotation moves a point 10 m away by ten times its angle
-        for what, v, scale in (("translation along", tr, 1.0), ("rotation about", rot, 10.0)):
+        # a rotation counts by how far it moves a point _LEVER_M away
+        for what, v, scale in (("translation along", tr, 1.0), ("rotation about", rot, _LEVER_M)):
             mag = float(np.linalg.norm(v)) * scale
             if best is None or mag > best[0]:
                 best = (mag, i, what, v)
@@ -339,10 +348,14 @@ def check(problem: Problem, lin: Linearized, *, alpha: float = FAMILY_ALPHA) -> 
     """Run every check (module docstring); the verdict as a plain dict, or SolveError
     (``alpha`` <= 0: the verdict only, with a warning, never an error).
 
-    The dict: ``passed``, ``alpha``, ``snapshots`` (worst leave-one-out), ``pairs`` (per
-    sensor pair: chi2, dof, sigma, or ``checked: false`` for a bridge), ``weakest``
-    (per sensor, from weakest_directions).
+    The dict: ``passed``, ``alpha``, ``n_checks``, ``p_limit``, ``snapshots`` (the worst
+    leave-one-out test, the largest single-snapshot share of the information), ``pairs``
+    (per sensor pair: chi2, dof, sigma, dominant direction), ``unchecked_pairs`` (links
+    nothing else checks), ``weakest`` (per sensor, weakest_directions), ``unverified``
+    (directions one snapshot determines), ``failures`` and ``unverifiable`` (why refused).
     """
+    from scipy.special import ndtri
+
     H, g, per = information(lin)
     names = problem.sensors
     snap_tests = {}
@@ -397,12 +410,10 @@ def check(problem: Problem, lin: Linearized, *, alpha: float = FAMILY_ALPHA) -> 
     for key, (c, nshared) in pair_tests.items():
         verdict["pairs"][key] = {"shared_snapshots": nshared, "chi2": c.chi2, "dof": c.dof, "sigma": c.sigma,
                                  "direction": c.direction}
-    from scipy.special import ndtri
-
     failures = []
     z_limit = float(-ndtri(limit / 2))
     unverified, shares = [], []
-    Li = np.linalg.inv(np.linalg.cholesky(0.5 * (H + H.T)))  # H is definite: the covariance passed
+    Li = _inverse_sqrt(H)
     for k, (Hk, _) in sorted(per.items()):
         if k not in snap_tests:
             continue
@@ -430,20 +441,21 @@ def check(problem: Problem, lin: Linearized, *, alpha: float = FAMILY_ALPHA) -> 
             failures.append((c.p, f"the {nshared} boards {key.replace(' - ', ' and ')} saw together disagree with "
                                   f"the rest of the data by {c.sigma:.1f} sigma ({c.direction}, {c.size})"))
     log.info("consistency: %d checks, worst snapshot %s", m, verdict["snapshots"].get("worst_sigma"))
-    if unverified and not failures:
-        verdict["passed"] = False
-        if alpha > 0:
-            raise DegenerateError(f"not verifiable, no result written: {unverified[0][3]}; capture more "
-                                  "boards that these sensors see together")
+    failures.sort()
+    verdict["failures"] = [why for _, why in failures]
+    verdict["unverifiable"] = [why for _, _, _, why in unverified]
+    verdict["passed"] = not failures and not unverified
+    if verdict["passed"]:
+        return verdict
+    first = failures[0][1] if failures else unverified[0][3]
+    if alpha <= 0:
+        log.warning("not self-consistent (checks disabled, result written anyway): %s", first)
+        return verdict
+    more = len(failures) + len(unverified) - 1
+    more = f" (and {more} more)" if more else ""
     if failures:
-        failures.sort()
-        verdict["passed"] = False
-        verdict["failures"] = [why for _, why in failures]
-        if alpha <= 0:
-            log.warning("not self-consistent (checks disabled, result written anyway): %s", failures[0][1])
-            return verdict
-        more = f" (and {len(failures) - 1} more)" if len(failures) > 1 else ""
-        raise SolveError(f"not self-consistent, no result written: {failures[0][1]}{more}; a wrong board "
-                         "association or a moved sensor? check the boards with `clcgraph segment`/`detect`, "
-                         "or leave the snapshot out (replay --exclude)")
-    return verdict
+        raise SolveError(f"not self-consistent, no result written: {first}{more}; a wrong board association or a "
+                         "moved sensor? check the boards with `clcgraph segment`/`detect`, or leave the snapshot "
+                         "out (replay --exclude)")
+    raise DegenerateError(f"not verifiable, no result written: {first}{more}; capture more boards that these "
+                          "sensors see together")

@@ -12,7 +12,12 @@ re-estimation and outlier rejection until stable -> covariance from gtsam.Margin
   rejection is a Rejected(stage="outlier") with the numbers.
 - **Degeneracy**: a sensor whose pose the data do not determine (information singular, or a
   1-sigma beyond ``max_stdev_m`` / ``max_stdev_deg`` in some direction) is a DegenerateError
-  naming the sensor and the direction, never a number.
+  naming the sensor and the direction, never a number (GTSAM's "Indeterminate linear
+  system" included: consistency.unobservable_error names the free direction).
+- **Consistency**: the final solution must pass backend/consistency.py's checks (leave one
+  snapshot out, per sensor pair, no material error a single snapshot could hide), else a
+  SolveError / DegenerateError naming the snapshot, sensor and direction; the verdict is
+  ``Result.stats["consistency"]``.
 
 SYNOPSIS
     result = calibrate(problem, Config().solve)      # -> types.Result

@@ -98,7 +98,7 @@ def _consistency(result: Result) -> str:
              f"Worst leave-one-snapshot-out: snapshot {snaps.get('worst', '-')}, {_fmt(snaps.get('worst_sigma'))} sigma "
              f"({html.escape(str(snaps.get('worst_direction', '-')))}); largest single-snapshot share of the "
              f"information: {_fmt(snaps.get('max_leverage'))}.</p>"]
-    for why in v.get("failures", []):
+    for why in [*v.get("failures", []), *v.get("unverifiable", [])]:
         parts.append(f"<p><b>Failed:</b> {html.escape(why)}</p>")
     if v.get("pairs"):
         rows = "".join(f"<tr><td>{html.escape(k)}</td><td>{x['shared_snapshots']}</td><td>{_fmt(x['sigma'])}</td>"
