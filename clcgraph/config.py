@@ -205,6 +205,9 @@ class SolveOptions:
     # a DegenerateError names it and the direction instead of returning a useless number.
     max_stdev_m: float = 0.1
     max_stdev_deg: float = 3.0
+    # Self-consistency checks (backend/consistency.py): the chance that a consistent
+    # calibration is refused; 0 turns the checks off (not recommended: results unchecked).
+    consistency_alpha: float = 1e-3
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,9 @@
    the centroid of its points; a camera the full board pose by PnP (on mrcal-unprojected
    corners, so any lens model works).
 2. Each pair of sensors that saw >= ``min_shared_snapshots`` boards together gets a
-   relative pose: cameras-only pairs by averaging the board-pose ratios; any pair with a
+   relative pose: cameras-only pairs by averaging the board-pose ratios (the second
+   camera's corner ordering chosen per board among the grid's in-plane rotations, so a
+   camera rolled by 90 or 180 deg to the other still links); any pair with a
    LIDAR from the board planes (rotation by Procrustes on the normals, translation by least
    squares on the plane offsets ``n_a . t = d_a - d_b``, which are unbiased, plus a weak pull
    of the centroids, which hold the directions the normals leave open). Mismatched pairs
@@ -15,15 +17,17 @@
    LIDAR plane (its in-plane position from the points' centroid, in-plane rotation
    arbitrary: the solve's board prior holds it). Observations that disagree with the board
    pose (beyond the seed thresholds) are rejected with the numbers; a snapshot left with
-   fewer than 2 observations is dropped.
+   fewer than 2 observations is dropped. A camera whose detected ordering disagrees but a
+   rotated one agrees is relabelled (``Seed.problem`` carries the relabelled corners).
 
 SYNOPSIS
     s = seed(problem, options)            # options: config.SolveOptions
-    s.rt_lidar0_sensor, s.rt_lidar0_board, s.rejected, s.dropped
+    s.rt_lidar0_sensor, s.rt_lidar0_board, s.rejected, s.dropped, s.problem
 """
 
 from __future__ import annotations
 
+import dataclasses
 import heapq
 import logging
 from typing import NamedTuple
@@ -47,6 +51,7 @@ class Seed(NamedTuple):
     rt_lidar0_board: np.ndarray  # (Nsnapshots,6), NaN rows for snapshots not used
     rejected: tuple  # Rejected(stage="seed") records
     dropped: frozenset  # (sensor, snapshot) of the observations the seed rejected
+    problem: Problem  # the input, with camera corners relabelled where the seed turned them
 
 
 class _Obs(NamedTuple):
@@ -58,13 +63,25 @@ class _Obs(NamedTuple):
     d: float  # n . x = d
     centroid: np.ndarray
     rt_sensor_board: np.ndarray | None  # cameras only
+    # cameras: (corner permutation, rt_sensor_board) for each in-plane rotation of the
+    # detected ordering (the detection's own first); see corner_orderings
+    alts: tuple = ()
 
 
-def _pnp(obs, sensor, board, max_px: float):
-    """rt_camera_board from one camera observation, or a reason string."""
+def corner_orderings(board) -> list[np.ndarray]:
+    """Permutations of the board-order corner array for every in-plane rotation of the
+    grid a detector cannot tell apart (module camera_board): 4 for a square grid, 2
+    otherwise; the identity first. ``corners_px[perm]`` relabels one view."""
+    grid = np.arange(board.corners_x * board.corners_y).reshape(board.corners_y, board.corners_x)
+    turns = (0, 1, 2, 3) if board.corners_x == board.corners_y else (0, 2)
+    return [np.rot90(grid, k).ravel() for k in turns]
+
+
+def _pnp(corners_px, sensor, board, max_px: float):
+    """rt_camera_board from one camera observation's corners, or a reason string."""
     import cv2
 
-    q = np.asarray(obs.corners_px, float)
+    q = np.asarray(corners_px, float)
     ok = np.all(np.isfinite(q), axis=1)
     v = cameras.unproject(q[ok], sensor.lensmodel, sensor.intrinsics, normalize=True)
     front = v[:, 2] > 1e-3
@@ -95,18 +112,24 @@ def _reduce(problem: Problem, options) -> tuple[list[_Obs], list[Rejected]]:
         n, d = np.asarray(o.plane[:3], float), float(o.plane[3])
         out.append(_Obs(o.sensor, o.snapshot, n, d, np.asarray(o.points, float).mean(axis=0), None))
     centre = _board_centre(problem.board)
+    orders = corner_orderings(problem.board)
     for o in problem.camera_observations:
         s = problem.sensors[o.sensor]
-        rt = _pnp(o, s, problem.board, options.seed_max_corner_px)
+        rt = _pnp(o.corners_px, s, problem.board, options.seed_max_corner_px)
         if isinstance(rt, str):
             rejected.append(Rejected(rt, "seed", o.sensor, o.snapshot))
             continue
+        alts = [(orders[0], rt)]
+        for perm in orders[1:]:
+            alt = _pnp(np.asarray(o.corners_px)[perm], s, problem.board, options.seed_max_corner_px)
+            if not isinstance(alt, str):
+                alts.append((perm, alt))
         R, t = R_from_r(rt[:3]), rt[3:]
         n = R[:, 2]
         d = float(n @ t)
         if d > 0:
             n, d = -n, -d
-        out.append(_Obs(o.sensor, o.snapshot, n, d, transform(rt, centre[None])[0], rt))
+        out.append(_Obs(o.sensor, o.snapshot, n, d, transform(rt, centre[None])[0], rt, tuple(alts)))
     return out, rejected
 
 
@@ -133,7 +156,7 @@ def _pair(a_obs: list[_Obs], b_obs: list[_Obs], options):
         if len(A) < options.min_shared_snapshots:
             return None
         if all(o.rt_sensor_board is not None for o in A + B):
-            rts = np.array([compose_rt(x.rt_sensor_board, invert_rt(y.rt_sensor_board)) for x, y in zip(A, B)])
+            rts = _camera_ratios(A, B, options)
             R = _mean_rotation(R_from_r(rts[:, :3]))
             t = np.median(rts[:, 3:], axis=0)
         else:
@@ -155,6 +178,26 @@ def _pair(a_obs: list[_Obs], b_obs: list[_Obs], options):
             return rt_from_R_t(R, t), int(keep.sum())
         keep = new
     return (rt_from_R_t(R, t), int(keep.sum())) if keep.sum() >= options.min_shared_snapshots else None
+
+
+def _rt_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """(rotation angle in deg, translation distance in m) between two rt poses."""
+    d = compose_rt(invert_rt(a), b)
+    return float(np.degrees(np.linalg.norm(d[:3]))), float(np.linalg.norm(a[3:] - b[3:]))
+
+
+def _camera_ratios(A: list[_Obs], B: list[_Obs], options) -> np.ndarray:
+    """rt_a_b from each shared board of two cameras, with b's corner ordering chosen per
+    board so that the ratios agree (cameras rolled > 45 deg to each other see the grid
+    rotated): the hypothesis most boards support wins, each board takes its nearest."""
+    cands = [[compose_rt(x.rt_sensor_board, invert_rt(rt)) for _, rt in y.alts] for x, y in zip(A, B)]
+
+    def near(h, c):
+        ang, dist = _rt_distance(h, c)
+        return ang <= options.seed_max_normal_deg and dist <= options.seed_max_center_m
+
+    best = max((h for cs in cands for h in cs), key=lambda h: sum(any(near(h, c) for c in cs) for cs in cands))
+    return np.array([min(cs, key=lambda c: _rt_distance(best, c)[0]) for cs in cands])
 
 
 def _spanning_tree(problem: Problem, obs: list[_Obs], options) -> np.ndarray:
@@ -238,6 +281,18 @@ def _disagreement(o: _Obs, rt_board: np.ndarray, rt_sensor: np.ndarray, problem:
     return None
 
 
+def _agreeing_ordering(o: _Obs, rt_board, rt_sensor, problem: Problem, options):
+    """(why ``o`` disagrees with board pose rt_lidar0_board, or None; the corner permutation
+    of the camera ordering that agrees when it is not the detection's own, else None)."""
+    why = _disagreement(o, rt_board, rt_sensor, problem, options)
+    if not why or len(o.alts) < 2:
+        return why, None
+    for perm, rt in o.alts[1:]:
+        if _disagreement(o._replace(rt_sensor_board=rt), rt_board, rt_sensor, problem, options) is None:
+            return None, perm
+    return why, None
+
+
 def seed(problem: Problem, options) -> Seed:
     """The initial estimate of every pose (module docstring); options: config.SolveOptions."""
     obs, rejected = _reduce(problem, options)
@@ -247,17 +302,25 @@ def seed(problem: Problem, options) -> Seed:
     for o in obs:
         by_snap.setdefault(o.snapshot, []).append(o)
     dropped = {(r.sensor, r.snapshot) for r in rejected}
+    reorder = {}  # (sensor, snapshot) -> corner permutation of a camera seeing the grid turned
     for k, group in sorted(by_snap.items()):
-        # candidate board poses: every camera's PnP, then every LIDAR plane; keep the one
-        # most observations agree with (a wrong plane or a bad detection loses the vote)
-        cands = [compose_rt(rts[o.sensor], o.rt_sensor_board) for o in group if o.rt_sensor_board is not None]
+        # candidate board poses: every camera's PnP (in each of its corner orderings), then
+        # every LIDAR plane; keep the one most observations agree with (a wrong plane or a
+        # bad detection loses the vote), each camera in the ordering that agrees
+        cands = [compose_rt(rts[o.sensor], rt) for o in group if o.rt_sensor_board is not None for _, rt in o.alts]
         cands += [_board_from_plane(o, rts[o.sensor], problem.board) for o in group if o.rt_sensor_board is None]
-        best, best_bad = None, None
+        best, best_bad, best_perm = None, None, None
         for c in cands:
-            bad = [(o, _disagreement(o, c, rts[o.sensor], problem, options)) for o in group]
-            bad = [(o, why) for o, why in bad if why]
+            bad, perms = [], {}
+            for o in group:
+                why, perm = _agreeing_ordering(o, c, rts[o.sensor], problem, options)
+                if why:
+                    bad.append((o, why))
+                elif perm is not None:
+                    perms[(o.sensor, k)] = perm
             if best is None or len(bad) < len(best_bad):
-                best, best_bad = c, bad
+                best, best_bad, best_perm = c, bad, perms
+        reorder.update(best_perm)
         keep = len(group) - len(best_bad)
         if keep < 2:
             for o in group:
@@ -268,4 +331,11 @@ def seed(problem: Problem, options) -> Seed:
             rejected.append(Rejected(why, "seed", o.sensor, k))
             dropped.add((o.sensor, k))
         boards[k] = best
-    return Seed(rts, boards, tuple(rejected), frozenset(dropped))
+    for key in dropped:
+        reorder.pop(key, None)
+    if reorder:
+        log.info("seed: %d camera views relabelled (the grid seen turned by 90 or 180 deg)", len(reorder))
+        cams = tuple(dataclasses.replace(o, corners_px=np.asarray(o.corners_px)[reorder[(o.sensor, o.snapshot)]])
+                     if (o.sensor, o.snapshot) in reorder else o for o in problem.camera_observations)
+        problem = dataclasses.replace(problem, camera_observations=cams)
+    return Seed(rts, boards, tuple(rejected), frozenset(dropped), problem)

@@ -12,7 +12,12 @@ re-estimation and outlier rejection until stable -> covariance from gtsam.Margin
   rejection is a Rejected(stage="outlier") with the numbers.
 - **Degeneracy**: a sensor whose pose the data do not determine (information singular, or a
   1-sigma beyond ``max_stdev_m`` / ``max_stdev_deg`` in some direction) is a DegenerateError
-  naming the sensor and the direction, never a number.
+  naming the sensor and the direction, never a number (GTSAM's "Indeterminate linear
+  system" included: consistency.unobservable_error names the free direction).
+- **Consistency**: the final solution must pass backend/consistency.py's checks (leave one
+  snapshot out, per sensor pair, no material error a single snapshot could hide), else a
+  SolveError / DegenerateError naming the snapshot, sensor and direction; the verdict is
+  ``Result.stats["consistency"]``.
 
 SYNOPSIS
     result = calibrate(problem, Config().solve)      # -> types.Result
@@ -28,6 +33,7 @@ import numpy as np
 from ..errors import DegenerateError, SolveError
 from ..geometry import R_from_r, drt_dxi, rt_from_pose3, tangent_covariance_from_rt
 from ..types import Problem, Rejected, Result
+from . import consistency
 from . import graph as G
 from .convergence import MAX_UNCONVERGED_STEP_SIGMA, optimize_lm, public, step_sigma
 from .seed import seed as make_seed
@@ -57,9 +63,8 @@ def _lm(problem, active, rt_sensor, rt_board, lidar, sigma, options, nominal, st
     params.setAbsoluteErrorTol(1e-15)
     try:
         out, rec = optimize_lm(g, v, params, stage=stage)
-    except RuntimeError as e:  # GTSAM's IndeterminantLinearSystemException and friends
-        raise DegenerateError(f"the {lidar} solve is singular: {str(e).splitlines()[0]}; "
-                              "some sensor or board is not determined by the data") from None
+    except RuntimeError:  # GTSAM's IndeterminantLinearSystemException: name the free direction
+        raise consistency.unobservable_error(problem, consistency.linearize(problem, g, v)) from None
     rt_sensor = rt_sensor.copy()
     rt_board = np.full_like(rt_board, np.nan)
     for i in range(len(problem.sensors)):
@@ -242,13 +247,8 @@ def _covariance(problem: Problem, g, values, rt_sensor, options) -> np.ndarray:
     keys = [G.sensor_key(i) for i in idx]
     try:
         marg = gtsam.Marginals(g, values)
-        singular = None
-    except RuntimeError as e:
-        singular = str(e).splitlines()[0]
-        g2 = gtsam.NonlinearFactorGraph(g)  # find the direction: weak priors make it finite
-        for k in keys:
-            g2.add(gtsam.PriorFactorPose3(k, values.atPose3(k), gtsam.noiseModel.Isotropic.Sigma(6, 1e3)))
-        marg = gtsam.Marginals(g2, values)
+    except RuntimeError:  # GTSAM's "Indeterminate linear system": name the free direction
+        raise consistency.unobservable_error(problem, consistency.linearize(problem, g, values)) from None
     jm = marg.jointMarginalCovariance(gtsam.KeyVector(keys))
     n = len(keys)
     C = np.zeros((6 * n, 6 * n))
@@ -271,8 +271,8 @@ def _covariance(problem: Problem, g, values, rt_sensor, options) -> np.ndarray:
                 unit = f"{sd:.2g} m" if what.startswith("t") else f"{np.degrees(sd):.2g} deg"
                 bad.append(f"{problem.sensors[i].topic}: {what} lidar0 ({ax[0]:+.2f}, {ax[1]:+.2f}, {ax[2]:+.2f}), "
                            f"1-sigma {unit}")
-    if singular or bad:
-        raise DegenerateError("unobservable: " + ("; ".join(bad) or singular)
+    if bad:
+        raise DegenerateError("unobservable: " + "; ".join(bad)
                               + "; capture board poses that constrain it (tilt the board in different directions)")
     J = np.zeros_like(C)
     for a, i in enumerate(idx):
@@ -286,6 +286,7 @@ def calibrate(problem: Problem, options) -> Result:
     t0 = time.perf_counter()
     times, iters = {}, {}
     s = make_seed(problem, options)
+    problem = s.problem  # camera corners relabelled where a camera saw the grid turned
     times["seed"] = time.perf_counter() - t0
     rt_sensor, rt_board = s.rt_lidar0_sensor.copy(), s.rt_lidar0_board.copy()
     nominal = s.rt_lidar0_board.copy()
@@ -361,6 +362,9 @@ def calibrate(problem: Problem, options) -> Result:
         log.warning("solve: not converged everywhere: %s", "; ".join(warnings))
     convergence = {"converged": not warnings, "final_step_sigma": step, "rounds": rounds,
                    "stages": [public(r) for r in stages], "warnings": warnings}
+    t = time.perf_counter()
+    verdict = consistency.verify(problem, g, values, alpha=options.consistency_alpha)
+    times["consistency"] = time.perf_counter() - t
 
     lid, cam = G.residuals(problem, rt_sensor, rt_board)
     rl, rc = _active_residuals(lid, cam, active)
@@ -390,7 +394,8 @@ def calibrate(problem: Problem, options) -> Result:
     times["total"] = time.perf_counter() - t0
     stats = {"stage": "solve", "iterations": iters, "convergence": convergence, "time_s": times, "regularization_share": float(prior / max(total, 1e-300)),
              "n_outlier_points": int(sum(int((~m).sum()) for m in active.lidar if m is not None)),
-             "n_rejected_observations": sum(1 for r in rejected if r.stage in ("outlier", "seed"))}
+             "n_rejected_observations": sum(1 for r in rejected if r.stage in ("outlier", "seed")),
+             "consistency": verdict}
     if not np.all(np.isfinite(rt_sensor)):
         raise SolveError("the solve produced non-finite sensor poses")
     log.info("solve: %d rounds, sigma LIDAR %.4f m, camera %.3f px, %.2f s", iters["rounds"], noise["lidar_m"],

@@ -111,6 +111,42 @@ th{background:#eee}img{max-width:100%;border:1px solid #ddd}.howto{background:#f
 code{background:#f3f3f3}.warn{background:#fff3f0;padding:.5em 1em;border-left:4px solid #e43}"""
 
 
+def _consistency(result: Result) -> str:
+    """The self-consistency verdict (backend/consistency.py) as a paragraph and tables."""
+    v = result.stats.get("consistency")
+    if not v:
+        return "<p>No consistency checks were run.</p>"
+    snaps = v.get("snapshots", {})
+    parts = [f"<p>Verdict: <b>{'self-consistent' if v.get('passed') else 'NOT self-consistent'}</b> "
+             f"({v.get('n_checks', 0)} checks, refused below p = {_fmt(v.get('p_limit'))}). "
+             f"Worst leave-one-snapshot-out: snapshot {snaps.get('worst', '-')}, {_fmt(snaps.get('worst_sigma'))} sigma "
+             f"({html.escape(str(snaps.get('worst_direction', '-')))}); largest single-snapshot share of the "
+             f"information: {_fmt(snaps.get('max_leverage'))}.</p>"]
+    for why in [*v.get("failures", []), *v.get("unverifiable", [])]:
+        parts.append(f"<p><b>Failed:</b> {html.escape(why)}</p>")
+    if v.get("pairs"):
+        rows = "".join(f"<tr><td>{html.escape(k)}</td><td>{x['shared_snapshots']}</td><td>{_fmt(x['sigma'])}</td>"
+                       f"<td>{x['dof']}</td><td>{html.escape(x['direction'])}</td></tr>" for k, x in v["pairs"].items())
+        parts.append("<table><tr><th>sensor pair</th><th>shared boards</th><th>disagreement (sigma)</th><th>dof</th>"
+                     f"<th>dominant direction</th></tr>{rows}</table>")
+    if v.get("unchecked_pairs"):
+        parts.append("<p>Pairs no other data checks (every path between them uses the same boards): "
+                     + ", ".join(html.escape(x) for x in v["unchecked_pairs"]) + ".</p>")
+    rows = "".join(f"<tr><td>{html.escape(t)}</td><td>{html.escape(w['weakest_translation'])}</td>"
+                   f"<td>{_fmt(w['weakest_translation_stdev_mm'])}</td><td>{html.escape(w['weakest_rotation'])}</td>"
+                   f"<td>{_fmt(w['weakest_rotation_stdev_deg'])}</td></tr>" for t, w in v.get("weakest", {}).items())
+    parts.append("<table><tr><th>sensor</th><th>weakest translation</th><th>1-sigma (mm)</th><th>weakest rotation</th>"
+                 f"<th>1-sigma (deg)</th></tr>{rows}</table>")
+    for why in v.get("unverified", [])[:5]:
+        parts.append(f"<p>Unverified: {html.escape(why)}</p>")
+    parts.append("<p class='howto'>Each check splits the data in two independent parts (one snapshot against the "
+                 "others; the boards two sensors saw together against the rest) and asks whether both give the same "
+                 "poses within their uncertainty. A disagreement of many sigma means a wrong board association, a "
+                 "sensor that moved, or a model error; clcgraph then refuses to write a result. 'Unverified' names "
+                 "directions that a single snapshot determines, so no check could see an error there.</p>")
+    return "\n".join(parts)
+
+
 def report_html(result: Result, plots: dict[str, Path], *, title: str = "clcgraph calibration") -> str:
     """The HTML text; ``plots`` maps PNG file names (relative to the report) to paths."""
     rms, noise = result.rms, result.noise
@@ -133,6 +169,7 @@ def report_html(result: Result, plots: dict[str, Path], *, title: str = "clcgrap
         "<p class='howto'>The normalized RMS should be near 1 once the noise is re-estimated. A LIDAR RMS well above "
         "the LIDAR's range noise (typically 1–3 cm) or a camera RMS above ~1 px points at bad data.</p>",
         "<h2>Convergence</h2>", convergence_html(result.stats.get("convergence") or {}),
+        "<h2>Consistency</h2>", _consistency(result),
         "<h2>Rejections</h2>", _rejections(result),
     ]
     for name, how in HOWTO.items():

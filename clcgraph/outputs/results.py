@@ -114,7 +114,26 @@ def calibration_dict(result: Result) -> dict:
         "sectors": sectors_dict(result),
         "convergence": dict(result.stats.get("convergence") or {}),
         "coordinates": COORDINATES,
+        # the self-consistency verdict (backend/consistency.py): the checks and their numbers
+        "consistency": _plain(result.stats.get("consistency")),
     }
+
+
+def _plain(v):
+    """numpy scalars/arrays inside dicts and lists -> python types (YAML-safe)."""
+    if isinstance(v, dict):
+        return {str(k): _plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    if isinstance(v, np.ndarray):
+        return _plain(v.tolist())
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        return _scalar(v)
+    return v
 
 
 def sectors_dict(result: Result) -> dict:

@@ -89,12 +89,15 @@ def make_rig(n_lidars: int = 2, n_cameras: int = 3) -> Rig:
     return Rig(tuple(sensors), np.array(rts), lidars)
 
 
-def _board_pose(rng, board: BoardGeometry, range_m, tilt_max_deg, vertical_only, vertical_jitter_deg):
-    """rt_lidar0_board for a board facing lidar0 somewhere in front of the rig."""
+def _board_pose(rng, board: BoardGeometry, range_m, tilt_max_deg, vertical_only, vertical_jitter_deg,
+                azimuth_rad=(-0.45, 0.45), origin=(0.0, 0.0, 0.0)):
+    """rt_lidar0_board for a board facing ``origin`` (lidar0 coordinates) from ``range_m``
+    away, at an azimuth in ``azimuth_rad`` (lidar0's +x is 0)."""
     rho = rng.uniform(*range_m)
-    az = rng.uniform(-0.45, 0.45)
+    az = rng.uniform(*azimuth_rad)
     c = np.array([rho * np.cos(az), rho * np.sin(az), rng.uniform(-0.4, 0.6)])
     z = np.array([c[0], c[1], 0.0 if vertical_only else c[2]])
+    c = c + np.asarray(origin, float)
     z /= np.linalg.norm(z)  # board normal pointing away from the rig (mrcal's board convention)
     y = np.array([0.0, 0.0, -1.0]) - z[2] * -z
     y -= (y @ z) * z
@@ -152,7 +155,8 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
                      board: BoardGeometry = BoardGeometry(), tilt_max_deg: float = 45.0,
                      range_m: tuple[float, float] = (2.0, 8.0), vertical_only: bool = False,
                      vertical_jitter_deg: float = 2.0, corrupt_fraction: float = 0.0,
-                     lidar_only: bool = False, min_rings: int = 3, min_points: int = 20):
+                     lidar_only: bool = False, min_rings: int = 3, min_points: int = 20,
+                     azimuth_rad: tuple[float, float] = (-0.45, 0.45), origin=(0.0, 0.0, 0.0)):
     """A Problem with noisy board observations of ``rig`` and its Truth (see module doc).
 
     ``sigma_lidar_m``: one range sigma, or one per LIDAR (in sensor order).
@@ -161,6 +165,7 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
     sensor's observations is corrupted (LIDAR: points of another surface 0.3 m off and 25 deg
     turned; camera: every corner shifted by ~12 px), listed in ``truth.corrupted``.
     ``lidar_only`` drops the rig's cameras. A snapshot is kept if >= 2 sensors saw it.
+    ``azimuth_rad``, ``origin``: the boards face ``origin`` from those azimuths (lidar0 axes).
     """
     rig = rig or make_rig()
     rng = np.random.default_rng(seed)
@@ -180,7 +185,7 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
         attempts += 1
         if attempts > 50 * n_snapshots:
             raise RuntimeError("the rig sees too few of the simulated board poses")
-        rt_b = _board_pose(rng, board, range_m, tilt_max_deg, vertical_only, vertical_jitter_deg)
+        rt_b = _board_pose(rng, board, range_m, tilt_max_deg, vertical_only, vertical_jitter_deg, azimuth_rad, origin)
         lo, co = [], []
         for i, s in enumerate(sensors):
             rt_s_b = compose_rt(invert_rt(rts[i]), rt_b)

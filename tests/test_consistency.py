@@ -1,0 +1,245 @@
+"""Self-consistency checks (backend/consistency.py) and the solve's refusals: the linearized
+information against GTSAM's marginals, the leave-one-out statistic against its chi-square
+law, corrupted captures refused instead of answered, an unobservable direction named
+instead of GTSAM's "Indeterminate linear system", and cameras rolled against each other
+(the seed relabels their corners)."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from clcgraph.backend import consistency as C
+from clcgraph.backend import graph as G
+from clcgraph.backend.solve import calibrate
+from clcgraph.config import SolveOptions
+from clcgraph.errors import ClcgraphError, DegenerateError, SolveError
+from clcgraph.frontend.camera_board import canonicalize
+from clcgraph.geometry import R_from_r, compose_rt, drt_dxi, rt_from_R_t
+from clcgraph.sim.observations import Rig, SimLidar, make_rig, plane_fit, simulate_problem
+from clcgraph.types import BoardGeometry, LidarBoardObservation, Sensor
+
+
+def _rt(ypr_deg, xyz):
+    return rt_from_R_t(Rotation.from_euler("ZYX", ypr_deg, degrees=True).as_matrix(), np.array(xyz, float))
+
+
+def _errors(result, truth_rt):
+    """Per non-reference sensor: (rotation error deg, translation error mm, max |error| / sigma)."""
+    out = {}
+    for i in result.variable_sensors():
+        dR = R_from_r(result.rt_lidar0_sensor[i][:3]).T @ R_from_r(truth_rt[i][:3])
+        deg = np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))
+        mm = 1e3 * np.linalg.norm(result.rt_lidar0_sensor[i][3:] - truth_rt[i][3:])
+        z = np.abs(result.rt_lidar0_sensor[i] - truth_rt[i]) / result.stdev_rt(i)
+        out[result.problem.sensors[i].topic] = (deg, mm, z.max())
+    return out
+
+
+# ---------------------------------------------------------------- the machinery
+
+
+def test_axis_words():
+    assert C.axis_words([0, 0, 1]) == "z"
+    assert C.axis_words([0, -0.99, 0.05]) == "-y"
+    assert C.axis_words([0.6, 0.0, -0.8]) == "0.60x-0.80z"
+
+
+def test_information_matches_gtsam_marginals():
+    """The board-profiled information of consistency.linearize inverts to the solve's covariance."""
+    problem, _ = simulate_problem(rig=make_rig(2, 1), n_snapshots=20, seed=21)
+    opts = SolveOptions(reject_outliers=False)  # every observation active: the graph is rebuilt below
+    r = calibrate(problem, opts)
+    assert not [x for x in r.rejected if x.stage == "seed"]
+    sig = np.array([r.noise["per_sensor"][i] for i in range(len(problem.sensors))])
+    g, v = G.build(r.problem, G.Active.all(r.problem), r.rt_lidar0_sensor, r.rt_lidar0_board, lidar="range", sigma_lidar_m=sig,
+                   sigma_camera_px=sig, options=SolveOptions())
+    H, _, _ = C.information(C.linearize(r.problem, g, v))
+    J = np.zeros_like(H)
+    for a, i in enumerate(r.variable_sensors()):
+        J[6 * a:6 * a + 6, 6 * a:6 * a + 6] = drt_dxi(r.rt_lidar0_sensor[i])
+    cov = J @ np.linalg.inv(H) @ J.T
+    np.testing.assert_allclose(np.sqrt(np.diag(cov)), np.sqrt(np.diag(r.covariance_rt)), rtol=0.02)
+
+
+def test_leave_one_out_statistic_follows_its_chi_square_law():
+    """With Gaussian noise as modelled, the leave-one-snapshot-out chi-squares add up to their
+    degrees of freedom (sum over 30 snapshots: sd ~ sqrt(2 dof), so 25 % is ~3 sd)."""
+    problem, _ = simulate_problem(rig=make_rig(2, 1), n_snapshots=30, seed=7)
+    r = calibrate(problem, SolveOptions(reject_outliers=False))
+    assert not [x for x in r.rejected if x.stage == "seed"]
+    sig = np.array([r.noise["per_sensor"][i] for i in range(len(problem.sensors))])
+    g, v = G.build(r.problem, G.Active.all(r.problem), r.rt_lidar0_sensor, r.rt_lidar0_board, lidar="range",
+                   sigma_lidar_m=sig, sigma_camera_px=sig, options=SolveOptions())
+    lin = C.linearize(r.problem, g, v)
+    H, grad, per = C.information(lin)
+    tests = [C.compare(lin, h, x, H - h, grad - x) for h, x in per.values()]
+    chi2 = sum(t.chi2 for t in tests if t)
+    dof = sum(t.dof for t in tests if t)
+    print("sum chi2", chi2, "dof", dof)
+    assert dof > 100
+    assert chi2 / dof == pytest.approx(1.0, abs=0.25)
+    assert r.stats["consistency"]["passed"]
+
+
+# ---------------------------------------------------------------- item 5: 3 LIDARs, transitive links
+
+
+def _three_lidar_rig() -> Rig:
+    """VLP-16 front (lidar0), 64-ring roof, VLP-16 rear facing backwards."""
+    vlp16 = SimLidar(np.radians(np.linspace(-15, 15, 16)))
+    os64 = SimLidar(np.radians(np.linspace(-22.5, 22.5, 64)), npoints_per_rotation=1024)
+    sensors = tuple(Sensor(topic=t, kind="lidar") for t in ("/front", "/roof", "/rear"))
+    rts = np.array([_rt((0, 0, 0), (0, 0, 0)), _rt((2, 1, 0.5), (-1.2, 0.05, 0.9)),
+                    _rt((178, -1, 1), (-2.4, -0.05, 0.05))])
+    return Rig(sensors, rts, {0: vlp16, 1: os64, 2: vlp16})
+
+
+def _three_lidar_problem(seed: int, n_front: int, n_rear: int = 12):
+    """Front boards seen by /front and /roof, rear boards by /roof and /rear: /front and
+    /rear never see a board together."""
+    rig = _three_lidar_rig()
+    pf, tf = simulate_problem(rig=rig, n_snapshots=n_front, seed=seed, azimuth_rad=(-0.6, 0.6), range_m=(3, 8))
+    pr, _ = simulate_problem(rig=rig, n_snapshots=n_rear, seed=seed + 1000, range_m=(3, 8),
+                             azimuth_rad=(np.pi - 0.6, np.pi + 0.6), origin=(-2.4, 0, 0))
+    lid = [o for o in pf.lidar_observations if o.sensor != 2]
+    lid += [dataclasses.replace(o, snapshot=o.snapshot + n_front) for o in pr.lidar_observations if o.sensor != 0]
+    p = dataclasses.replace(pf, lidar_observations=tuple(lid),
+                            snapshot_stamps_ns=np.r_[pf.snapshot_stamps_ns, pr.snapshot_stamps_ns + 10**12])
+    return p, tf.rt_lidar0_sensor
+
+
+def _range_bias(problem, sensor, snapshots, metres):
+    """That sensor's points in those snapshots pushed ``metres`` along their rays (a board
+    seen through a window, a range offset, its frame instead of its face)."""
+    lid = list(problem.lidar_observations)
+    for j, o in enumerate(lid):
+        if o.sensor == sensor and o.snapshot in snapshots:
+            pts = o.points * (1 + metres / np.linalg.norm(o.points, axis=1))[:, None]
+            plane, rms = plane_fit(pts)
+            lid[j] = LidarBoardObservation(o.sensor, o.snapshot, pts, plane, rms)
+    return dataclasses.replace(problem, lidar_observations=tuple(lid))
+
+
+@pytest.mark.parametrize("n_front", [4, 12])
+def test_three_lidars_transitive_is_right_or_refused(n_front):
+    """Issue 11 item 5 with default settings: every sensor within 3 sigma, or exit 2 naming a
+    sensor."""
+    outcomes = []
+    for seed in range(3):
+        p, truth = _three_lidar_problem(seed, n_front)
+        try:
+            e = _errors(calibrate(p, SolveOptions()), truth)
+        except ClcgraphError as ex:
+            assert ex.exit_code == 2 and ("/roof" in str(ex) or "/rear" in str(ex)) and "\n" not in str(ex)
+            outcomes.append("refused")
+            continue
+        print(n_front, seed, e)
+        # honest (the 0.1 deg / 5 mm of issue 11 needs more boards than 12 + 12: /rear's
+        # 1-sigma is ~5 mm here), and nowhere near a silent wrong answer (5 cm)
+        assert all(z < 3 and mm < 50 for deg, mm, z in e.values()), e
+        outcomes.append("right")
+    print(n_front, outcomes)
+    if n_front == 4:  # 4 boards cannot check the front-roof link: every run is refused
+        assert outcomes == ["refused"] * 3
+
+
+def test_range_bias_in_some_rear_boards_is_refused():
+    """3 of the rear LIDAR's boards 4 cm long: without the checks a silent wrong answer
+    (/rear 35-90 mm off, 5-11 sigma); with them exit 2 naming the snapshot and sensors."""
+    p, truth = _three_lidar_problem(2, n_front=12)
+    rear = sorted({o.snapshot for o in p.lidar_observations if o.sensor == 2})
+    bad = _range_bias(p, 2, rear[:3], 0.04)
+    unchecked = calibrate(bad, SolveOptions(consistency_alpha=0.0))
+    deg, mm, z = _errors(unchecked, truth)["/rear"]
+    print("unchecked /rear", deg, mm, z, unchecked.stats["consistency"]["failures"][0])
+    assert z > 5 and not unchecked.stats["consistency"]["passed"]
+    with pytest.raises(SolveError, match=r"not self-consistent.*snapshot \d+ \(/rear, /roof\) disagrees") as e:
+        calibrate(bad, SolveOptions())
+    assert "\n" not in str(e.value)
+
+
+def test_link_resting_on_one_board_is_refused():
+    """4 front boards, one of them 4 cm long: the solve moves /roof ~60 mm (10 sigma) and no
+    leave-one-out test can see it (that board alone fixes the direction): refused."""
+    p, truth = _three_lidar_problem(1, n_front=4)
+    front = sorted({o.snapshot for o in p.lidar_observations if o.sensor == 0})
+    bad = _range_bias(p, 0, front[:1], 0.04)
+    unchecked = calibrate(bad, SolveOptions(consistency_alpha=0.0))
+    deg, mm, z = _errors(unchecked, truth)["/roof"]
+    assert z > 5 and mm > 30
+    with pytest.raises(DegenerateError, match=r"not verifiable.*snapshot \d alone carries \d+% of the information "
+                                              r"on /(roof|rear) (translation along|rotation about) lidar0"):
+        calibrate(bad, SolveOptions())
+
+
+# ---------------------------------------------------------------- item 6: never tilted
+
+
+@pytest.mark.parametrize("n_lidars,n_cameras,seed", [(2, 0, 0)])
+def test_indeterminate_system_names_sensor_and_direction(n_lidars, n_cameras, seed):
+    """Boards exactly upright: GTSAM's marginals fail ("Indeterminate linear system"); the
+    solve names the sensor and the vertical instead, in one line."""
+    problem, _ = simulate_problem(rig=make_rig(n_lidars, n_cameras), n_snapshots=20, seed=seed, vertical_only=True,
+                                  vertical_jitter_deg=0.0)
+    with pytest.raises(DegenerateError, match=r"unobservable: /(lidar1|cam0|cam1): translation along lidar0 "
+                                              r"\([+-]0\.0\d, [+-]0\.0\d, \+1\.00\) = z") as e:
+        calibrate(problem, SolveOptions())
+    assert "\n" not in str(e.value) and "Indeterminate" not in str(e.value)
+
+
+# ---------------------------------------------------------------- item 12: rolled cameras
+
+
+def _rolled_camera_problem(roll_deg, board=BoardGeometry(), seed=3):
+    """1 LIDAR, cam0 and cam1 side by side, cam1 rolled about its optical axis; corners in
+    the detector's canonical ordering (what mrgingham/OpenCV return)."""
+    rig = make_rig(n_lidars=1, n_cameras=2)
+    rts = rig.rt_lidar0_sensor.copy()
+    rts[2] = compose_rt(rts[1], np.array([0, 0, np.radians(roll_deg), 0.2, 0.05, 0.02]))
+    p, truth = simulate_problem(rig=dataclasses.replace(rig, rt_lidar0_sensor=rts), n_snapshots=30, seed=seed,
+                                board=board)
+    cams = tuple(dataclasses.replace(o, corners_px=canonicalize(o.corners_px, board.corners_x, board.corners_y))
+                 for o in p.camera_observations)
+    return dataclasses.replace(p, camera_observations=cams), truth
+
+
+@pytest.mark.parametrize("roll_deg,board", [(90, BoardGeometry()), (180, BoardGeometry()),
+                                            (180, BoardGeometry(corners_x=8, corners_y=6))])
+def test_rolled_camera_is_relabelled_at_seeding(roll_deg, board):
+    p, truth = _rolled_camera_problem(roll_deg, board)
+    relabelled = sum(not np.allclose(o.corners_px, canonicalize(o.corners_px, board.corners_x, board.corners_y))
+                     for o in p.camera_observations)
+    assert relabelled == 0  # the detector's orderings: the rolled camera's turned by roll_deg
+    shared = {o.snapshot for o in p.camera_observations if o.sensor == 1} & \
+             {o.snapshot for o in p.camera_observations if o.sensor == 2}
+    assert len(shared) >= 10
+    r = calibrate(p, SolveOptions())
+    whole = [x for x in r.rejected if x.stage == "seed" or (x.stage == "outlier" and "observation" in x.reason)]
+    assert not whole, whole
+    turned = sum(not np.array_equal(a.corners_px, b.corners_px)
+                 for a, b in zip(p.camera_observations, r.problem.camera_observations))
+    assert turned >= len(shared)  # one of the two cameras relabelled on every shared board
+    e = _errors(r, truth.rt_lidar0_sensor)
+    print(roll_deg, e)
+    assert all(deg < 0.1 and mm < 10 and z < 3.5 for deg, mm, z in e.values()), e
+
+
+def test_verdict_is_written_to_calibration_yaml_and_report():
+    import yaml
+
+    from clcgraph.outputs.report import report_html
+    from clcgraph.outputs.results import calibration_dict
+
+    problem, _ = simulate_problem(rig=make_rig(3, 0), n_snapshots=20, seed=31)
+    r = calibrate(problem, SolveOptions())
+    d = yaml.safe_load(yaml.safe_dump(calibration_dict(r)))["consistency"]
+    assert d["passed"] is True and d["n_checks"] >= 20
+    assert 0 <= d["snapshots"]["worst_sigma"] < 4.5 and d["p_limit"] == pytest.approx(1e-3 / d["n_checks"])
+    assert set(d["weakest"]) == {"/lidar1", "/lidar2"}
+    w = d["weakest"]["/lidar1"]
+    assert w["weakest_translation_stdev_mm"] == pytest.approx(1e3 * np.sqrt(np.linalg.eigvalsh(
+        r.covariance_block(1)[3:, 3:])[-1]), rel=0.05)  # rt and tangent translations agree to first order
+    html = report_html(r, {})
+    assert "<h2>Consistency</h2>" in html and "self-consistent" in html
