@@ -269,8 +269,8 @@ def _covariance(problem: Problem, g, values, rt_sensor, options) -> np.ndarray:
                 ax = R @ V[:, -1]
                 ax = ax * np.sign(ax[np.argmax(np.abs(ax))])
                 unit = f"{sd:.2g} m" if what.startswith("t") else f"{np.degrees(sd):.2g} deg"
-                bad.append(f"{problem.sensors[i].topic}: {what} lidar0 ({ax[0]:+.2f}, {ax[1]:+.2f}, {ax[2]:+.2f}), "
-                           f"1-sigma {unit}")
+                bad.append(f"{problem.sensors[i].topic}: {what} lidar0 ({ax[0]:+.2f}, {ax[1]:+.2f}, {ax[2]:+.2f}) = "
+                           f"{consistency.axis_words(ax)}, 1-sigma {unit}")
     if bad:
         raise DegenerateError("unobservable: " + "; ".join(bad)
                               + "; capture board poses that constrain it (tilt the board in different directions)")
