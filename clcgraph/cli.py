@@ -392,8 +392,8 @@ def _load_config(args):
     from .errors import InputError
 
     try:
-        cfg = Config.from_yaml(args.config) if getattr(args, "config", None) else Config()
         overrides: dict = {}
+        cfg = Config.from_yaml(args.config) if getattr(args, "config", None) else Config()
         for section, key, value in getattr(args, "overrides", lambda a: [])(args):
             overrides.setdefault(section, {})[key] = value
         for item in getattr(args, "set", None) or []:
@@ -404,7 +404,24 @@ def _load_config(args):
             overrides.setdefault(section, {})[key] = yaml.safe_load(value)
         return cfg.replace(**overrides) if overrides else cfg
     except ConfigError as e:
-        raise InputError(str(e)) from None
+        key = getattr(e, "key", None)
+        flags = [f"--set {item}" for item in getattr(args, "set", None) or [] if item.partition("=")[0] == key]
+        section, _, name = (key or "").partition(".")
+        if not flags and name in overrides.get(section, {}):  # set by one of the command's flags
+            flags = [_FLAG_OF.get(key, "--" + name.replace("_", "-"))]
+        raise InputError(f"{flags[-1]}: {e}" if flags else str(e)) from None
+
+
+# config keys set by a differently named flag of `clcgraph solve` (section flags are named after their keys)
+_FLAG_OF = {
+    "snapshots.exclude_bag": "--exclude-bag", "snapshots.decimation_period_s": "--decimation-period",
+    "snapshots.max_time_spread_s": "--max-time-spread-s", "sectors.n_sectors": "--Nsectors",
+    "sectors.threshold_valid_lidar_range_m": "--threshold-valid-lidar-range",
+    "sectors.threshold_valid_lidar_npoints": "--threshold-valid-lidar-Npoints",
+    "sectors.uncertainty_quantification_range_m": "--uncertainty-quantification-range",
+    "sectors.rt_vehicle_lidar0": "--rt-vehicle-lidar0", "solve.prior_from_tf_static_sigma": "--prior-from-tf-static",
+    "segmentation.debug_region": "--debug-region",
+}
 
 
 def _floats(text: str, n: int, flag: str) -> list:
