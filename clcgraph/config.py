@@ -439,7 +439,8 @@ _RANGES = {
     "snapshots.motion_window_s": "(0, inf)",
     "snapshots.min_moving_cells": "[1, inf)",
     "lidar.min_range_m": "[0, inf)",
-    "lidar.max_range_m": "(0, inf)",
+    # no LIDAR return comes from beyond 10 km (and the static-scene range bins stay int64)
+    "lidar.max_range_m": "(0, 10000]",
     "lidar.npoints_per_rotation": "[16, 100000]",
     # a range bin finer than 1 mm is far below any LIDAR's noise (and overflows the cell keys)
     "lidar.static_range_quantum_m": "[0.001, 10]",
