@@ -8,11 +8,21 @@ Raw encodings: mono8, 8UC1, mono16, 16UC1 (``is_bigendian`` honoured), rgb8, bgr
 rgba8, bgra8, Bayer mosaics (bayer_rggb8/bggr8/gbrg8/grbg8 and their 16-bit forms, as
 machine-vision drivers publish them; demosaiced), yuv422 (UYVY) and yuv422_yuy2 (YUYV, as
 usb_cam publishes); ``step`` padding is skipped. Compressed: anything OpenCV's imdecode
-reads (jpeg, png); a mono image stays mono, alpha is dropped.
-Unknown encodings and short data raise DataError naming the topic and encoding.
+PNG and JPEG; a mono image stays mono, alpha is dropped.
+Unknown encodings and short data raise DataError naming the topic and encoding. Sizes are
+checked before anything is allocated: a compressed image's dimensions are read from its
+PNG / JPEG header and refused when above ``MAX_PIXELS`` or more than its bytes can encode
+(deflate expands at most 1032-fold; a Huffman-coded JPEG spends at least one bit per 8x8
+block); a JPEG without its end marker (truncated) or that the codec reports corrupt is a
+DataError too (libjpeg would fill the missing part with grey and print to stderr).
 """
 
 from __future__ import annotations
+
+import os
+import struct
+import tempfile
+import threading
 
 import numpy as np
 
@@ -45,6 +55,12 @@ _CONVERTED = {
 }
 
 
+# No camera used for calibration has more pixels than this (a 100 Mpixel image is 300 MB as BGR).
+MAX_PIXELS = 100_000_000
+# deflate's maximum expansion (RFC 1951: 258-byte matches from 2-bit codes), with a margin
+_DEFLATE_MAX_RATIO = 1040
+
+
 def is_compressed(msg) -> bool:
     return hasattr(msg, "format") and not hasattr(msg, "encoding")
 
@@ -66,6 +82,10 @@ def decode_image(msg, *, topic: str) -> Image:
         )
     nch, kind, perm = _RAW[enc] if enc in _RAW else _CONVERTED[enc]
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    if h <= 0 or w <= 0:
+        raise DataError(f"image on {topic}: {enc} image of {w}x{h} pixels has no pixels")
+    if enc in _CONVERTED and (w < 2 or h < 2 or (nch == 2 and w % 2)):
+        raise DataError(f"image on {topic}: {enc} needs at least 2x2 pixels (an even width for YUV), got {w}x{h}")
     dt = np.dtype((">" if msg.is_bigendian else "<") + kind)
     rowbytes = w * nch * dt.itemsize
     data = np.asarray(msg.data, dtype=np.uint8).reshape(-1)
@@ -95,11 +115,109 @@ def _decode_compressed(msg, topic: str) -> np.ndarray:
     import cv2
 
     buf = np.asarray(msg.data, dtype=np.uint8).reshape(-1)
-    px = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
-    if px is None:
-        raise DataError(f"image on {topic}: cannot decode compressed format {msg.format!r}")
+    what = f"image on {topic} ({msg.format!r})"
+    head = bytes(buf[:8])
+    if head.startswith(b"\x89PNG\r\n\x1a\n"):
+        _check_png_header(buf, what)
+    elif head.startswith(b"\xff\xd8"):
+        _check_jpeg_header(buf, what)
+    else:
+        raise DataError(f"{what}: compressed data is neither PNG nor JPEG ({buf.size} bytes)")
+    with _codec_messages() as said:
+        px = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    if px is None or said:
+        why = said[0] if said else "the codec refused it"
+        raise DataError(f"{what}: cannot decode ({why})")
     if px.ndim == 3 and px.shape[2] == 4:
         px = px[..., :3]
     elif px.ndim == 3 and px.shape[2] == 1:
         px = px[..., 0]
     return np.ascontiguousarray(px)
+
+
+def _check_size(w: int, h: int, what: str, most: int) -> None:
+    if w <= 0 or h <= 0:
+        raise DataError(f"{what}: header says {w}x{h} pixels")
+    if w * h > MAX_PIXELS:
+        raise DataError(f"{what}: header says {w}x{h} pixels, more than the {MAX_PIXELS // 1_000_000} Mpixel limit")
+    if w * h > most:
+        raise DataError(f"{what}: header says {w}x{h} pixels, more than its data can encode (lying header?)")
+
+
+def _check_png_header(buf: np.ndarray, what: str) -> None:
+    """IHDR must be the first chunk: width, height, bit depth, colour type; the image must fit
+    in what the compressed bytes can expand to."""
+    if buf.size < 33 or bytes(buf[12:16]) != b"IHDR":
+        raise DataError(f"{what}: PNG without an IHDR header ({buf.size} bytes)")
+    w, h, depth, colour = struct.unpack(">IIBB", bytes(buf[16:26]))
+    channels = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}.get(colour, 4)
+    row_bytes = 1 + (w * channels * max(depth, 1) + 7) // 8
+    # pixels the compressed bytes can hold: raw bytes <= 1040 x compressed, per pixel >= row_bytes / w
+    most = (_DEFLATE_MAX_RATIO * buf.size // max(row_bytes, 1)) * max(w, 1)
+    _check_size(w, h, what, most)
+
+
+# SOF markers of Huffman-coded JPEGs (baseline, extended, progressive, lossless; not arithmetic)
+_SOF_HUFFMAN = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7}
+_SOF_ARITHMETIC = {0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+_MAX_JPEG_SEGMENTS = 1000
+
+
+def _check_jpeg_header(buf: np.ndarray, what: str) -> None:
+    """The frame header (SOFn) gives the size; the data must end with EOI (not truncated)."""
+    data = buf.tobytes() if buf.size < 65536 else bytes(buf[:65536])  # headers come first
+    tail = bytes(buf[-2:]) if buf.size >= 2 else b""
+    if tail != b"\xff\xd9":
+        raise DataError(f"{what}: JPEG without its end-of-image marker (truncated?)")
+    pos = 2
+    for _ in range(_MAX_JPEG_SEGMENTS):
+        while pos < len(data) and data[pos] == 0xFF and pos + 1 < len(data) and data[pos + 1] == 0xFF:
+            pos += 1  # fill bytes
+        if pos + 4 > len(data) or data[pos] != 0xFF:
+            break
+        marker = data[pos + 1]
+        if marker == 0xD8 or 0xD0 <= marker <= 0xD7 or marker == 0x01:
+            pos += 2  # no length
+            continue
+        (length,) = struct.unpack(">H", data[pos + 2:pos + 4])
+        if marker in _SOF_HUFFMAN or marker in _SOF_ARITHMETIC:
+            if pos + 9 > len(data):
+                break
+            h, w = struct.unpack(">HH", data[pos + 5:pos + 9])
+            # a Huffman-coded block costs >= 1 bit (the DC code): blocks <= 8 x bytes
+            most = 64 * 8 * buf.size if marker in _SOF_HUFFMAN else MAX_PIXELS
+            _check_size(w, h, what, most)
+            return
+        if marker in (0xDA, 0xD9) or length < 2:
+            break
+        pos += 2 + length
+    raise DataError(f"{what}: JPEG without a readable frame header (SOF)")
+
+
+_STDERR_LOCK = threading.Lock()
+
+
+class _codec_messages:
+    """Capture what libpng / libjpeg print on file descriptor 2 while decoding: their warnings
+    ("Corrupt JPEG data ...") mean wrong pixels, so they become the DataError's reason instead of
+    stray lines on the user's terminal. Returns the captured lines (a list, filled on exit)."""
+
+    def __enter__(self):
+        _STDERR_LOCK.acquire()
+        self.lines: list[str] = []
+        self.tmp = tempfile.TemporaryFile()
+        self.saved = os.dup(2)
+        os.dup2(self.tmp.fileno(), 2)
+        return self.lines
+
+    def __exit__(self, *exc):
+        try:
+            os.dup2(self.saved, 2)
+            os.close(self.saved)
+            self.tmp.seek(0)
+            text = self.tmp.read(4096).decode("utf-8", "replace")
+            self.tmp.close()
+            self.lines += [ln.strip() for ln in text.splitlines() if ln.strip()]
+        finally:
+            _STDERR_LOCK.release()
+        return False
