@@ -136,7 +136,9 @@ def static_masks(scans, *, npoints_per_rotation: int, quantum_m: float = 0.2, mi
     K = np.concatenate(keys)
     Q = np.concatenate(qs)
     good = K >= 0
-    span = int(Q[good].max()) + 1 if good.any() else 1
+    if not good.any():  # no return in range anywhere (all-NaN clouds): nothing is static
+        return [np.zeros(len(k), bool) for k in keys]
+    span = int(Q[good].max()) + 1
     # one int64 per (cell, range bin), the cells numbered densely first (a 1-D unique is much
     # faster than a row-wise one; dense ids keep the product far from int64 overflow)
     cell_ids, dense = np.unique(K[good], return_inverse=True)
