@@ -118,9 +118,15 @@ def _decode_compressed(msg, topic: str) -> np.ndarray:
     what = f"image on {topic} ({msg.format!r})"
     head = bytes(buf[:8])
     if head.startswith(b"\x89PNG\r\n\x1a\n"):
-        _check_png_header(buf, what)
+        _check_png(buf, what)
     elif head.startswith(b"\xff\xd8"):
         _check_jpeg_header(buf, what)
+        # decode at 1/8 scale first (1/64 of the memory): a header claiming more than the data
+        # holds makes libjpeg complain here, before the full-size image is allocated
+        with _codec_messages() as said:
+            small = cv2.imdecode(buf, cv2.IMREAD_REDUCED_GRAYSCALE_8)
+        if small is None or said:
+            raise DataError(f"{what}: cannot decode ({said[0] if said else 'the codec refused it'})")
     else:
         raise DataError(f"{what}: compressed data is neither PNG nor JPEG ({buf.size} bytes)")
     with _codec_messages() as said:
@@ -141,20 +147,50 @@ def _check_size(w: int, h: int, what: str, most: int) -> None:
     if w * h > MAX_PIXELS:
         raise DataError(f"{what}: header says {w}x{h} pixels, more than the {MAX_PIXELS // 1_000_000} Mpixel limit")
     if w * h > most:
-        raise DataError(f"{what}: header says {w}x{h} pixels, more than its data can encode (lying header?)")
+        raise DataError(f"{what}: header says {w}x{h} pixels, more than its data can encode (lying header)")
 
 
-def _check_png_header(buf: np.ndarray, what: str) -> None:
-    """IHDR must be the first chunk: width, height, bit depth, colour type; the image must fit
-    in what the compressed bytes can expand to."""
+_MAX_PNG_CHUNKS = 100_000
+# Adam7 passes: (x0, y0, dx, dy)
+_ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
+
+
+def _check_png(buf: np.ndarray, what: str) -> None:
+    """IHDR (the first chunk) gives the size; the image must fit in what the compressed bytes can
+    expand to, and the IDAT stream must inflate to exactly as many bytes as the header implies
+    (counted in 1 MB pieces, never held): a lying header fails here, not inside libpng's allocation."""
+    import zlib
+
     if buf.size < 33 or bytes(buf[12:16]) != b"IHDR":
         raise DataError(f"{what}: PNG without an IHDR header ({buf.size} bytes)")
-    w, h, depth, colour = struct.unpack(">IIBB", bytes(buf[16:26]))
-    channels = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}.get(colour, 4)
-    row_bytes = 1 + (w * channels * max(depth, 1) + 7) // 8
-    # pixels the compressed bytes can hold: raw bytes <= 1040 x compressed, per pixel >= row_bytes / w
-    most = (_DEFLATE_MAX_RATIO * buf.size // max(row_bytes, 1)) * max(w, 1)
-    _check_size(w, h, what, most)
+    w, h, depth, colour, _, _, interlace = struct.unpack(">IIBBBBB", bytes(buf[16:29]))
+    bits = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}.get(colour, 4) * max(depth, 1)
+    passes = _ADAM7 if interlace else ((0, 0, 1, 1),)
+    raw = 0
+    for x0, y0, dx, dy in passes:
+        pw, ph = -(-(w - x0) // dx) if w > x0 else 0, -(-(h - y0) // dy) if h > y0 else 0
+        raw += ph * (1 + (pw * bits + 7) // 8) if pw else 0
+    _check_size(w, h, what, w * h if raw <= _DEFLATE_MAX_RATIO * buf.size else 0)
+    data, pos, inflated = buf.tobytes(), 8, 0
+    z = zlib.decompressobj()
+    for _ in range(_MAX_PNG_CHUNKS):
+        if pos + 8 > len(data):
+            break
+        length, kind = struct.unpack(">I4s", data[pos:pos + 8])
+        if kind == b"IEND":
+            break
+        if kind == b"IDAT":
+            chunk = data[pos + 8:pos + 8 + length]
+            try:
+                while chunk and inflated < raw:
+                    inflated += len(z.decompress(chunk, 1 << 20))
+                    chunk = z.unconsumed_tail
+            except zlib.error as e:
+                raise DataError(f"{what}: corrupt PNG data ({e})") from None
+        pos += 12 + length
+    if inflated < raw:
+        raise DataError(f"{what}: PNG data inflates to {inflated} bytes, its header ({w}x{h}) needs {raw} "
+                        "(truncated or lying header)")
 
 
 # SOF markers of Huffman-coded JPEGs (baseline, extended, progressive, lossless; not arithmetic)
