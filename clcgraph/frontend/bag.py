@@ -150,6 +150,10 @@ def _invert_T(T: np.ndarray) -> np.ndarray:
     return Ti
 
 
+# tf_static holds a vehicle's frames; a kilometre apart is already absurd, 10^6 m is garbage
+_MAX_TF_TRANSLATION_M = 1e6
+
+
 def _T_from_transform(tr, where: str = "tf_static") -> np.ndarray:
     """(4,4) from a geometry_msgs/Transform; DataError (naming ``where``) for non-finite values or
     a quaternion tf2 itself would refuse (|q|^2 more than 0.01 from 1)."""
@@ -159,8 +163,11 @@ def _T_from_transform(tr, where: str = "tf_static") -> np.ndarray:
     t = np.array([tr.translation.x, tr.translation.y, tr.translation.z], float)
     if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))):
         raise DataError(f"{where}: non-finite transform (translation {t.tolist()}, rotation {q.tolist()})")
-    if abs(q @ q - 1.0) > 0.01:
-        raise DataError(f"{where}: rotation quaternion {q.tolist()} is not normalized (|q| = {np.sqrt(q @ q):.4g})")
+    if np.any(np.abs(t) > _MAX_TF_TRANSLATION_M):
+        raise DataError(f"{where}: translation {t.tolist()} m is beyond any vehicle "
+                        f"(more than {_MAX_TF_TRANSLATION_M:g} m)")
+    if np.any(np.abs(q) > 2) or abs(q @ q - 1.0) > 0.01:
+        raise DataError(f"{where}: rotation quaternion {q.tolist()} is not normalized (|q| = {np.linalg.norm(q):.4g})")
     T = np.eye(4)
     T[:3, :3] = Rotation.from_quat(q).as_matrix()
     T[:3, 3] = t
