@@ -130,6 +130,7 @@ def _add_replay(sub):
         from .errors import InputError
         from .outputs.dump import replay
 
+        _in_range(args.seed, "--seed", 0, 2**63 - 1)
         try:
             exclude = [int(k) for k in args.exclude.split(",") if k.strip()]
         except ValueError:
@@ -318,6 +319,7 @@ def _add_simulate(sub):
     def run(args):
         from . import api
 
+        _in_range(args.poses, "--poses", 1, 10000)
         truth = api.simulate(args.rig, args.out, n_poses=args.poses, format=args.format,
                              continuous=args.continuous, seed=args.seed, compress=args.compress)
         print(f"wrote {len(truth['snapshots'])} board poses of {len(truth['sensors'])} sensors into {args.out} "
@@ -345,6 +347,7 @@ def _add_simulate_drive(sub):
         from .progress import progress
         from .sim.drive import DrivePlan, simulate_drive, write_drive_bag, write_truth
 
+        _in_range(args.duration, "--duration", 0, 3600, low_open=True)
         plan = DrivePlan.small(duration_s=args.duration) if args.small else DrivePlan(duration_s=args.duration)
         drive = simulate_drive(plan, seed=args.seed,
                                progress=lambda items, desc: progress(items, desc=desc, total=len(items), unit="scan"))
@@ -422,6 +425,19 @@ _FLAG_OF = {
     "sectors.rt_vehicle_lidar0": "--rt-vehicle-lidar0", "solve.prior_from_tf_static_sigma": "--prior-from-tf-static",
     "segmentation.debug_region": "--debug-region",
 }
+
+
+def _in_range(value, flag: str, lo, hi, *, low_open: bool = False):
+    """``value`` of a command-line flag, or InputError naming the flag and its range [lo, hi]
+    ((lo, hi] when ``low_open``); NaN and inf are outside every range."""
+    import math
+
+    from .errors import InputError
+
+    ok = math.isfinite(value) and (value > lo if low_open else value >= lo) and value <= hi
+    if not ok:
+        raise InputError(f"{flag} {value!r}: must be in {'(' if low_open else '['}{lo}, {hi}]")
+    return value
 
 
 def _floats(text: str, n: int, flag: str) -> list:
@@ -590,6 +606,8 @@ def _add_show_aligned(sub):
         from .outputs.plots import align_clouds, render_aligned_clouds
         from .outputs.results import load_result
 
+        if args.threshold_range is not None:
+            _in_range(args.threshold_range, "--threshold-range", 0, 1e5, low_open=True)
         cal = load_result(args.calibration)
         by_topic = {s["topic"]: s for s in cal["sensors"]}
         topics = [t for t in args.topics.split(",") if t] if args.topics else \
@@ -645,6 +663,9 @@ def _add_show_uncertainty(sub):
         from .outputs.dump import replay
         from .outputs.plots import plot_uncertainty_grid
 
+        _in_range(args.radius, "--radius", 0, 1e5, low_open=True)
+        _in_range(args.gridn, "--gridn", 2, 2000)
+        _in_range(args.z, "--z", -1e5, 1e5)
         path = Path(args.dump)
         if path.is_dir():
             cal = path / "calibration.yaml"
