@@ -554,13 +554,13 @@ _RANGES = {
 # Pairs that must be ordered: the first strictly below the second.
 _ORDERED = (
     ("lidar.min_range_m", "lidar.max_range_m"),
-    ("segmentation.min_segments_per_cluster", "segmentation.max_segments_per_cluster"),
     ("targetless.mapping_min_range", "targetless.mapping_max_range"),
     ("targetless.min_calibration_range", "targetless.max_calibration_range"),
     ("targetless.pc_features_min_distance", "targetless.pc_features_max_distance"),
     *((f"targetless.base_lidar_crop_box_min_{a}", f"targetless.base_lidar_crop_box_max_{a}") for a in "xyz"),
 )
 _ORDERED_OR_EQUAL = (
+    ("segmentation.min_segments_per_cluster", "segmentation.max_segments_per_cluster"),
     ("targetless.lidar_calibration_min_frames", "targetless.lidar_calibration_max_frames"),
     ("targetless.camera_calibration_min_frames", "targetless.camera_calibration_max_frames"),
 )
