@@ -1,6 +1,7 @@
 """Settings: small validated dataclass sections, loaded from and dumped to YAML.
 
-Unknown keys are rejected (with their dotted path); values are type-checked and
+Unknown keys are rejected (with their dotted path); values are type-checked, range-checked
+(``_RANGES`` and the tables beside it, at the bottom: NaN/inf, min > max pairs, regexes) and
 never silently "fixed". ``Config().to_dict()`` is what ``clcgraph config dump`` prints.
 Each section documents its fields in comments next to the defaults. This module
 imports nothing of clcgraph.

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clcgraph.config import Config
+from clcgraph.config import Config, ConfigError
 from clcgraph.errors import DataError, InputError
 from clcgraph.geometry import compose_rt, invert_rt, transform
 from clcgraph.types import (
@@ -310,6 +310,8 @@ def load_problem(path: str | Path) -> tuple[Problem, Config]:
             lidar_visibility_points={k: a[f"visibility_{k}"] for k in meta["visibility_sensors"]},
         )
         config = Config.from_dict(meta["config"])
+    except ConfigError as e:
+        raise DataError(f"{path}: the dump's settings are not valid ({e})") from None
     except (KeyError, TypeError, ValueError) as e:
         raise DataError(f"{path}: corrupt problem dump ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
     return problem, config
