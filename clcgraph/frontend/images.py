@@ -197,13 +197,14 @@ def _check_png(buf: np.ndarray, what: str) -> None:
 _SOF_HUFFMAN = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7}
 _SOF_ARITHMETIC = {0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
 _MAX_JPEG_SEGMENTS = 1000
+_JPEG_TAIL_SLACK = 4096
 
 
 def _check_jpeg_header(buf: np.ndarray, what: str) -> None:
     """The frame header (SOFn) gives the size; the data must end with EOI (not truncated)."""
     data = buf.tobytes() if buf.size < 65536 else bytes(buf[:65536])  # headers come first
-    tail = bytes(buf[-2:]) if buf.size >= 2 else b""
-    if tail != b"\xff\xd9":
+    # UVC cameras (MJPEG) may pad a frame after its end marker: look for it near the end
+    if b"\xff\xd9" not in bytes(buf[-_JPEG_TAIL_SLACK:]):
         raise DataError(f"{what}: JPEG without its end-of-image marker (truncated?)")
     pos = 2
     for _ in range(_MAX_JPEG_SEGMENTS):

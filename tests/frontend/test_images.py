@@ -135,6 +135,8 @@ def test_truncated_and_corrupt_jpeg_are_errors_not_grey(capfd):
     msg = _compressed(".jpg", px)
     with pytest.raises(DataError, match="end-of-image marker"):
         decode_image(SimpleNamespace(header=HEADER, format="jpeg", data=msg.data[: len(msg.data) // 2]), topic="/c")
+    padded = np.r_[msg.data, np.zeros(1000, np.uint8)]  # as UVC cameras pad MJPEG frames
+    assert decode_image(SimpleNamespace(header=HEADER, format="jpeg", data=padded), topic="/c").pixels.shape == px.shape
     d = msg.data.copy()
     d[len(d) // 2:len(d) // 2 + 40] = 0xFF  # fill bytes inside the entropy-coded data
     d[len(d) // 2 + 40] = 0xD0
