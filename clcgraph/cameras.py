@@ -19,6 +19,11 @@ from .errors import DataError, DependencyError, InputError
 from .types import Sensor
 
 
+# A .cameramodel is text of a few kB (splined models some 100 kB); a camera side is < 100k px.
+_MAX_MODEL_BYTES = 16 << 20
+_MAX_IMAGER_SIDE = 100_000
+
+
 def _mrcal():
     try:
         import mrcal
@@ -36,18 +41,27 @@ def load_camera(topic: str, path: str | Path) -> Sensor:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: camera model file not found (given for camera topic {topic})")
+    if path.stat().st_size > _MAX_MODEL_BYTES:
+        raise DataError(f"{path}: {path.stat().st_size} bytes is too large for a .cameramodel "
+                        f"(at most {_MAX_MODEL_BYTES >> 20} MB; given for camera topic {topic})")
     try:
         model = mrcal.cameramodel(str(path))
-    except Exception as e:
+        lensmodel, intrinsics = model.intrinsics()
+        w, h = (int(v) for v in model.imagersize())
+        intrinsics = np.array(intrinsics, dtype=float).reshape(-1)
+    except Exception as e:  # mrcal's parser raises many kinds (and RecursionError on deep nesting)
         raise DataError(f"{path}: not a readable mrcal .cameramodel: {str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
-    lensmodel, intrinsics = model.intrinsics()
-    w, h = model.imagersize()
+    if not (0 < w <= _MAX_IMAGER_SIDE and 0 < h <= _MAX_IMAGER_SIDE):
+        raise DataError(f"{path}: imagersize {w}x{h} is not a camera's (each side 1..{_MAX_IMAGER_SIDE} px)")
+    # every mrcal lens model starts with fx, fy, cx, cy
+    if not np.all(np.isfinite(intrinsics)) or len(intrinsics) < 4 or not np.all(intrinsics[:2] > 0):
+        raise DataError(f"{path}: intrinsics must be finite with positive focal lengths, got {intrinsics[:4].tolist()} ...")
     return Sensor(
         topic=topic,
         kind="camera",
         lensmodel=lensmodel,
-        intrinsics=np.array(intrinsics, dtype=float),
-        imagersize=(int(w), int(h)),
+        intrinsics=intrinsics,
+        imagersize=(w, h),
     )
 
 

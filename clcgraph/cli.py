@@ -140,6 +140,7 @@ def _add_replay(sub):
         from .errors import InputError
         from .outputs.dump import replay
 
+        _in_range(args.seed, "--seed", 0, 2**63 - 1)
         try:
             exclude = [int(k) for k in args.exclude.split(",") if k.strip()]
         except ValueError:
@@ -333,6 +334,7 @@ def _add_simulate(sub):
     def run(args):
         from . import api
 
+        _in_range(args.poses, "--poses", 1, 10000)
         truth = api.simulate(args.rig, args.out, n_poses=args.poses, format=args.format,
                              continuous=args.continuous, seed=args.seed, compress=args.compress, force=args.force)
         print(f"wrote {len(truth['snapshots'])} board poses of {len(truth['sensors'])} sensors into {args.out} "
@@ -364,6 +366,7 @@ def _add_simulate_drive(sub):
         from .progress import progress
         from .sim.drive import DrivePlan, simulate_drive, write_drive_bag, write_truth
 
+        _in_range(args.duration, "--duration", 0, 3600, low_open=True)
         check_out_dir(args.out, kind="session", force=args.force)  # before the ray casting
         plan = DrivePlan.small(duration_s=args.duration) if args.small else DrivePlan(duration_s=args.duration)
         drive = simulate_drive(plan, seed=args.seed,
@@ -412,8 +415,8 @@ def _load_config(args):
     from .errors import InputError
 
     try:
-        cfg = Config.from_yaml(args.config) if getattr(args, "config", None) else Config()
         overrides: dict = {}
+        cfg = Config.from_yaml(args.config) if getattr(args, "config", None) else Config()
         for section, key, value in getattr(args, "overrides", lambda a: [])(args):
             overrides.setdefault(section, {})[key] = value
         for item in getattr(args, "set", None) or []:
@@ -424,7 +427,38 @@ def _load_config(args):
             overrides.setdefault(section, {})[key] = yaml.safe_load(value)
         return cfg.replace(**overrides) if overrides else cfg
     except ConfigError as e:
-        raise InputError(str(e)) from None
+        key = getattr(e, "key", None)
+        flags = [f"--set {item}" for item in getattr(args, "set", None) or [] if item.partition("=")[0] == key]
+        section, _, name = (key or "").partition(".")
+        if not flags and name in overrides.get(section, {}):  # set by one of the command's flags
+            flags = [_FLAG_OF.get(key, "--" + name.replace("_", "-"))]
+        raise InputError(f"{flags[-1]}: {e}" if flags else str(e)) from None
+
+
+# config keys set by a differently named flag of `clcgraph solve` (section flags are named after their keys)
+_FLAG_OF = {
+    "snapshots.exclude_bag": "--exclude-bag", "snapshots.decimation_period_s": "--decimation-period",
+    "snapshots.max_time_spread_s": "--max-time-spread-s", "sectors.n_sectors": "--Nsectors",
+    "sectors.threshold_valid_lidar_range_m": "--threshold-valid-lidar-range",
+    "sectors.threshold_valid_lidar_npoints": "--threshold-valid-lidar-Npoints",
+    "sectors.uncertainty_quantification_range_m": "--uncertainty-quantification-range",
+    "sectors.rt_vehicle_lidar0": "--rt-vehicle-lidar0", "solve.prior_from_tf_static_sigma_rad": "--prior-from-tf-static",
+    "solve.prior_from_tf_static_sigma_m": "--prior-from-tf-static",
+    "segmentation.debug_region": "--debug-region",
+}
+
+
+def _in_range(value, flag: str, lo, hi, *, low_open: bool = False):
+    """``value`` of a command-line flag, or InputError naming the flag and its range [lo, hi]
+    ((lo, hi] when ``low_open``); NaN and inf are outside every range."""
+    import math
+
+    from .errors import InputError
+
+    ok = math.isfinite(value) and (value > lo if low_open else value >= lo) and value <= hi
+    if not ok:
+        raise InputError(f"{flag} {value!r}: must be in {'(' if low_open else '['}{lo}, {hi}]")
+    return value
 
 
 def _floats(text: str, n: int, flag: str) -> list:
@@ -614,6 +648,8 @@ def _add_show_aligned(sub):
         from .outputs.plots import align_clouds, render_aligned_clouds
         from .outputs.results import load_result
 
+        if args.threshold_range is not None:
+            _in_range(args.threshold_range, "--threshold-range", 0, 1e5, low_open=True)
         cal = load_result(args.calibration)
         by_topic = {s["topic"]: s for s in cal["sensors"]}
         topics = [t for t in args.topics.split(",") if t] if args.topics else \
@@ -669,6 +705,9 @@ def _add_show_uncertainty(sub):
         from .outputs.dump import replay
         from .outputs.plots import plot_uncertainty_grid
 
+        _in_range(args.radius, "--radius", 0, 1e5, low_open=True)
+        _in_range(args.gridn, "--gridn", 2, 2000)
+        _in_range(args.z, "--z", -1e5, 1e5)
         path = Path(args.dump)
         if path.is_dir():
             cal = path / "calibration.yaml"

@@ -1,6 +1,7 @@
 """Settings: small validated dataclass sections, loaded from and dumped to YAML.
 
-Unknown keys are rejected (with their dotted path); values are type-checked and
+Unknown keys are rejected (with their dotted path); values are type-checked, range-checked
+(``_RANGES`` and the tables beside it, at the bottom: NaN/inf, min > max pairs, regexes) and
 never silently "fixed". ``Config().to_dict()`` is what ``clcgraph config dump`` prints.
 Each section documents its fields in comments next to the defaults. This module
 imports nothing of clcgraph but ``errors`` (which imports nothing at all).
@@ -14,6 +15,8 @@ SYNOPSIS
 from __future__ import annotations
 
 import dataclasses
+import math
+import re
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -123,6 +126,8 @@ def _pair(value, path: str, kind, *, positive: bool) -> list:
     if not (isinstance(value, (list, tuple)) and len(value) == 2 and all(map(ok_type, value))):
         raise ConfigError(f"'{path}' must be two {'integers' if kind is int else 'numbers'} [along the width, "
                           f"along the height], got {value!r}")
+    if not all(math.isfinite(v) and abs(v) <= 1000 for v in value):
+        raise ConfigError(f"'{path}' must be finite numbers of at most 1000, got {value!r}")
     if positive and min(value) <= 0:
         raise ConfigError(f"'{path}' must be positive, got {value!r}")
     return [kind(v) for v in value]
@@ -340,13 +345,19 @@ class Config:
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "Config":
-        return _build(cls, d or {}, "")
+        cfg = _build(cls, d or {}, "")
+        _check_ranges(cfg)
+        return cfg
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "Config":
         path = Path(path)
         try:
-            d = yaml.safe_load(path.read_text())
+            if path.stat().st_size > _MAX_YAML_BYTES:
+                raise ConfigError(f"{path}: config file larger than {_MAX_YAML_BYTES // 1024} KiB; not a settings file?")
+            d = yaml.load(path.read_text(), Loader=_SafeNoCollectionAliases)
+        except UnicodeDecodeError:
+            raise ConfigError(f"{path}: not a text (UTF-8) config file") from None
         except OSError as e:
             raise ConfigError(f"{path}: cannot read config: {e.strerror}") from None
         except yaml.YAMLError as e:
@@ -431,7 +442,11 @@ def _build(cls, d: dict, prefix: str):
         )
     kwargs = {}
     for name, value in d.items():
-        kwargs[name] = _check(hints[name], value, prefix + name)
+        try:
+            kwargs[name] = _check(hints[name], value, prefix + name)
+        except ConfigError as e:
+            e.key = getattr(e, "key", prefix + name)  # the innermost key (the CLI names its flag)
+            raise
     return cls(**kwargs)
 
 
@@ -467,6 +482,8 @@ def _check(tp, value, path: str):
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"'{path}' must be a number, got {value!r}")
+        if not math.isfinite(value):  # NaN passes every comparison: refuse it here, once
+            raise ConfigError(f"'{path}' must be a finite number, got {value!r}")
         return float(value)
     if tp is str:
         if not isinstance(value, str):
@@ -477,3 +494,220 @@ def _check(tp, value, path: str):
             raise ConfigError(f"'{path}' must be a list, got {value!r}")
         return list(value)
     raise ConfigError(f"'{path}': unsupported type {tp}")
+
+
+# ------------------------------------------------------------------ value ranges
+# Every numeric setting's allowed range, checked whenever a Config is built (file, dict,
+# replace, CLI flags). Interval notation: "[" / "]" include the bound, "(" / ")" exclude it;
+# "inf" = unbounded. Integers are also bounded by _INT_MAX (they reach numpy as int32/int64).
+# The ranges say what makes sense physically, not what the tests happen to use.
+_RANGES = {
+    "snapshots.decimation_period_s": "(0, inf)",
+    "snapshots.max_time_spread_s": "[0, inf)",
+    "snapshots.max_board_motion_m": "(0, inf)",
+    "snapshots.motion_window_s": "(0, inf)",
+    "snapshots.min_moving_cells": "[1, inf)",
+    "lidar.min_range_m": "[0, inf)",
+    # no LIDAR return comes from beyond 10 km (and the static-scene range bins stay int64)
+    "lidar.max_range_m": "(0, 10000]",
+    "lidar.npoints_per_rotation": "[16, 100000]",
+    # a range bin finer than 1 mm is far below any LIDAR's noise (and overflows the cell keys)
+    "lidar.static_range_quantum_m": "[0.001, 10]",
+    "segmentation.points_per_segment": "[3, inf)",
+    "segmentation.max_gap_points_stage1": "[0, inf)",
+    "segmentation.max_rms_segment_m": "(0, inf)",
+    "segmentation.max_jump_spacings": "[0, inf)",
+    "segmentation.max_angle_same_ring_deg": "(0, 90]",
+    "segmentation.max_angle_cross_ring_deg": "(0, 90]",
+    "segmentation.max_ring_step": "[1, inf)",
+    "segmentation.ring_spacing_tolerance": "(0, inf)",
+    "segmentation.segment_inlier_share": "(0, 1]",
+    "segmentation.min_rings": "[1, inf)",
+    "segmentation.min_segments_per_cluster": "[1, inf)",
+    "segmentation.max_segments_per_cluster": "[1, inf)",
+    "segmentation.max_tilt_deg": "(0, 90]",
+    "segmentation.point_plane_tolerance_m": "(0, inf)",
+    "segmentation.max_gap_points_stage3": "[0, inf)",
+    "segmentation.max_outside_fraction": "[0, 1]",
+    "segmentation.max_plane_size_m": "(0, inf)",
+    "segmentation.min_plane_size_fraction": "[0, 1]",
+    "segmentation.min_width_fraction": "[0, 1]",
+    "segmentation.min_chord_fraction": "[0, 1]",
+    "segmentation.max_plane_rms_m": "(0, inf)",
+    "segmentation.max_plane_rms_sigmas": "(0, inf)",
+    "board.square_m": "(0, 10]",
+    "detection.jobs": "[1, 1024]",
+    "detection.max_grid_irregularity": "(0, inf)",
+    "detection.max_blur_sigma_px": "(0, inf)",
+    "solve.sigma_lidar_m": "(0, inf)",
+    "solve.sigma_camera_px": "(0, inf)",
+    # below 1 sigma most good measurements would be "outliers"
+    "solve.outlier_sigma": "[1, inf)",
+    "solve.board_prior_sigma_rad": "(0, inf)",
+    "solve.board_prior_sigma_m": "(0, inf)",
+    "solve.max_iterations": "[1, inf)",
+    "solve.min_shared_snapshots": "[1, inf)",
+    "solve.seed_max_normal_deg": "(0, 180]",
+    "solve.seed_max_center_m": "(0, inf)",
+    "solve.seed_max_corner_px": "(0, inf)",
+    "solve.prior_from_tf_static_sigma_rad": "(0, inf)",
+    "solve.prior_from_tf_static_sigma_m": "(0, inf)",
+    "solve.consistency_alpha": "[0, 1)",
+    "solve.max_stdev_m": "(0, inf)",
+    "solve.max_stdev_deg": "(0, 180]",
+    "sectors.n_sectors": "[1, 3600]",
+    "sectors.threshold_valid_lidar_range_m": "[0, inf)",
+    "sectors.threshold_valid_lidar_npoints": "[0, inf)",
+    "sectors.uncertainty_quantification_range_m": "(0, inf)",
+    "targetless.mapping_max_frames": "[2, inf)",
+    "targetless.local_map_num_keyframes": "[1, inf)",
+    "targetless.dense_pointcloud_num_keyframes": "[1, inf)",
+    "targetless.mapping_min_range": "[0, inf)",
+    "targetless.mapping_max_range": "(0, inf)",
+    "targetless.min_mapping_pointcloud_size": "[1, inf)",
+    "targetless.min_calibration_pointcloud_size": "[1, inf)",
+    "targetless.mapping_lost_timeout": "(0, inf)",
+    "targetless.mapper_resolution": "(0, inf)",
+    "targetless.mapper_step_size": "(0, inf)",
+    "targetless.mapper_max_iterations": "[1, inf)",
+    "targetless.mapper_epsilon": "(0, inf)",
+    "targetless.mapper_num_threads": "[1, 1024]",
+    "targetless.mapper_max_correspondence_distance": "(0, inf)",
+    "targetless.mapping_viz_leaf_size": "(0, inf)",
+    "targetless.calibration_viz_leaf_size": "(0, inf)",
+    "targetless.leaf_size_input": "(0, inf)",
+    "targetless.mapping_max_source_points": "[1, inf)",
+    "targetless.leaf_size_local_map": "(0, inf)",
+    "targetless.leaf_size_dense_map": "(0, inf)",
+    "targetless.new_keyframe_min_distance": "(0, inf)",
+    "targetless.new_frame_min_distance": "[0, inf)",
+    "targetless.frame_stopped_distance": "[0, inf)",
+    "targetless.frames_since_stopped_force_frame": "[1, inf)",
+    "targetless.calibration_skip_keyframes": "[0, inf)",
+    "targetless.deskew_iterations": "[1, inf)",
+    "targetless.max_allowed_interpolated_time": "(0, inf)",
+    "targetless.max_allowed_interpolated_distance": "(0, inf)",
+    "targetless.max_allowed_interpolated_angle": "(0, 180]",
+    "targetless.max_allowed_interpolated_speed": "(0, inf)",
+    "targetless.max_allowed_interpolated_accel": "(0, inf)",
+    "targetless.max_allowed_interpolated_distance_straight": "(0, inf)",
+    "targetless.max_allowed_interpolated_angle_straight": "(0, 180]",
+    "targetless.max_allowed_interpolated_speed_straight": "(0, inf)",
+    "targetless.max_allowed_interpolated_accel_straight": "(0, inf)",
+    "targetless.detection_max_time_tolerance": "[0, inf)",
+    "targetless.detection_size_tolerance": "[0, inf)",
+    "targetless.lost_frame_max_angle_diff": "(0, 180]",
+    "targetless.lost_frame_interpolation_error": "(0, inf)",
+    "targetless.lost_frame_max_acceleration": "(0, inf)",
+    "targetless.viz_max_range": "(0, inf)",
+    "targetless.crop_z_calibration_pointclouds_value": "(0, inf)",
+    "targetless.max_calibration_range": "(0, inf)",
+    "targetless.min_calibration_range": "[0, inf)",
+    "targetless.calibration_min_pca_eigenvalue": "[0, inf)",
+    "targetless.calibration_min_distance_between_frames": "[0, inf)",
+    "targetless.calibration_eval_max_corr_distance": "(0, inf)",
+    "targetless.solver_iterations": "[1, inf)",
+    "targetless.max_corr_dist_coarse": "(0, inf)",
+    "targetless.max_corr_dist_fine": "(0, inf)",
+    "targetless.max_corr_dist_ultra_fine": "(0, inf)",
+    "targetless.lidar_calibration_min_frames": "[1, inf)",
+    "targetless.lidar_calibration_max_frames": "[1, inf)",
+    "targetless.registration_common_mode": "[0, inf)",
+    "targetless.camera_calibration_min_frames": "[1, inf)",
+    "targetless.camera_calibration_max_frames": "[1, inf)",
+    "targetless.pc_features_min_distance": "[0, inf)",
+    "targetless.pc_features_max_distance": "(0, inf)",
+    "targetless.base_lidar_max_inlier_distance": "(0, inf)",
+    "targetless.base_lidar_max_iterations": "[1, inf)",
+    "targetless.base_lidar_min_plane_points": "[3, inf)",
+    "targetless.base_lidar_min_plane_points_percentage": "[0, 100]",
+    "targetless.base_lidar_max_cos_distance": "[0, 2]",
+}
+# Pairs that must be ordered: the first strictly below the second.
+_ORDERED = (
+    ("lidar.min_range_m", "lidar.max_range_m"),
+    ("targetless.mapping_min_range", "targetless.mapping_max_range"),
+    ("targetless.min_calibration_range", "targetless.max_calibration_range"),
+    ("targetless.pc_features_min_distance", "targetless.pc_features_max_distance"),
+    *((f"targetless.base_lidar_crop_box_min_{a}", f"targetless.base_lidar_crop_box_max_{a}") for a in "xyz"),
+)
+_ORDERED_OR_EQUAL = (
+    ("segmentation.min_segments_per_cluster", "segmentation.max_segments_per_cluster"),
+    ("targetless.lidar_calibration_min_frames", "targetless.lidar_calibration_max_frames"),
+    ("targetless.camera_calibration_min_frames", "targetless.camera_calibration_max_frames"),
+)
+# String settings with a fixed set of values, and fixed-length number lists.
+_CHOICES = {"detection.detector": ("auto", "mrgingham", "opencv")}
+_NUMBER_LISTS = {"sectors.rt_vehicle_lidar0": 6, "segmentation.debug_region": 4}
+_REGEXES = ("snapshots.exclude_bag",)
+_INT_MAX = 2**31 - 1
+_MAX_YAML_BYTES = 1 << 20
+
+
+def _range_error(key: str, message: str) -> ConfigError:
+    e = ConfigError(message)
+    e.key = key  # the CLI names the flag the value came from
+    return e
+
+
+def _parse_interval(text: str) -> tuple[float, float, bool, bool]:
+    lo, hi = text[1:-1].split(",")
+    return float(lo), float(hi), text[0] == "[", text[-1] == "]"
+
+
+def _get(cfg, key: str):
+    section, name = key.split(".")
+    return getattr(getattr(cfg, section), name)
+
+
+def _check_ranges(cfg) -> None:
+    """ConfigError naming the key and its allowed range for the first value out of range."""
+    for key, interval in _RANGES.items():
+        v = _get(cfg, key)
+        if v is None:
+            continue
+        lo, hi, lo_in, hi_in = _parse_interval(interval)
+        if isinstance(v, int) and hi > _INT_MAX:
+            hi, hi_in, interval = _INT_MAX, True, f"{interval[:-4]}{_INT_MAX}]"
+        ok = (v >= lo if lo_in else v > lo) and (v <= hi if hi_in else v < hi)
+        if not ok:
+            raise _range_error(key, f"'{key}' must be in {interval}, got {v!r}")
+    for strict, pairs in ((True, _ORDERED), (False, _ORDERED_OR_EQUAL)):
+        for a, b in pairs:
+            va, vb = _get(cfg, a), _get(cfg, b)
+            if (va >= vb) if strict else (va > vb):
+                rel = "below" if strict else "at most"
+                raise _range_error(a, f"'{a}' ({va!r}) must be {rel} '{b}' ({vb!r})")
+    for key, choices in _CHOICES.items():
+        if _get(cfg, key) not in choices:
+            raise _range_error(key, f"'{key}' must be one of {', '.join(choices)}, got {_get(cfg, key)!r}")
+    for key, n in _NUMBER_LISTS.items():
+        v = _get(cfg, key)
+        if v is None:
+            continue
+        if len(v) != n or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v):
+            raise _range_error(key, f"'{key}' must be a list of {n} finite numbers, got {v!r}")
+    region = cfg.segmentation.debug_region
+    if region is not None and not (region[0] < region[1] and region[2] < region[3]):
+        raise _range_error("segmentation.debug_region",
+                           f"'segmentation.debug_region' must be [xmin, xmax, ymin, ymax] with min < max, got {region!r}")
+    for key in _REGEXES:
+        v = _get(cfg, key)
+        if v is not None:
+            try:
+                re.compile(v)
+            except re.error as e:
+                raise _range_error(key, f"'{key}' is not a valid regular expression ({e}): {v!r}") from None
+
+
+class _SafeNoCollectionAliases(yaml.SafeLoader):
+    """safe_load that refuses aliases of mappings and lists: nested ones expand exponentially
+    when the settings are copied (the "billion laughs" bomb); aliases of scalars are harmless."""
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            node = self.anchors.get(event.anchor)
+            if node is not None and not isinstance(node, yaml.ScalarNode):
+                raise yaml.YAMLError(f"alias *{event.anchor} of a mapping or list (not supported in config files)")
+        return super().compose_node(parent, index)

@@ -150,13 +150,27 @@ def _invert_T(T: np.ndarray) -> np.ndarray:
     return Ti
 
 
-def _T_from_transform(tr) -> np.ndarray:
+# tf_static holds a vehicle's frames; a kilometre apart is already absurd, 10^6 m is garbage
+_MAX_TF_TRANSLATION_M = 1e6
+
+
+def _T_from_transform(tr, where: str = "tf_static") -> np.ndarray:
+    """(4,4) from a geometry_msgs/Transform; DataError (naming ``where``) for non-finite values or
+    a quaternion tf2 itself would refuse (|q|^2 more than 0.01 from 1)."""
     from scipy.spatial.transform import Rotation
 
-    q = tr.rotation
+    q = np.array([tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w], float)
+    t = np.array([tr.translation.x, tr.translation.y, tr.translation.z], float)
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))):
+        raise DataError(f"{where}: non-finite transform (translation {t.tolist()}, rotation {q.tolist()})")
+    if np.any(np.abs(t) > _MAX_TF_TRANSLATION_M):
+        raise DataError(f"{where}: translation {t.tolist()} m is beyond any vehicle "
+                        f"(more than {_MAX_TF_TRANSLATION_M:g} m)")
+    if np.any(np.abs(q) > 2) or abs(q @ q - 1.0) > 0.01:
+        raise DataError(f"{where}: rotation quaternion {q.tolist()} is not normalized (|q| = {np.linalg.norm(q):.4g})")
     T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
-    T[:3, 3] = [tr.translation.x, tr.translation.y, tr.translation.z]
+    T[:3, :3] = Rotation.from_quat(q).as_matrix()
+    T[:3, 3] = t
     return T
 
 
@@ -363,6 +377,19 @@ def frame_id(path, topic: str) -> str:
     return str(header.frame_id)
 
 
+def decode_tf_message(msg, *, where: str) -> list[tuple[str, str, np.ndarray]]:
+    """[(parent, child, T_parent_child (4,4))] of a tf2_msgs/TFMessage; DataError naming ``where``
+    and the frames for a transform tf2 would refuse (empty or equal names, NaN, unnormalized)."""
+    out = []
+    for ts in msg.transforms:
+        parent, child = str(ts.header.frame_id), str(ts.child_frame_id)
+        here = f"{where}: {parent!r} -> {child!r}"
+        if not parent or not child or parent == child:
+            raise DataError(f"{here}: a transform needs two different, non-empty frame names")
+        out.append((parent, child, _T_from_transform(ts.transform, here)))
+    return out
+
+
 def read_tf_static(paths) -> TfTree:
     """All /tf_static transforms of ``paths`` (later bags override earlier ones)."""
     if isinstance(paths, (str, Path)):
@@ -377,6 +404,6 @@ def read_tf_static(paths) -> TfTree:
             for conn, i, _, msg in b.raw(conns):
                 if conn.msgtype != TFMESSAGE:
                     raise DataError(f"{b.path}: /tf_static has type {conn.msgtype}, expected {TFMESSAGE}")
-                for ts in msg.transforms:
-                    tree.add(str(ts.header.frame_id), str(ts.child_frame_id), _T_from_transform(ts.transform))
+                for parent, child, T in decode_tf_message(msg, where=f"{b.path}: /tf_static message {i}"):
+                    tree.add(parent, child, T)
     return tree

@@ -8,11 +8,21 @@ Raw encodings: mono8, 8UC1, mono16, 16UC1 (``is_bigendian`` honoured), rgb8, bgr
 rgba8, bgra8, Bayer mosaics (bayer_rggb8/bggr8/gbrg8/grbg8 and their 16-bit forms, as
 machine-vision drivers publish them; demosaiced), yuv422 (UYVY) and yuv422_yuy2 (YUYV, as
 usb_cam publishes); ``step`` padding is skipped. Compressed: anything OpenCV's imdecode
-reads (jpeg, png); a mono image stays mono, alpha is dropped.
-Unknown encodings and short data raise DataError naming the topic and encoding.
+PNG and JPEG; a mono image stays mono, alpha is dropped.
+Unknown encodings and short data raise DataError naming the topic and encoding. Sizes are
+checked before anything is allocated: a compressed image's dimensions are read from its
+PNG / JPEG header and refused when above ``MAX_PIXELS`` or more than its bytes can encode
+(deflate expands at most 1032-fold; a Huffman-coded JPEG spends at least one bit per 8x8
+block); a JPEG without its end marker (truncated) or that the codec reports corrupt is a
+DataError too (libjpeg would fill the missing part with grey and print to stderr).
 """
 
 from __future__ import annotations
+
+import os
+import struct
+import tempfile
+import threading
 
 import numpy as np
 
@@ -45,6 +55,12 @@ _CONVERTED = {
 }
 
 
+# No camera used for calibration has more pixels than this (a 100 Mpixel image is 300 MB as BGR).
+MAX_PIXELS = 100_000_000
+# deflate's maximum expansion (RFC 1951: 258-byte matches from 2-bit codes), with a margin
+_DEFLATE_MAX_RATIO = 1040
+
+
 def is_compressed(msg) -> bool:
     return hasattr(msg, "format") and not hasattr(msg, "encoding")
 
@@ -66,6 +82,10 @@ def decode_image(msg, *, topic: str) -> Image:
         )
     nch, kind, perm = _RAW[enc] if enc in _RAW else _CONVERTED[enc]
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    if h <= 0 or w <= 0:
+        raise DataError(f"image on {topic}: {enc} image of {w}x{h} pixels has no pixels")
+    if enc in _CONVERTED and (w < 2 or h < 2 or (nch == 2 and w % 2)):
+        raise DataError(f"image on {topic}: {enc} needs at least 2x2 pixels (an even width for YUV), got {w}x{h}")
     dt = np.dtype((">" if msg.is_bigendian else "<") + kind)
     rowbytes = w * nch * dt.itemsize
     data = np.asarray(msg.data, dtype=np.uint8).reshape(-1)
@@ -95,11 +115,146 @@ def _decode_compressed(msg, topic: str) -> np.ndarray:
     import cv2
 
     buf = np.asarray(msg.data, dtype=np.uint8).reshape(-1)
-    px = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
-    if px is None:
-        raise DataError(f"image on {topic}: cannot decode compressed format {msg.format!r}")
+    what = f"image on {topic} ({msg.format!r})"
+    head = bytes(buf[:8])
+    if head.startswith(b"\x89PNG\r\n\x1a\n"):
+        _check_png(buf, what)
+    elif head.startswith(b"\xff\xd8"):
+        _check_jpeg_header(buf, what)
+        # decode at 1/8 scale first (1/64 of the memory): a header claiming more than the data
+        # holds makes libjpeg complain here, before the full-size image is allocated
+        with _codec_messages() as said:
+            small = cv2.imdecode(buf, cv2.IMREAD_REDUCED_GRAYSCALE_8)
+        if small is None or said:
+            raise DataError(f"{what}: cannot decode ({said[0] if said else 'the codec refused it'})")
+    else:
+        raise DataError(f"{what}: compressed data is neither PNG nor JPEG ({buf.size} bytes)")
+    with _codec_messages() as said:
+        px = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    if px is None or said:
+        why = said[0] if said else "the codec refused it"
+        raise DataError(f"{what}: cannot decode ({why})")
     if px.ndim == 3 and px.shape[2] == 4:
         px = px[..., :3]
     elif px.ndim == 3 and px.shape[2] == 1:
         px = px[..., 0]
     return np.ascontiguousarray(px)
+
+
+def _check_size(w: int, h: int, what: str, most: int) -> None:
+    if w <= 0 or h <= 0:
+        raise DataError(f"{what}: header says {w}x{h} pixels")
+    if w * h > MAX_PIXELS:
+        raise DataError(f"{what}: header says {w}x{h} pixels, more than the {MAX_PIXELS // 1_000_000} Mpixel limit")
+    if w * h > most:
+        raise DataError(f"{what}: header says {w}x{h} pixels, more than its data can encode (lying header)")
+
+
+_MAX_PNG_CHUNKS = 100_000
+# Adam7 passes: (x0, y0, dx, dy)
+_ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
+
+
+def _check_png(buf: np.ndarray, what: str) -> None:
+    """IHDR (the first chunk) gives the size; the image must fit in what the compressed bytes can
+    expand to, and the IDAT stream must inflate to exactly as many bytes as the header implies
+    (counted in 1 MB pieces, never held): a lying header fails here, not inside libpng's allocation."""
+    import zlib
+
+    if buf.size < 33 or bytes(buf[12:16]) != b"IHDR":
+        raise DataError(f"{what}: PNG without an IHDR header ({buf.size} bytes)")
+    w, h, depth, colour, _, _, interlace = struct.unpack(">IIBBBBB", bytes(buf[16:29]))
+    bits = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}.get(colour, 4) * max(depth, 1)
+    passes = _ADAM7 if interlace else ((0, 0, 1, 1),)
+    raw = 0
+    for x0, y0, dx, dy in passes:
+        pw, ph = -(-(w - x0) // dx) if w > x0 else 0, -(-(h - y0) // dy) if h > y0 else 0
+        raw += ph * (1 + (pw * bits + 7) // 8) if pw else 0
+    _check_size(w, h, what, w * h if raw <= _DEFLATE_MAX_RATIO * buf.size else 0)
+    data, pos, inflated = buf.tobytes(), 8, 0
+    z = zlib.decompressobj()
+    for _ in range(_MAX_PNG_CHUNKS):
+        if pos + 8 > len(data):
+            break
+        length, kind = struct.unpack(">I4s", data[pos:pos + 8])
+        if kind == b"IEND":
+            break
+        if kind == b"IDAT":
+            chunk = data[pos + 8:pos + 8 + length]
+            try:
+                while chunk and inflated < raw:
+                    inflated += len(z.decompress(chunk, 1 << 20))
+                    chunk = z.unconsumed_tail
+            except zlib.error as e:
+                raise DataError(f"{what}: corrupt PNG data ({e})") from None
+        pos += 12 + length
+    if inflated < raw:
+        raise DataError(f"{what}: PNG data inflates to {inflated} bytes, its header ({w}x{h}) needs {raw} "
+                        "(truncated or lying header)")
+
+
+# SOF markers of Huffman-coded JPEGs (baseline, extended, progressive, lossless; not arithmetic)
+_SOF_HUFFMAN = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7}
+_SOF_ARITHMETIC = {0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+_MAX_JPEG_SEGMENTS = 1000
+_JPEG_TAIL_SLACK = 4096
+
+
+def _check_jpeg_header(buf: np.ndarray, what: str) -> None:
+    """The frame header (SOFn) gives the size; the data must end with EOI (not truncated)."""
+    data = buf.tobytes() if buf.size < 65536 else bytes(buf[:65536])  # headers come first
+    # UVC cameras (MJPEG) may pad a frame after its end marker: look for it near the end
+    if b"\xff\xd9" not in bytes(buf[-_JPEG_TAIL_SLACK:]):
+        raise DataError(f"{what}: JPEG without its end-of-image marker (truncated?)")
+    pos = 2
+    for _ in range(_MAX_JPEG_SEGMENTS):
+        while pos < len(data) and data[pos] == 0xFF and pos + 1 < len(data) and data[pos + 1] == 0xFF:
+            pos += 1  # fill bytes
+        if pos + 4 > len(data) or data[pos] != 0xFF:
+            break
+        marker = data[pos + 1]
+        if marker == 0xD8 or 0xD0 <= marker <= 0xD7 or marker == 0x01:
+            pos += 2  # no length
+            continue
+        (length,) = struct.unpack(">H", data[pos + 2:pos + 4])
+        if marker in _SOF_HUFFMAN or marker in _SOF_ARITHMETIC:
+            if pos + 9 > len(data):
+                break
+            h, w = struct.unpack(">HH", data[pos + 5:pos + 9])
+            # a Huffman-coded block costs >= 1 bit (the DC code): blocks <= 8 x bytes
+            most = 64 * 8 * buf.size if marker in _SOF_HUFFMAN else MAX_PIXELS
+            _check_size(w, h, what, most)
+            return
+        if marker in (0xDA, 0xD9) or length < 2:
+            break
+        pos += 2 + length
+    raise DataError(f"{what}: JPEG without a readable frame header (SOF)")
+
+
+_STDERR_LOCK = threading.Lock()
+
+
+class _codec_messages:
+    """Capture what libpng / libjpeg print on file descriptor 2 while decoding: their warnings
+    ("Corrupt JPEG data ...") mean wrong pixels, so they become the DataError's reason instead of
+    stray lines on the user's terminal. Returns the captured lines (a list, filled on exit)."""
+
+    def __enter__(self):
+        _STDERR_LOCK.acquire()
+        self.lines: list[str] = []
+        self.tmp = tempfile.TemporaryFile()
+        self.saved = os.dup(2)
+        os.dup2(self.tmp.fileno(), 2)
+        return self.lines
+
+    def __exit__(self, *exc):
+        try:
+            os.dup2(self.saved, 2)
+            os.close(self.saved)
+            self.tmp.seek(0)
+            text = self.tmp.read(4096).decode("utf-8", "replace")
+            self.tmp.close()
+            self.lines += [ln.strip() for ln in text.splitlines() if ln.strip()]
+        finally:
+            _STDERR_LOCK.release()
+        return False

@@ -32,6 +32,8 @@ def ring_of(scan: LidarScan) -> np.ndarray:
         return ring
     e = np.sort(el[ok])
     gaps = np.diff(e)
+    if not len(gaps):
+        return np.where(ok, 0, -1)
     # a new ring where the sorted elevations jump well beyond their within-ring spread
     big = gaps > max(0.08, 5.0 * np.median(gaps))
     edges = e[1:][big]
@@ -55,7 +57,8 @@ class Rings:
 def prepare(scan: LidarScan, *, min_range_m: float, max_range_m: float, exclude: np.ndarray | None = None) -> Rings:
     """Valid, finite points within [min, max] range (minus ``exclude``), sorted by ring then azimuth."""
     p = np.asarray(scan.points, float)
-    rng = np.linalg.norm(p, axis=1)
+    with np.errstate(invalid="ignore", over="ignore"):  # inf / huge garbage points fail the range test
+        rng = np.linalg.norm(p, axis=1)
     ok = np.asarray(scan.valid, bool) & np.all(np.isfinite(p), axis=1) & (rng >= min_range_m) & (rng <= max_range_m)
     if exclude is not None:
         ok &= ~exclude
@@ -101,7 +104,8 @@ def session_masks(scans, lidar_options) -> tuple[int | None, list]:
     for a session of one LIDAR's scans."""
     npoints = lidar_options.npoints_per_rotation or infer_lidar_spacing(scans[:5])[1] or None
     if lidar_options.suppress_static and npoints:
-        return npoints, static_masks(scans, npoints_per_rotation=npoints, quantum_m=lidar_options.static_range_quantum_m)
+        return npoints, static_masks(scans, npoints_per_rotation=npoints, quantum_m=lidar_options.static_range_quantum_m,
+                                     max_range_m=lidar_options.max_range_m)
     return npoints, [None] * len(scans)
 
 
@@ -138,7 +142,8 @@ def _fill_background(r_static: np.ndarray, max_gap: int) -> np.ndarray:
     return out
 
 
-def static_masks(scans, *, npoints_per_rotation: int, quantum_m: float = 0.2, min_share: float = 0.5) -> list[np.ndarray]:
+def static_masks(scans, *, npoints_per_rotation: int, quantum_m: float = 0.2, min_share: float = 0.5,
+                 max_range_m: float = 1e4) -> list[np.ndarray]:
     """Per scan, the points at their (ring, azimuth) cell's static range over the session.
 
     The board (and whoever holds it) moves between snapshots, walls and the ground do not:
@@ -156,20 +161,27 @@ def static_masks(scans, *, npoints_per_rotation: int, quantum_m: float = 0.2, mi
     for s in scans:
         p = np.asarray(s.points, float)
         ring = ring_of(s)
-        az = np.arctan2(p[:, 1], p[:, 0])
-        cell = ring * npoints_per_rotation + np.floor((az + np.pi) / (2 * np.pi) * npoints_per_rotation).astype(np.int64) % npoints_per_rotation
-        r = np.linalg.norm(p, axis=1)
-        ok = np.asarray(s.valid, bool) & np.isfinite(r) & (ring >= 0)
-        keys.append(np.where(ok, cell, -1))
-        ranges.append(np.where(ok, np.nan_to_num(r), np.nan))
+        with np.errstate(invalid="ignore", over="ignore"):  # garbage points are masked out below
+            r = np.linalg.norm(p, axis=1)
+            az = np.arctan2(p[:, 1], p[:, 0])
+        # only returns in segmentation range take part: one scan of garbage (a false is_bigendian)
+        # must not overflow the keys and spoil every other scan's modes
+        ok = np.asarray(s.valid, bool) & np.isfinite(r) & (r <= max_range_m) & (ring >= 0)
+        col = np.floor((np.where(ok, az, 0.0) + np.pi) / (2 * np.pi) * npoints_per_rotation).astype(np.int64)
+        keys.append(np.where(ok, ring * npoints_per_rotation + col % npoints_per_rotation, -1))
+        ranges.append(np.where(ok, r, np.nan))
     K = np.concatenate(keys)
     Q = np.floor(np.concatenate(ranges) / quantum_m)
     good = K >= 0
+    if not good.any():  # no return in range anywhere (all-NaN clouds): nothing is static
+        return [np.zeros(len(k), bool) for k in keys]
     Qg = Q[good].astype(np.int64)
-    span = int(Qg.max()) + 1 if good.any() else 1
-    # one int64 per (cell, range bin): a 1-D unique is much faster than a row-wise one
-    kq, counts = np.unique(K[good] * span + Qg, return_counts=True)
-    kc, qb = kq // span, kq % span
+    span = int(Qg.max()) + 1
+    # one int64 per (cell, range bin), the cells numbered densely first (a 1-D unique is much
+    # faster than a row-wise one; dense ids keep the product far from int64 overflow)
+    cell_ids, dense = np.unique(K[good], return_inverse=True)
+    kq, counts = np.unique(dense * span + Qg, return_counts=True)
+    kc, qb = cell_ids[kq // span], kq % span
     # the most common range bin of each cell
     order = np.lexsort((-counts, kc))
     kc, qb, counts = kc[order], qb[order], counts[order]

@@ -84,14 +84,14 @@ def _structured_view(msg, topic: str, wanted: set[str]) -> tuple[np.ndarray, dic
             f"PointCloud2 on {topic}: data has {data.size} bytes, fewer than height {height} x row_step {row_step}"
         )
     use = [n for n in fields if n in wanted and int(fields[n].datatype) in _DATATYPES]
+    if height * width == 0:  # nothing to view (and point_step may be anything): an empty cloud
+        return np.zeros((0, 0), dtype=[(n, bo + _DATATYPES[int(fields[n].datatype)]) for n in use]), fields
     dtype = np.dtype({
         "names": use,
         "formats": [bo + _DATATYPES[int(fields[n].datatype)] for n in use],
         "offsets": [int(fields[n].offset) for n in use],
         "itemsize": point_step,
     })
-    if height * width == 0:
-        return np.zeros((height, width), dtype=dtype), fields
     view = np.ndarray(shape=(height, width), dtype=dtype, buffer=data,
                       strides=(row_step, point_step))
     return view, fields
@@ -110,25 +110,26 @@ def decode_pointcloud2(msg, *, topic: str) -> LidarScan:
     stamp_ns = stamp_ns_of(msg.header)
     height, width = view.shape
     flat = view.reshape(-1)
-    points = np.stack([flat["x"], flat["y"], flat["z"]], axis=-1).astype(np.float64)
-    valid = np.isfinite(points).all(axis=1) & (points != 0.0).any(axis=1)
     names = set(view.dtype.names)
-
-    intensity = next((flat[n].astype(np.float32) for n in _INTENSITY_NAMES if n in names), None)
-    ring = next((flat[n].astype(np.int64) for n in _RING_NAMES if n in names), None)
-    if ring is None and height > 1:
+    # garbage bytes (signalling NaNs, a false is_bigendian) must not warn: bad points are flagged invalid
+    with np.errstate(invalid="ignore", over="ignore"):
+        points = np.stack([flat["x"], flat["y"], flat["z"]], axis=-1).astype(np.float64)
+        intensity = next((flat[n].astype(np.float32) for n in _INTENSITY_NAMES if n in names), None)
+        time_s = None
+        if "time" in names:
+            time_s = flat["time"].astype(np.float64)
+        elif "t" in names:
+            time_s = flat["t"].astype(np.float64) * 1e-9
+        elif "offset_time" in names:
+            time_s = flat["offset_time"].astype(np.float64) * 1e-9
+        elif "timestamp" in names:
+            sec, nsec = divmod(stamp_ns, 1_000_000_000)
+            time_s = (flat["timestamp"].astype(np.float64) - sec) - nsec * 1e-9
+        ring = next((flat[n].astype(np.int64) for n in _RING_NAMES if n in names), None)
+    valid = np.isfinite(points).all(axis=1) & (points != 0.0).any(axis=1)
+    organised = height > 1 and width > 0  # an empty cloud of "3e8 rows" is just empty
+    if ring is None and organised:
         ring = np.repeat(np.arange(height, dtype=np.int64), width)
-
-    time_s = None
-    if "time" in names:
-        time_s = flat["time"].astype(np.float64)
-    elif "t" in names:
-        time_s = flat["t"].astype(np.float64) * 1e-9
-    elif "offset_time" in names:
-        time_s = flat["offset_time"].astype(np.float64) * 1e-9
-    elif "timestamp" in names:
-        sec, nsec = divmod(stamp_ns, 1_000_000_000)
-        time_s = (flat["timestamp"].astype(np.float64) - sec) - nsec * 1e-9
 
     return LidarScan(
         topic=topic,
@@ -138,5 +139,5 @@ def decode_pointcloud2(msg, *, topic: str) -> LidarScan:
         intensity=intensity,
         ring=ring,
         time_s=time_s,
-        shape=(height, width) if height > 1 else None,
+        shape=(height, width) if organised else None,
     )

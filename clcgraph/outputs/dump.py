@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clcgraph.config import Config
+from clcgraph.config import Config, ConfigError
 from clcgraph.errors import DataError, InputError
 from clcgraph.geometry import compose_rt, invert_rt, transform
 from clcgraph.types import (
@@ -104,22 +104,173 @@ def save_problem(path: str | Path, problem: Problem, config: Config | None = Non
     log.info("wrote problem dump %s", path)
 
 
+# Limits for reading a dump (a zip of .npy members): float measurements do not compress 200-fold,
+# so more than that (beyond a small allowance) is a zip bomb, refused before anything is inflated.
+_MAX_MEMBERS = 10_000
+_INFLATE_ALLOWANCE = 64 << 20
+_MAX_INFLATE_RATIO = 200
+
+# member name -> (dtype kind, trailing shape) of the fixed arrays; intrinsics_i and visibility_k below
+_LAYOUT = {
+    "meta": ("U", None),
+    "lidar_points": ("f", (3,)), "lidar_counts": ("i", ()), "lidar_planes": ("f", (4,)),
+    "lidar_sensor_snapshot": ("i", (2,)), "lidar_rms": ("f", ()),
+    "lidar_indices": ("i", ()), "lidar_indices_counts": ("i", ()),
+    "camera_corners": ("f", (2,)), "camera_counts": ("i", ()), "camera_sensor_snapshot": ("i", (2,)),
+    "snapshot_stamps_ns": ("i", ()),
+    "prior_sensor": ("i", ()), "prior_rt": ("f", (6,)), "prior_sigma": ("f", (6,)),
+}
+
+
+def _read_members(path: Path) -> dict[str, np.ndarray]:
+    """Every .npy member of the dump, each checked (no pickles, header consistent with its size)
+    before it is read; total inflated size checked before any member is."""
+    import zipfile
+
+    try:
+        zf = zipfile.ZipFile(path)
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such problem dump") from None
+    except IsADirectoryError:
+        raise InputError(f"{path}: is a directory, not a problem dump (give DIR/problem.npz)") from None
+    except (zipfile.BadZipFile, OSError, ValueError) as e:
+        raise DataError(f"{path}: not a problem dump (not a complete .npz: {e})") from None
+    with zf:
+        infos = zf.infolist()
+        if len(infos) > _MAX_MEMBERS:
+            raise DataError(f"{path}: not a problem dump ({len(infos)} members)")
+        total = sum(i.file_size for i in infos)
+        limit = _INFLATE_ALLOWANCE + _MAX_INFLATE_RATIO * path.stat().st_size
+        if total > limit:
+            raise DataError(f"{path}: members would inflate to {total} bytes from {path.stat().st_size} "
+                            f"(more than {limit}); a zip bomb, not a problem dump")
+        out = {}
+        for info in infos:
+            name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+            try:
+                with zf.open(info) as f:
+                    version = np.lib.format.read_magic(f)
+                    read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+                        np.lib.format.read_array_header_2_0
+                    shape, fortran, dtype = read_header(f)
+                    if dtype.hasobject:
+                        raise DataError(f"{path}: member {name!r} holds Python objects (a pickle); refused")
+                    if dtype.itemsize == 0 or int(np.prod(shape, dtype=object)) * dtype.itemsize != info.file_size - f.tell():
+                        raise DataError(f"{path}: member {name!r} header says {shape} {dtype}, which does not "
+                                        f"match its {info.file_size} bytes")
+                    f.seek(0)
+                    out[name] = np.lib.format.read_array(f, allow_pickle=False)
+            except DataError:
+                raise
+            except Exception as e:  # truncated, bad CRC, bad header: zipfile / numpy raise many kinds
+                raise DataError(f"{path}: member {name!r} unreadable ({type(e).__name__}: "
+                                f"{str(e).splitlines()[0] if str(e) else ''})") from None
+        return out
+
+
+def _check_layout(a: dict, meta: dict, path: Path) -> None:
+    """Dtypes, shapes, counts and indices consistent with each other; DataError naming the first
+    that is not (a tampered dump must not reach the solver as an IndexError or a wrong answer)."""
+    from clcgraph import cameras
+    from clcgraph.errors import DependencyError
+
+    def bad(what):
+        raise DataError(f"{path}: corrupt problem dump ({what})")
+
+    for name, (kind, tail) in _LAYOUT.items():
+        if name not in a:
+            bad(f"no member {name!r}")
+        x = a[name]
+        if x.dtype.kind != kind and not (kind == "i" and x.dtype.kind == "u"):
+            bad(f"{name!r} has dtype {x.dtype}")
+        if tail is not None and (x.ndim != 1 + len(tail) or x.shape[1:] != tail):
+            bad(f"{name!r} has shape {x.shape}, expected (N, {', '.join(map(str, tail))})".replace(", )", ")"))
+    if not isinstance(meta.get("sensors"), list) or not meta["sensors"]:
+        bad("no sensors")
+    nsens, nsnap = len(meta["sensors"]), len(a["snapshot_stamps_ns"])
+    kinds = []
+    for i, sd in enumerate(meta["sensors"]):
+        if not isinstance(sd, dict) or sd.get("kind") not in ("lidar", "camera") or not isinstance(sd.get("topic"), str):
+            bad(f"sensor {i} is not a lidar or camera with a topic")
+        kinds.append(sd["kind"])
+        if sd["kind"] == "camera":
+            size = sd.get("imagersize")
+            if not (isinstance(size, list) and len(size) == 2 and all(isinstance(v, int) and v > 0 for v in size)):
+                bad(f"camera {sd['topic']} imagersize {size!r}")
+            if not sd.get("has_intrinsics") or f"intrinsics_{i}" not in a:
+                bad(f"camera {sd['topic']} has no intrinsics")
+            x = a[f"intrinsics_{i}"]
+            try:
+                n = cameras.num_intrinsics(sd.get("lensmodel"))
+            except DependencyError:
+                raise
+            except Exception:
+                bad(f"camera {sd['topic']} lens model {sd.get('lensmodel')!r}")
+            if x.dtype.kind != "f" or x.shape != (n,) or not np.all(np.isfinite(x)):
+                bad(f"camera {sd['topic']} intrinsics {x.dtype} {x.shape} for {sd['lensmodel']} ({n})")
+    if "lidar" not in kinds:
+        bad("no LIDAR")
+
+    def counts(name, data, n_obs):
+        c = a[name]
+        if len(c) != n_obs or np.any(c < 0) or int(c.sum()) != len(a[data]):
+            bad(f"{name!r} do not add up to the {len(a[data])} rows of {data!r}")
+
+    nl, nc = len(a["lidar_sensor_snapshot"]), len(a["camera_sensor_snapshot"])
+    for name in ("lidar_planes", "lidar_rms"):
+        if len(a[name]) != nl:
+            bad(f"{name!r} has {len(a[name])} rows for {nl} LIDAR observations")
+    counts("lidar_counts", "lidar_points", nl)
+    counts("camera_counts", "camera_corners", nc)
+    has_idx = meta.get("lidar_has_indices")
+    if not isinstance(has_idx, list) or len(has_idx) != nl or not all(isinstance(h, bool) for h in has_idx):
+        bad("lidar_has_indices")
+    counts("lidar_indices_counts", "lidar_indices", sum(has_idx))
+    for name, kind in (("lidar_sensor_snapshot", "lidar"), ("camera_sensor_snapshot", "camera")):
+        ss = a[name]
+        if len(ss) and (ss[:, 0].min() < 0 or ss[:, 0].max() >= nsens or ss[:, 1].min() < 0 or ss[:, 1].max() >= nsnap):
+            bad(f"{name!r} names sensor {int(ss[:, 0].max())} or snapshot {int(ss[:, 1].max())} "
+                f"({nsens} sensors, {nsnap} snapshots)")
+        if len(ss) and any(kinds[i] != kind for i in np.unique(ss[:, 0])):
+            bad(f"{name!r} names a sensor that is not a {kind}")
+    np_ = len(a["prior_sensor"])
+    if len(a["prior_rt"]) != np_ or len(a["prior_sigma"]) != np_:
+        bad("priors of different lengths")
+    if np_ and (a["prior_sensor"].min() < 0 or a["prior_sensor"].max() >= nsens):
+        bad(f"a prior names sensor {int(a['prior_sensor'].max())} ({nsens} sensors)")
+    if not np.all(a["prior_sigma"] > 0) or not np.all(np.isfinite(a["prior_rt"])) or not np.all(np.isfinite(a["prior_sigma"])):
+        bad("prior sigmas must be finite and positive")
+    for name in ("lidar_points", "lidar_planes", "lidar_rms"):
+        if not np.all(np.isfinite(a[name])):
+            bad(f"non-finite values in {name!r}")
+    if np.any(np.isinf(a["camera_corners"])):  # NaN marks a missing corner; inf is nothing
+        bad("infinite camera corners")
+    if len(a["lidar_indices"]) and a["lidar_indices"].min() < 0:
+        bad("negative point indices")
+    vis = meta.get("visibility_sensors")
+    if not isinstance(vis, list) or not all(isinstance(k, int) and 0 <= k < nsens for k in vis):
+        bad(f"visibility_sensors {vis!r}")
+    for k in vis:
+        x = a.get(f"visibility_{k}")
+        if x is None or x.dtype.kind != "f" or x.ndim != 2 or x.shape[1] != 3 or not np.all(np.isfinite(x)):
+            bad(f"visibility points of sensor {k}")
+    board = meta.get("board")
+    if not isinstance(board, dict) or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) and v >= 0 for v in board.values()):
+        bad(f"board {board!r}")
+
+
 def load_problem(path: str | Path) -> tuple[Problem, Config]:
-    """Read a dump written by save_problem -> (Problem, Config). DataError if unreadable."""
+    """Read a dump written by save_problem -> (Problem, Config). InputError if missing; DataError
+    (one line) if unreadable, truncated, a zip bomb, pickled, or inconsistent."""
     path = Path(path)
+    a = _read_members(path)
     try:
-        with np.load(path, allow_pickle=False) as z:
-            a = {k: z[k] for k in z.files}
-    except OSError as e:
-        if not path.exists():
-            raise InputError(f"{path}: no such problem dump") from None
-        raise DataError(f"{path}: not a problem dump ({e})") from None
-    except ValueError as e:
-        raise DataError(f"{path}: not a problem dump ({str(e).splitlines()[0]})") from None
-    try:
-        meta = json.loads(str(a["meta"]))
-    except (KeyError, json.JSONDecodeError):
-        raise DataError(f"{path}: not a clcgraph problem dump (no metadata)") from None
+        meta = json.loads(str(a["meta"])) if "meta" in a and a["meta"].dtype.kind == "U" and a["meta"].ndim == 0 else None
+    except (json.JSONDecodeError, RecursionError):
+        meta = None
+    if not isinstance(meta, dict):
+        raise DataError(f"{path}: not a clcgraph problem dump (no metadata)")
     if meta.get("format") != FORMAT_NAME:
         raise DataError(f"{path}: not a clcgraph problem dump (format {meta.get('format')!r})")
     if meta.get("version") not in _READABLE_VERSIONS:
@@ -127,6 +278,7 @@ def load_problem(path: str | Path) -> tuple[Problem, Config]:
             f"{path}: problem dump format version {meta.get('version')!r} is not supported "
             f"(this clcgraph reads versions {', '.join(map(str, _READABLE_VERSIONS))})"
         )
+    _check_layout(a, meta, path)
     try:
         if meta["version"] == 1:
             meta = _upgrade_v1(meta, path)
@@ -163,8 +315,10 @@ def load_problem(path: str | Path) -> tuple[Problem, Config]:
             lidar_visibility_points={k: a[f"visibility_{k}"] for k in meta["visibility_sensors"]},
         )
         config = Config.from_dict(meta["config"])
+    except ConfigError as e:
+        raise DataError(f"{path}: the dump's settings are not valid ({e})") from None
     except (KeyError, TypeError, ValueError) as e:
-        raise DataError(f"{path}: corrupt problem dump ({type(e).__name__}: {e})") from None
+        raise DataError(f"{path}: corrupt problem dump ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
     return problem, config
 
 

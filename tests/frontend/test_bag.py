@@ -242,3 +242,27 @@ def test_not_a_bag(tmp_path):
         with pytest.raises(DataError) as e:
             bag.bag_info(path)
         _assert_one_line(e, path, "cannot read bag")
+
+
+def _tf_msg(parent, child, t=(1.0, 2.0, 3.0), q=(0.0, 0.0, 0.0, 1.0)):
+    from types import SimpleNamespace as NS
+
+    tr = NS(translation=NS(x=t[0], y=t[1], z=t[2]), rotation=NS(x=q[0], y=q[1], z=q[2], w=q[3]))
+    return NS(transforms=[NS(header=NS(frame_id=parent), child_frame_id=child, transform=tr)])
+
+
+@pytest.mark.parametrize("parent, child, t, q, pattern", [
+    ("base", "lidar", (1, 2, 3), (0, 0, 0, 0), "not normalized"),
+    ("base", "lidar", (1, 2, 3), (0, 0, 0.6, 0.6), "not normalized"),
+    ("base", "lidar", (np.nan, 2, 3), (0, 0, 0, 1), "non-finite"),
+    ("base", "lidar", (1, 2, 3), (0, 0, np.inf, 1), "non-finite"),
+    ("", "lidar", (1, 2, 3), (0, 0, 0, 1), "non-empty frame names"),
+    ("base", "base", (1, 2, 3), (0, 0, 0, 1), "two different"),
+])
+def test_tf_messages_tf2_would_refuse_are_dataerrors(parent, child, t, q, pattern):
+    with pytest.raises(DataError, match=f"x.bag: /tf_static message 0: '{parent}' -> '{child}': .*{pattern}"):
+        bag.decode_tf_message(_tf_msg(parent, child, t, q), where="x.bag: /tf_static message 0")
+    # a slightly unnormalized quaternion (as tf2 tolerates) is fine, and normalized
+    ((p, c, T),) = bag.decode_tf_message(_tf_msg("base", "lidar", q=(0, 0, 0.7072, 0.7072)), where="x")
+    np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(T[:3, 3], [1, 2, 3])

@@ -2,6 +2,9 @@
 
 from types import SimpleNamespace
 
+import struct
+import tracemalloc
+
 import cv2
 import numpy as np
 import pytest
@@ -91,8 +94,66 @@ def test_short_data_and_undecodable_compressed():
     with pytest.raises(DataError, match="/cam"):
         decode_image(msg, topic="/cam")
     bad = SimpleNamespace(header=HEADER, format="jpeg", data=np.arange(50, dtype=np.uint8))
-    with pytest.raises(DataError, match="cannot decode compressed"):
+    with pytest.raises(DataError, match="neither PNG nor JPEG"):
         decode_image(bad, topic="/cam")
+
+
+def _compressed(ext, px):
+    return SimpleNamespace(header=HEADER, format=ext.lstrip("."), data=cv2.imencode(ext, px)[1].reshape(-1))
+
+
+def _set_jpeg_size(data, w, h):
+    d = data.copy()
+    sof = next(i for i in range(2, len(d) - 1) if d[i] == 0xFF and d[i + 1] in (0xC0, 0xC2))
+    d[sof + 5:sof + 9] = np.frombuffer(struct.pack(">HH", h, w), np.uint8)
+    return d
+
+
+@pytest.mark.parametrize("ext", [".png", ".jpg"])
+def test_lying_compressed_header_is_refused_before_decoding(ext):
+    """A small image whose header claims 30000x30000 (or 4000x3000 in 3 KB): DataError from the header,
+    with no big allocation; the genuine image still decodes."""
+    px = np.random.default_rng(5).integers(0, 256, (48, 64), dtype=np.uint8)
+    msg = _compressed(ext, px)
+    assert decode_image(msg, topic="/c").pixels.shape == (48, 64)
+    for w, h, why in ((30000, 30000, "100 Mpixel limit"), (4000, 3000, "its data can encode")):
+        d = msg.data.copy()
+        if ext == ".png":
+            d[16:24] = np.frombuffer(struct.pack(">II", w, h), np.uint8)
+        else:
+            d = _set_jpeg_size(d, w, h)
+        tracemalloc.start()
+        with pytest.raises(DataError, match=f"/c.*{w}x{h} pixels, more than .*{why}"):
+            decode_image(SimpleNamespace(header=HEADER, format=msg.format, data=d), topic="/c")
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        assert peak < 1_000_000
+
+
+def test_truncated_and_corrupt_jpeg_are_errors_not_grey(capfd):
+    px = np.random.default_rng(6).integers(0, 256, (64, 80, 3), dtype=np.uint8)
+    msg = _compressed(".jpg", px)
+    with pytest.raises(DataError, match="end-of-image marker"):
+        decode_image(SimpleNamespace(header=HEADER, format="jpeg", data=msg.data[: len(msg.data) // 2]), topic="/c")
+    padded = np.r_[msg.data, np.zeros(1000, np.uint8)]  # as UVC cameras pad MJPEG frames
+    assert decode_image(SimpleNamespace(header=HEADER, format="jpeg", data=padded), topic="/c").pixels.shape == px.shape
+    d = msg.data.copy()
+    d[len(d) // 2:len(d) // 2 + 40] = 0xFF  # fill bytes inside the entropy-coded data
+    d[len(d) // 2 + 40] = 0xD0
+    with pytest.raises(DataError, match=r"/c.*cannot decode \(Corrupt JPEG data"):
+        decode_image(SimpleNamespace(header=HEADER, format="jpeg", data=d), topic="/c")
+    assert capfd.readouterr().err == ""  # libjpeg's complaints never reach the terminal
+
+
+def test_empty_raw_image_and_odd_yuv_width():
+    msg = _raw(np.zeros((4, 4), np.uint8), "mono8")
+    msg.width = 0
+    with pytest.raises(DataError, match="0x4 pixels has no pixels"):
+        decode_image(msg, topic="/cam")
+    yuv = _raw(np.zeros((4, 6), np.uint8), "yuv422")
+    yuv.width = 3
+    with pytest.raises(DataError, match="even width"):
+        decode_image(yuv, topic="/cam")
 
 
 def _mosaic(bgr, pattern):

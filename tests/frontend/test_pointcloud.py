@@ -135,3 +135,33 @@ def test_malformed_is_one_line_dataerror(case, pattern):
         decode_pointcloud2(m, topic="/bad/topic")
     msg = str(e.value)
     assert "\n" not in msg and "/bad/topic" in msg and pattern in msg, msg
+
+
+def test_lying_sizes_allocate_nothing():
+    """height 3e8 x width 0 without a ring field is an empty scan (np.repeat of 3e8 rows was 2.3 GB);
+    10^9 points claimed in a 64-byte buffer is a DataError before any allocation."""
+    import tracemalloc
+
+    m = _msg({"x": 1, "y": 2, "z": 3}, _BASIC, point_step=16, height=2, width=2)
+    tracemalloc.start()
+    m.height, m.width, m.row_step = 300_000_000, 0, 0
+    s = decode_pointcloud2(m, topic="/l")
+    assert len(s.points) == 0 and s.ring is None and s.shape is None
+    m.height, m.width, m.row_step = 1_000_000_000, 1, 16
+    with pytest.raises(DataError, match="/l.*64 bytes, fewer than height 1000000000"):
+        decode_pointcloud2(m, topic="/l")
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 100_000, peak
+
+
+def test_garbage_values_are_invalid_points_without_warnings():
+    m = _msg({"x": 1, "y": 2, "z": 3}, _BASIC, point_step=16, height=1, width=4)
+    m.data = m.data.copy()
+    m.data[:12] = 0xFF  # signalling-NaN float32 bytes
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        s = decode_pointcloud2(m, topic="/l")
+    np.testing.assert_array_equal(s.valid, [False, True, True, True])
