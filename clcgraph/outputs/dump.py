@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clcgraph.config import Config, ConfigError
+from clcgraph.config import BoardOptions, Config, ConfigError
 from clcgraph.errors import DataError, InputError
 from clcgraph.geometry import compose_rt, invert_rt, transform
 from clcgraph.types import (
@@ -255,8 +255,15 @@ def _check_layout(a: dict, meta: dict, path: Path) -> None:
         if x is None or x.dtype.kind != "f" or x.ndim != 2 or x.shape[1] != 3 or not np.all(np.isfinite(x)):
             bad(f"visibility points of sensor {k}")
     board = meta.get("board")
-    if not isinstance(board, dict) or not all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) and v >= 0 for v in board.values()):
+    if meta.get("version") == 1:  # corners_x, corners_y, spacing_m, margin_m
+        ok = isinstance(board, dict) and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                             and np.isfinite(v) and v >= 0 for v in board.values())
+    else:  # the config's board section, checked as the config checks it
+        try:
+            ok = isinstance(board, dict) and BoardOptions(**board) is not None
+        except (ConfigError, TypeError):
+            ok = False
+    if not ok:
         bad(f"board {board!r}")
 
 

@@ -33,7 +33,7 @@ lidars:
   - {topic: /lidar/a, model: vlp16, layout: velodyne, frame_id: a, xyz: [0, 0, 1.9], rpy_deg: [0, 0, 0]}
   - {topic: /lidar/b, model: vlp16, layout: ouster, frame_id: b, xyz: [1.2, 0.5, 1.2], rpy_deg: [1, 5, 20]}
 cameras: []
-board: {corners_x: 10, corners_y: 10, spacing_m: 0.1, margin_m: 0.1}
+board: {corners: [10, 10], square_m: 0.1, size_m: [1.3, 1.3]}
 """
 # Generous: the CI machine is shared; a healthy run needs a few seconds.
 TIMEOUT_S = 120

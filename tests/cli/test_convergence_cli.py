@@ -17,7 +17,7 @@ lidars:
   - {topic: /lidar/a, model: vlp16, layout: velodyne, frame_id: a, xyz: [0, 0, 1.9], rpy_deg: [0, 0, 0]}
   - {topic: /lidar/c, model: hdl32, layout: ouster, frame_id: c, xyz: [-1.0, -0.4, 1.5], rpy_deg: [0, -3, 178]}
 cameras: []
-board: {corners_x: 10, corners_y: 10, spacing_m: 0.1, margin_m: 0.1}
+board: {corners: [10, 10], square_m: 0.1, size_m: [1.3, 1.3]}
 """
 
 

@@ -23,7 +23,7 @@ lidars:
   - {topic: /lidar/c, model: vlp16, layout: velodyne, frame_id: c, xyz: [-1.0, -0.4, 1.5], rpy_deg: [0, -3, 178]}
 cameras:
   - {topic: /cam, model: front.cameramodel, encoding: mono8, frame_id: cam, xyz: [0.3, -0.2, 1.5], rpy_deg: [0, 4, -5]}
-board: {corners_x: 10, corners_y: 10, spacing_m: 0.1, margin_m: 0.1}
+board: {corners: [10, 10], square_m: 0.1, size_m: [1.3, 1.3]}
 """
 
 

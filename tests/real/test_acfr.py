@@ -13,8 +13,7 @@ from bench.real.acfr_to_bags import CAMERA_TOPIC, LIDAR_TOPIC, acfr_result, conv
 from clcgraph import api
 
 RUN1 = Path(__file__).resolve().parents[2] / "data" / "real" / "acfr-ouster" / "run1"
-BOARD = {"detection": {"corners_x": 7, "corners_y": 5, "spacing_m": 0.095, "margin_m": 0.14,
-                       "detector": "opencv"}}
+BOARD = {"board": {"corners": [7, 5], "square_m": 0.095, "size_m": [0.85, 0.61]}}
 
 
 @pytest.mark.slow
