@@ -98,7 +98,7 @@ def _add_targetless(sub):
     p.add_argument("--calibration-topics", required=True, help="comma-separated LIDAR topics to calibrate")
     p.add_argument("--base-frame", default=None, help="also calibrate base_link-LIDAR roll/pitch/z from the ground")
     p.add_argument("--out", required=True, help="output directory (replaced atomically)")
-    p.add_argument("--config", default=None, help="YAML config (section 'targetless')")
+    _config_args(p, "settings (section 'targetless'; see `clcgraph config dump`)")
 
     def run(args):
         from .targetless.pipeline import calibrate_targetless, summary_table, write_targetless_outputs
@@ -155,24 +155,17 @@ def _add_detect(sub):
     p.add_argument("--png", default=None, metavar="DIR", help="write an annotated PNG per image here")
     p.add_argument("--detector", default=None, choices=["mrgingham", "opencv"], help="override the config")
     p.add_argument("--every", action="store_true", help="every image, not just the first of each bag")
-    p.add_argument("--config", default=None, help="YAML config (section 'detection')")
+    _config_args(p, "settings (section 'detection'; see `clcgraph config dump`)")
 
     def run(args):
-        from dataclasses import replace
         from pathlib import Path
 
         import cv2
         import numpy as np
 
-        from .config import Config, ConfigError
-        from .errors import InputError
         from .frontend.camera_board import detect_in_bags, draw_detection
 
-        try:
-            cfg = Config.from_yaml(args.config) if args.config else Config()
-        except ConfigError as e:
-            raise InputError(str(e)) from None
-        opts = cfg.detection if args.detector is None else replace(cfg.detection, detector=args.detector)
+        opts = _load_config(args).detection
         outdir = Path(args.png) if args.png else None
         if outdir:
             outdir.mkdir(parents=True, exist_ok=True)
@@ -189,7 +182,7 @@ def _add_detect(sub):
         print(f"{nfound}/{ntotal} images with a chessboard")
         return 0
 
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, overrides=lambda a: [("detection", "detector", a.detector)] if a.detector else [])
 
 
 @_command
@@ -203,8 +196,7 @@ def _add_segment(sub):
     p.add_argument("--dump", default=None, metavar="FILE.npz",
                    help="intermediate stages: segments, clusters, candidate planes with verdicts, accepted points")
     p.add_argument("--png", default=None, metavar="DIR", help="a picture of each scan's segmentation here")
-    p.add_argument("--config", default=None, metavar="FILE.yaml", help="settings (sections 'lidar', 'segmentation')")
-    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one config key (repeatable)")
+    _config_args(p, "settings (sections 'lidar', 'segmentation'; see `clcgraph config dump`)")
     p.add_argument("--debug-region", default=None, metavar="XMIN,XMAX,YMIN,YMAX",
                    help="report every candidate board plane in this region of the LIDAR's frame, with its verdict")
     seg_flags = _section_flags(p, SegmentationOptions, "segmentation", "LIDAR segmentation")
@@ -284,8 +276,7 @@ def _add_demo(sub):
     p = sub.add_parser("demo", help="calibrate the shipped synthetic demo rig (simulated on first use) and "
                                     "compare with the simulator's truth")
     p.add_argument("--out", default=None, metavar="DIR", help="output directory (default data/synthetic/demo-out)")
-    p.add_argument("--config", default=None, metavar="FILE.yaml", help="settings (see `clcgraph config dump`)")
-    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one config key (repeatable)")
+    _config_args(p)
 
     def run(args):
         from . import api
@@ -313,13 +304,17 @@ def _add_simulate(sub):
     p.add_argument("--format", default="ros1", choices=["ros1", "ros2-sqlite3", "ros2-mcap"], help="bag format")
     p.add_argument("--continuous", action="store_true", help="one continuous bag (the board moves between poses)")
     p.add_argument("--compress", action="store_true", help="lz4-compressed ROS1 bags")
+    p.add_argument("--camera-hz", type=float, default=5.0, help="camera frame rate (LIDARs run at 10 Hz)")
+    p.add_argument("--no-log-delays", action="store_true",
+                   help="log time = header stamp (default: as drivers log, a scan ~0.1 s and a frame 20-35 ms late)")
     p.add_argument("--seed", type=int, default=0)
 
     def run(args):
         from . import api
 
         truth = api.simulate(args.rig, args.out, n_poses=args.poses, format=args.format,
-                             continuous=args.continuous, seed=args.seed, compress=args.compress)
+                             continuous=args.continuous, seed=args.seed, compress=args.compress,
+                             camera_hz=args.camera_hz, log_delays=not args.no_log_delays)
         print(f"wrote {len(truth['snapshots'])} board poses of {len(truth['sensors'])} sensors into {args.out} "
               f"(truth in {args.out}/truth.yaml)")
         return 0
@@ -382,6 +377,14 @@ def _lidar_scans(bags, topic: str, *, every: bool = False, limit: int | None = N
         what = "no message" if scans[bad] is None else type(scans[bad]).__name__
         raise InputError(f"{where}: topic {topic} holds {what}, not sensor_msgs/PointCloud2")
     return scans
+
+
+def _config_args(p, config_help: str = "settings (see `clcgraph config dump`)") -> None:
+    """--config FILE and --set SECTION.KEY=VALUE, the same on every command that has a config
+    (read by ``_load_config``)."""
+    p.add_argument("--config", default=None, metavar="FILE.yaml", help=config_help)
+    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE",
+                   help="override one config key, after --config and the command's flags (repeatable)")
 
 
 def _load_config(args):
@@ -449,8 +452,7 @@ def _add_solve(sub):
     p.add_argument("--bag", action="append", required=True, metavar="GLOB", help="bag file/dir or glob (repeatable)")
     p.add_argument("--topics", required=True, help="comma-separated LIDAR and camera topics; the first LIDAR is lidar0")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory (replaced atomically)")
-    p.add_argument("--config", default=None, metavar="FILE.yaml", help="settings (see `clcgraph config dump`)")
-    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one config key (repeatable)")
+    _config_args(p)
     p.add_argument("--exclude-bag", default=None, metavar="REGEX", help="skip bags whose path matches")
     p.add_argument("--decimation-period", type=float, default=None, metavar="S",
                    help="continuous bags: one snapshot per this many seconds")
@@ -506,8 +508,7 @@ def _add_solve(sub):
 def _add_config(sub):
     p = sub.add_parser("config", help="print the default settings (`config dump`) or check a config file")
     p.add_argument("action", choices=["dump", "check"], help="dump: defaults as YAML; check: validate --config")
-    p.add_argument("--config", default=None, metavar="FILE.yaml", help="start from this file")
-    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one config key")
+    _config_args(p, "start from this file")
 
     def run(args):
         cfg = _load_config(args)

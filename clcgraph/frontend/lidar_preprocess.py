@@ -119,12 +119,13 @@ def static_masks(scans, *, npoints_per_rotation: int, quantum_m: float = 0.2, mi
     for s in scans:
         p = np.asarray(s.points, float)
         ring = ring_of(s)
-        az = np.arctan2(p[:, 1], p[:, 0])
-        cell = ring * npoints_per_rotation + np.floor((az + np.pi) / (2 * np.pi) * npoints_per_rotation).astype(np.int64) % npoints_per_rotation
         r = np.linalg.norm(p, axis=1)
         ok = np.asarray(s.valid, bool) & np.isfinite(r) & (ring >= 0)
+        p = np.where(ok[:, None], p, 1.0)  # invalid points (NaN in organised clouds) never reach the int casts
+        az = np.arctan2(p[:, 1], p[:, 0])
+        cell = ring * npoints_per_rotation + np.floor((az + np.pi) / (2 * np.pi) * npoints_per_rotation).astype(np.int64) % npoints_per_rotation
         keys.append(np.where(ok, cell, -1))
-        qs.append(np.where(ok, np.floor(np.nan_to_num(r) / quantum_m), -1).astype(np.int64))
+        qs.append(np.where(ok, np.floor(np.where(ok, r, 0.0) / quantum_m), -1).astype(np.int64))
     K = np.concatenate(keys)
     Q = np.concatenate(qs)
     good = K >= 0
