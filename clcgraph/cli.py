@@ -460,7 +460,7 @@ def _add_solve(sub):
     p.add_argument("--before", default=None, help="end time: s or ns since epoch, or a date")
     p.add_argument("--exclude-time-period", action="append", default=None, metavar="START,END",
                    help="skip this time period (repeatable)")
-    p.add_argument("--max-time-spread-s", type=float, default=None, help="drop snapshots spread wider in time")
+    p.add_argument("--max-time-spread-s", type=float, default=None, help="drop snapshots spread wider in time (default: no limit)")
     p.add_argument("--Nsectors", type=int, default=None, help="number of sectors of the uncertainty feedback")
     p.add_argument("--threshold-valid-lidar-range", type=float, default=None, metavar="M")
     p.add_argument("--threshold-valid-lidar-Npoints", type=int, default=None, metavar="N")
