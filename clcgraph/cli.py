@@ -106,7 +106,7 @@ def _add_targetless(sub):
     p.add_argument("--base-frame", default=None, help="also calibrate base_link-LIDAR roll/pitch/z from the ground")
     p.add_argument("--out", required=True, help="output directory: new, empty or an earlier output of this command (replaced whole)")
     _add_force(p)
-    p.add_argument("--config", default=None, help="YAML config (section 'targetless')")
+    _config_args(p, "settings (section 'targetless'; see `clcgraph config dump`)")
 
     def run(args):
         from .api import check_out_dir
@@ -170,9 +170,7 @@ def _add_detect(sub):
     p.add_argument("--png", default=None, metavar="DIR", help="write an annotated PNG per image here")
     p.add_argument("--detector", default=None, choices=["auto", "mrgingham", "opencv"], help="override the config")
     p.add_argument("--every", action="store_true", help="every image, not just the first of each bag")
-    p.add_argument("--config", default=None, help="YAML config (sections 'board', 'detection')")
-    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE",
-                   help="override one config key (repeatable), e.g. 'board.corners=[7,5]'")
+    _config_args(p, "settings (sections 'board', 'detection'; see `clcgraph config dump`)")
 
     def run(args):
         from pathlib import Path
@@ -216,9 +214,7 @@ def _add_segment(sub):
     p.add_argument("--dump", default=None, metavar="FILE.npz",
                    help="intermediate stages: segments, clusters, candidate planes with verdicts, accepted points")
     p.add_argument("--png", default=None, metavar="DIR", help="a picture of each scan's segmentation here")
-    p.add_argument("--config", default=None, metavar="FILE.yaml",
-                   help="settings (sections 'board', 'lidar', 'segmentation')")
-    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one config key (repeatable)")
+    _config_args(p, "settings (sections 'board', 'lidar', 'segmentation'; see `clcgraph config dump`)")
     p.add_argument("--debug-region", default=None, metavar="XMIN,XMAX,YMIN,YMAX",
                    help="report every candidate board plane in this region of the LIDAR's frame, with its verdict")
     seg_flags = _section_flags(p, SegmentationOptions, "segmentation", "LIDAR segmentation")
@@ -299,8 +295,7 @@ def _add_demo(sub):
                                     "compare with the simulator's truth")
     p.add_argument("--out", default=None, metavar="DIR", help="output directory (default data/synthetic/demo-out)")
     _add_force(p)
-    p.add_argument("--config", default=None, metavar="FILE.yaml", help="settings (see `clcgraph config dump`)")
-    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one config key (repeatable)")
+    _config_args(p)
 
     def run(args):
         from . import api
@@ -329,6 +324,9 @@ def _add_simulate(sub):
     p.add_argument("--format", default="ros1", choices=["ros1", "ros2-sqlite3", "ros2-mcap"], help="bag format")
     p.add_argument("--continuous", action="store_true", help="one continuous bag (the board moves between poses)")
     p.add_argument("--compress", action="store_true", help="lz4-compressed ROS1 bags")
+    p.add_argument("--camera-hz", type=float, default=5.0, help="camera frame rate (LIDARs run at 10 Hz)")
+    p.add_argument("--no-log-delays", action="store_true",
+                   help="log time = header stamp (default: as drivers log, a scan ~0.1 s and a frame 20-35 ms late)")
     p.add_argument("--seed", type=int, default=0)
 
     def run(args):
@@ -336,7 +334,8 @@ def _add_simulate(sub):
 
         _in_range(args.poses, "--poses", 1, 10000)
         truth = api.simulate(args.rig, args.out, n_poses=args.poses, format=args.format,
-                             continuous=args.continuous, seed=args.seed, compress=args.compress, force=args.force)
+                             continuous=args.continuous, seed=args.seed, compress=args.compress,
+                             camera_hz=args.camera_hz, log_delays=not args.no_log_delays, force=args.force)
         print(f"wrote {len(truth['snapshots'])} board poses of {len(truth['sensors'])} sensors into {args.out} "
               f"(truth in {args.out}/truth.yaml)")
         b = truth["board"]
@@ -405,6 +404,14 @@ def _lidar_scans(bags, topic: str, *, every: bool = False, limit: int | None = N
         what = "no message" if scans[bad] is None else type(scans[bad]).__name__
         raise InputError(f"{where}: topic {topic} holds {what}, not sensor_msgs/PointCloud2")
     return scans
+
+
+def _config_args(p, config_help: str = "settings (see `clcgraph config dump`)") -> None:
+    """--config FILE and --set SECTION.KEY=VALUE, the same on every command that has a config
+    (read by ``_load_config``)."""
+    p.add_argument("--config", default=None, metavar="FILE.yaml", help=config_help)
+    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE",
+                   help="override one config key, after --config and the command's flags (repeatable)")
 
 
 def _load_config(args):
@@ -511,8 +518,7 @@ def _add_solve(sub):
     p.add_argument("--topics", required=True, help="comma-separated LIDAR and camera topics; the first LIDAR is lidar0")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory: new, empty or an earlier output of this command (replaced whole)")
     _add_force(p)
-    p.add_argument("--config", default=None, metavar="FILE.yaml", help="settings (see `clcgraph config dump`)")
-    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one config key (repeatable)")
+    _config_args(p)
     p.add_argument("--exclude-bag", default=None, metavar="REGEX", help="skip bags whose path matches")
     p.add_argument("--decimation-period", type=float, default=None, metavar="S",
                    help="continuous bags: one snapshot per this many seconds")
@@ -520,7 +526,7 @@ def _add_solve(sub):
     p.add_argument("--before", default=None, help="end time: s or ns since epoch, or a date")
     p.add_argument("--exclude-time-period", action="append", default=None, metavar="START,END",
                    help="skip this time period (repeatable)")
-    p.add_argument("--max-time-spread-s", type=float, default=None, help="drop snapshots spread wider in time")
+    p.add_argument("--max-time-spread-s", type=float, default=None, help="drop snapshots spread wider in time (default: no limit)")
     p.add_argument("--Nsectors", type=int, default=None, help="number of sectors of the uncertainty feedback")
     p.add_argument("--threshold-valid-lidar-range", type=float, default=None, metavar="M")
     p.add_argument("--threshold-valid-lidar-Npoints", type=int, default=None, metavar="N")
@@ -577,8 +583,7 @@ def _add_solve(sub):
 def _add_config(sub):
     p = sub.add_parser("config", help="print the default settings (`config dump`) or check a config file")
     p.add_argument("action", choices=["dump", "check"], help="dump: defaults as YAML; check: validate --config")
-    p.add_argument("--config", default=None, metavar="FILE.yaml", help="start from this file")
-    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one config key")
+    _config_args(p, "start from this file")
 
     def run(args):
         cfg = _load_config(args)

@@ -34,8 +34,11 @@ class ConfigError(InputError, ValueError):
 class SnapshotOptions:
     # One snapshot per bag (first message per topic), or one per period of a continuous bag.
     decimation_period_s: float | None = None
-    # Drop a snapshot whose observations are further apart in time than this.
-    max_time_spread_s: float = 0.1
+    # Drop a snapshot whose observations are further apart in time than this; None: no limit
+    # (clc's default). A bag per pose is still by construction; in a continuous bag the motion
+    # check decides whether the board was still, and every chosen message must lie inside the
+    # interval it checked.
+    max_time_spread_s: float | None = None
     # Time window, each as int s or ns since epoch, float s, or a date string.
     after: str | None = None
     before: str | None = None

@@ -164,3 +164,45 @@ def test_stopped_vehicle_is_degenerate():
     with pytest.raises(DegenerateError, match="did not move"):
         calibrate_targetless_scans(dr.scans, mapping_topic=TOP, calibration_topics=[SIDE],
                                    T_base_sensor_guess=dr.T_base_lidar_guess, config=_cfg())
+
+
+@pytest.mark.slow
+def test_short_drive_with_default_settings_adapts_the_frame_spacing(tmp_path):
+    """A 10 s drive (~5 m at 2 km/h, 6 keyframes): the seed's settings (skip 5 keyframes, 5 m between
+    frames) left 1 calibration frame and failed; the spacing now follows the drive (and is reported).
+    Bag written with drivers' log times, run through the CLI with default settings (--set only a
+    picture setting, to show it is honoured)."""
+    from clcgraph.cli import main
+
+    dr = simulate_drive(DrivePlan.small(duration_s=10.0), seed=0)
+    write_drive_bag(dr, tmp_path / "drive.bag")
+    out = tmp_path / "out"
+    assert main(["-q", "targetless", "--bag", str(tmp_path / "drive.bag"), "--mapping-topic", TOP,
+                 "--calibration-topics", SIDE, "--out", str(out), "--set", "targetless.mapping_viz_leaf_size=0.3"]) == 0
+    cal = yaml.safe_load((out / "calibration.yaml").read_text())
+    plan = cal["calibration_frames"]
+    assert plan["skip_keyframes"] == 0 and plan["spacing_m"] == Config().targetless.new_keyframe_min_distance
+    assert 4.0 < plan["drive_length_m"] < 6.0 and cal["graph"][SIDE]["frames"] >= 4
+    assert yaml.safe_load((out / "config.resolved.yaml").read_text())["targetless"]["mapping_viz_leaf_size"] == 0.3
+    T = np.array(next(s for s in cal["sensors"] if s["topic"] == SIDE)["T_lidar0_sensor"])
+    e_deg, e_m = _err(dr.T_lidar0_lidar(SIDE, TOP), T)
+    assert e_deg <= 0.02 and e_m <= 0.003, (e_deg, e_m)
+
+
+def test_frame_plan_follows_the_drive():
+    from types import SimpleNamespace
+
+    from clcgraph.targetless.selection import adapt_to_drive
+
+    def drive(n_keyframes, step_m):
+        T = [np.eye(4) for _ in range(n_keyframes)]
+        for k, t in enumerate(T):
+            t[0, 3] = k * step_m
+        return SimpleNamespace(keyframe_ids=list(range(n_keyframes)), frames=[SimpleNamespace(T_map_lidar=t) for t in T])
+
+    o = Config().targetless  # seed: skip 5, 5 m apart, at most 10 frames; keyframes 1 m apart
+    short, long_, mid = adapt_to_drive(drive(6, 1.0), o), adapt_to_drive(drive(80, 1.0), o), adapt_to_drive(drive(30, 1.0), o)
+    assert (short.skip_keyframes, short.spacing_m, short.drive_length_m) == (0, 1.0, 5.0)  # never below keyframes
+    assert (long_.skip_keyframes, long_.spacing_m) == (5, 5.0)  # a long drive: the configured values
+    assert mid.skip_keyframes == 5 and mid.spacing_m == pytest.approx(24.0 / 10)
+    assert adapt_to_drive(drive(12, 1.0), o).skip_keyframes == 2  # skipping never costs a frame of the budget

@@ -195,17 +195,6 @@ def test_only_the_scans_nearest_to_keyframes_are_kept_and_they_give_the_same_fra
     assert [cf.scan for cf in full] == [cf.scan for cf in reduced] and len(full) >= 8
 
 
-def test_stamp_ordered_sorts_a_log_time_stream():
-    from types import SimpleNamespace
-
-    from clcgraph.targetless.pipeline import _stamp_ordered
-
-    rng = np.random.default_rng(4)
-    stamps = np.arange(500) * 100 + rng.integers(-250, 250, 500)  # jitter of a few messages
-    out = [s.stamp_ns for s in _stamp_ordered(SimpleNamespace(stamp_ns=int(t)) for t in stamps)]
-    assert out == sorted(stamps.tolist())
-
-
 def test_cli_simulate_drive_writes_a_bag_to_try_targetless_on(tmp_path, capsys):
     import yaml
 

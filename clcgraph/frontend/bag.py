@@ -14,7 +14,10 @@ A bag path is a ROS1 ``.bag`` file, or a ROS2 bag directory (its ``.db3`` / ``.m
 file is accepted too and means its directory). Bags are read with rosbags' AnyReader
 and a default typestore (Noetic for ROS1, Humble for ROS2) for bags that do not
 carry their message definitions. Time is header.stamp; log time only for messages
-without a header. Supported message types: sensor_msgs/PointCloud2 -> LidarScan,
+without a header. Drivers log a message after its stamp (a LIDAR scan about one rotation
+after its scan-start stamp, a camera frame tens of ms after mid-exposure), so log order
+is not stamp order across topics: every reader here yields messages in header-stamp
+order (``stamp_ordered``), never in log order. Supported message types: sensor_msgs/PointCloud2 -> LidarScan,
 sensor_msgs/Image and CompressedImage -> Image, tf2_msgs/TFMessage on /tf_static.
 
 Every problem becomes an InputError (missing file, absent topic) or DataError
@@ -48,6 +51,8 @@ DECODABLE = (POINTCLOUD2, IMAGE, COMPRESSED_IMAGE)
 
 # header stamps may lag the log time; the reader's time window is widened by this much
 _LOG_TIME_SLACK_NS = 5_000_000_000
+# stamp_ordered: a message is logged at most this long after its stamp (drivers: 0.02-0.2 s)
+MAX_LOG_DELAY_NS = 1_000_000_000
 
 
 @dataclass(frozen=True)
@@ -301,16 +306,52 @@ def _stamp(msg, logtime: int) -> int:
     return stamp_ns_of(header) if header is not None else int(logtime)
 
 
+def stamp_ordered(items: Iterable[tuple], *, max_delay_ns: int = MAX_LOG_DELAY_NS,
+                  where: str = "") -> Iterator[tuple]:
+    """Re-order a log-time-ordered stream into header-stamp order.
+
+    items: (log_time_ns, stamp_ns, topic, payload) in log-time order; yields
+    (stamp_ns, topic, payload) in stamp order (ties in log order). A message is held until
+    the log time has passed its stamp by ``max_delay_ns``: every later message was logged
+    later, so (if logged at most that long after its stamp) it has a later stamp. A message
+    stamped before one already yielded (logged longer than that after its stamp, or stamped
+    on another clock) cannot be placed: it is skipped, and a warning per topic says so.
+    """
+    heap: list = []
+    last = None
+    late: dict[str, list[int]] = {}
+    for n, (log_ns, stamp_ns, topic, payload) in enumerate(items):
+        if last is not None and stamp_ns < last:
+            late.setdefault(topic, []).append(int(log_ns) - int(stamp_ns))
+            continue
+        heapq.heappush(heap, (stamp_ns, n, topic, payload))
+        while heap and heap[0][0] < log_ns - max_delay_ns:
+            last, _, t, p = heapq.heappop(heap)
+            yield last, t, p
+    while heap:
+        last, _, t, p = heapq.heappop(heap)
+        yield last, t, p
+    for topic, delays in late.items():
+        logger.warning("%s%s: %d messages logged more than %.1f s after their header stamp (up to %.1f s; "
+                       "stamps on another clock?) could not be put in stamp order and were skipped",
+                       f"{where}: " if where else "", topic, len(delays), max_delay_ns * 1e-9, max(delays) * 1e-9)
+
+
 def _iter_bag(path, topics, start_ns, stop_ns) -> Iterator[Message]:
     with _Bag(path) as b:
         conns = b.connections(topics)
         lo = None if start_ns is None else max(0, start_ns - _LOG_TIME_SLACK_NS)
         hi = None if stop_ns is None else stop_ns + _LOG_TIME_SLACK_NS
-        for conn, i, logtime, msg in b.raw(conns, lo, hi):
-            stamp = _stamp(msg, logtime)
-            if (start_ns is not None and stamp < start_ns) or (stop_ns is not None and stamp >= stop_ns):
-                continue
-            yield Message(b.path, conn.topic, i, stamp, b.decode(conn, i, msg))
+
+        def stamped():
+            for conn, i, logtime, msg in b.raw(conns, lo, hi):
+                stamp = _stamp(msg, logtime)
+                if (start_ns is None or stamp >= start_ns) and (stop_ns is None or stamp < stop_ns):
+                    yield logtime, stamp, conn.topic, (conn, i, msg)
+
+        # decoded only once in order: the window holds deserialized messages, not point arrays
+        for stamp, topic, (conn, i, msg) in stamp_ordered(stamped(), where=str(b.path)):
+            yield Message(b.path, topic, i, stamp, b.decode(conn, i, msg))
 
 
 def read_messages(paths, topics: Sequence[str], *, start_ns: int | None = None,
@@ -318,8 +359,8 @@ def read_messages(paths, topics: Sequence[str], *, start_ns: int | None = None,
     """Decoded messages of ``topics`` from all ``paths``, merged in header-stamp order.
 
     paths: one path or a sequence. Only messages with start_ns <= stamp < stop_ns are
-    yielded (either bound None = open). Each bag streams in its own log-time order
-    (equal to header-stamp order for bags recorded by clcgraph's writer).
+    yielded (either bound None = open). Each bag is re-ordered from log order into stamp
+    order (``stamp_ordered``), and the bags are merged.
     ``index`` is counted over all of the topic's messages in that bag, so it names the
     message in errors even with a time window. Every bag is opened (and checked for
     the topics) before the first message is yielded.

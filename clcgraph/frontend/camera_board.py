@@ -45,6 +45,8 @@ from clcgraph.types import BoardGeometry, Image, Rejected
 log = logging.getLogger(__name__)
 
 MRGINGHAM = "mrgingham"
+# images no larger than this (long side, px) always get the OpenCV fallback (see detect_corners)
+SMALL_IMAGE_PX = 640
 
 
 def to_gray8(pixels: np.ndarray) -> np.ndarray:
@@ -201,13 +203,18 @@ def refine_corners(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int) -> n
     window of a third of the local square size. Both detectors leave structured errors of
     ~0.1-0.2 px (small boards come out shrunk by ~0.3 %), which bias the camera poses; after
     this step they are ~0.05 px on simulated images. A corner that moves more than a quarter
-    square keeps its detected position."""
+    square keeps its detected position. Squares under 6 px (a window of 2 px would reach
+    into the next corner's) are refined in the image upsampled to 6 px squares."""
     import cv2
 
     grid = corners.reshape(ny, nx, 2)
     steps = np.r_[np.linalg.norm(np.diff(grid, axis=0), axis=-1).ravel(),
                   np.linalg.norm(np.diff(grid, axis=1), axis=-1).ravel()]
     step = float(np.median(steps))
+    if step < 6.0:
+        f = int(np.ceil(6.0 / step))
+        up = cv2.resize(gray, None, fx=f, fy=f, interpolation=cv2.INTER_CUBIC)
+        return (refine_corners(up, (corners + 0.5) * f - 0.5, nx, ny) + 0.5) / f - 0.5
     half = int(np.clip(step / 3, 2, 15))
     # cornerSubPix puts pixel centres at integer coordinates, like mrcal
     refined = cv2.cornerSubPix(gray, corners.astype(np.float32).reshape(-1, 1, 2).copy(), (half, half), (-1, -1),
@@ -326,14 +333,17 @@ def detect_corners(images: list[Image], options, board: BoardGeometry) -> list[n
             for k, c in zip(missed, _run_mrgingham([up[k] for k in missed], nx, jobs)):
                 if c is not None:  # pixel centres at integers in both images
                     raw[k] = (c + _OFFSET_PX["mrgingham"] + 0.5) / 2 - 0.5
-        # ... and where it still finds nothing, OpenCV's sector-based detector may (its grid
-        # passes the same checks); only where OpenCV's quick check sees a board at all, as most
-        # such images have none and the full detector is slow
+        # ... and where it still finds nothing, OpenCV's sector-based detector may, in the
+        # upsampled image too (its grid passes the same checks). The full detector is slow, so
+        # it runs only where OpenCV's quick check sees a board, except in low-resolution images
+        # (<= SMALL_IMAGE_PX on the long side, cheap to search): there a board at LIDAR ranges
+        # has squares of 3-5 px, which the quick check misses
         missed = [k for k, c in enumerate(raw) if c is None]
         if missed and options.fallback_opencv:
-            missed = [k for k in missed if cv2.checkChessboard(up[k], (nx, ny))]
-            for k, c in zip(missed, _run_opencv([grays[k] for k in missed], nx, ny, jobs)):
-                raw[k] = None if c is None else c + _OFFSET_PX["opencv"]
+            missed = [k for k in missed if max(grays[k].shape) <= SMALL_IMAGE_PX
+                      or cv2.checkChessboard(up[k], (nx, ny))]
+            for k, c in zip(missed, _run_opencv([up[k] for k in missed], nx, ny, jobs)):
+                raw[k] = None if c is None else (c + _OFFSET_PX["opencv"] + 0.5) / 2 - 0.5
     else:
         raw = [None if c is None else c + _OFFSET_PX["opencv"] for c in _run_opencv(grays, nx, ny, jobs)]
     out = []

@@ -7,18 +7,24 @@ SYNOPSIS
 Two capture schemes (the clc seed's):
 - one bag per board pose (``decimation_period_s`` None): the first message of every
   topic in each bag;
-- one continuous bag: periods of ``decimation_period_s`` from the first kept message;
-  per period and topic the message nearest the period's centre. The period is dropped
-  (``Rejected``) if the chosen messages span more than ``max_time_spread_s`` or if the
-  scene moved around that time: LIDAR range images a ``motion_window_s`` before and
-  after the chosen scan differ by more than ``max_board_motion_m`` over a region
-  (runs of >= 2 neighbouring cells on a ring, >= ``min_moving_cells`` such cells).
+- one continuous bag: periods of ``decimation_period_s`` from the first kept message
+  (messages in header-stamp order, never log order: see ``frontend.bag``); per period and
+  topic the message nearest the period's centre. Whether a period is usable rests on
+  whether the scene moved around that time: the period is dropped (``Rejected``) if LIDAR
+  range images a ``motion_window_s`` before and after the chosen scan differ by more than
+  ``max_board_motion_m`` over a region (runs of >= 2 neighbouring cells on a ring,
+  >= ``min_moving_cells`` such cells), or if a chosen message lies outside the interval
+  that check covered (nothing says the board was still then).
+
+``max_time_spread_s`` (None by default, as clc) additionally drops a snapshot whose
+chosen messages span more than that, in both schemes.
 
 Time values (``after``, ``before``, ``exclude_time_periods``): int seconds or
 nanoseconds since the epoch (told apart by magnitude: >= 1e13 is ns), float seconds,
 or a date string (ISO 8601 via ``datetime.fromisoformat``, else ``dateutil`` if
 installed); a date without a timezone is taken as UTC. Messages are streamed: a
-continuous bag holds at most 3 messages per topic in memory.
+continuous bag holds at most 3 decoded messages per topic in memory (and the reader's
+re-ordering window of undecoded ones).
 """
 
 from __future__ import annotations
@@ -244,14 +250,15 @@ def _finish_period(period: _Period, lidar_topics, camera_topics, options, source
             return Rejected(f"{where}: overlaps an excluded time period", "snapshot")
     if not chosen:
         return Rejected(f"{where}: no messages", "snapshot")
-    spread = time_spread_s(m.stamp_ns for m in chosen.values())
-    if spread > options.max_time_spread_s:
-        return Rejected(f"{where}: time spread {spread:.3f}s > max_time_spread_s "
-                        f"{options.max_time_spread_s}", "snapshot")
+    spread = _spread_rejection(chosen.values(), options)
+    if spread:
+        return Rejected(f"{where}: {spread}", "snapshot")
+    still_from, still_to = -np.inf, np.inf  # when every LIDAR saw the scene still
     for t in lidar_topics:
         if t not in period.picks:
             continue
         before, mid, after = (s[1] for s in period.picks[t])
+        still_from, still_to = max(still_from, before.stamp_ns), min(still_to, after.stamp_ns)
         for other in (before, after):
             if other is mid:
                 continue
@@ -261,7 +268,22 @@ def _finish_period(period: _Period, lidar_topics, camera_topics, options, source
                 return Rejected(f"{where}: board/scene moving on {t}: {n} range cells changed by "
                                 f"~{mag:.3f} m within {abs(other.stamp_ns - mid.stamp_ns) * 1e-9:.2f}s "
                                 f"(max_board_motion_m {options.max_board_motion_m})", "snapshot")
+    outside = [(t, m.stamp_ns) for t, m in chosen.items() if not still_from <= m.stamp_ns <= still_to]
+    if outside:
+        t, st = outside[0]
+        return Rejected(f"{where}: {t} has no message while the LIDARs saw the scene still "
+                        f"({still_from * 1e-9:.3f}-{still_to * 1e-9:.3f}s; nearest {st * 1e-9:.3f}s)", "snapshot")
     return _snapshot(index, chosen, where, lidar_topics, camera_topics)
+
+
+def _spread_rejection(chosen, options) -> str | None:
+    """Why the chosen messages are too far apart in time (``max_time_spread_s``; None: no limit)."""
+    if options.max_time_spread_s is None:
+        return None
+    spread = time_spread_s(m.stamp_ns for m in chosen)
+    if spread > options.max_time_spread_s:
+        return f"time spread {spread:.3f}s > max_time_spread_s {options.max_time_spread_s}"
+    return None
 
 
 def _snapshot(index: int, chosen: dict, source: str, lidar_topics, camera_topics) -> Snapshot:
@@ -273,7 +295,7 @@ def _snapshot(index: int, chosen: dict, source: str, lidar_topics, camera_topics
 
 def group_periods(messages: Iterator, topics: Sequence[str], *, period_s: float,
                   window_s: float, tfilter: TimeFilter) -> Iterator[_Period]:
-    """Stream messages (in stamp order) into periods; yield each finished period.
+    """Stream messages (in header-stamp order) into periods; yield each finished period.
 
     Periods start at the first kept message's stamp; messages at excluded times are
     skipped (``_finish_period`` drops a period overlapping an excluded time whole).
@@ -334,10 +356,9 @@ def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
             if why:
                 rejected.append(Rejected(f"{b}: {why}", "snapshot"))
                 continue
-            spread = time_spread_s(m.stamp_ns for m in chosen.values())
-            if spread > options.max_time_spread_s:
-                rejected.append(Rejected(f"{b}: time spread {spread:.3f}s > max_time_spread_s "
-                                         f"{options.max_time_spread_s}", "snapshot"))
+            spread = _spread_rejection(chosen.values(), options)
+            if spread:
+                rejected.append(Rejected(f"{b}: {spread}", "snapshot"))
                 continue
             snaps.append(_snapshot(len(snaps), chosen, str(b), lidar_topics, camera_topics))
     else:

@@ -8,10 +8,14 @@ SYNOPSIS
         w.write_image("/cam0/image", image, frame_id="cam0", compressed="png")
 
 No ROS installation is needed: messages are built from rosbags' typestores
-(ROS1 Noetic / ROS2 Humble) and serialized by rosbags. The log time of every message
-is its header stamp. Field layouts mimic the real drivers:
+(ROS1 Noetic / ROS2 Humble) and serialized by rosbags. The log time of a message is its
+header stamp, or with ``log_delays=LogDelays()`` when a driver would publish it: a LIDAR
+scan after its last point (about one rotation after its scan-start stamp) plus a few ms,
+a camera frame 20-35 ms after its stamp (mid-exposure), so log order differs from stamp
+order across topics, as in real recordings. Field layouts mimic the real drivers:
 
-- ``layout="velodyne"``: unorganised (height 1), velodyne_pointcloud's PointXYZIRT
+- ``layout="velodyne"``: unorganised (height 1; ``organised=True``: height = rings,
+  width = columns, from ``scan.shape``), velodyne_pointcloud's PointXYZIRT
   (invalid points as NaN):
   x y z @0,4,8 (float32), 4 bytes pad, intensity @16 (float32), ring @20 (uint16),
   time @24 (float32, s relative to the stamp), point_step 32.
@@ -24,6 +28,7 @@ is its header stamp. Field layouts mimic the real drivers:
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -60,6 +65,20 @@ _IMAGE_CHANNELS = {"mono8": (1, "u1"), "8UC1": (1, "u1"), "mono16": (1, "u2"),
                    "bgra8": (4, "u1"), "rgba8": (4, "u1")}
 
 
+@dataclass(frozen=True)
+class LogDelays:
+    """How long after its stamp a driver logs a message (s), uniform in each [lo, hi].
+
+    A LIDAR scan: after its last point (``time_s`` max, else ``lidar_rotation_s``) plus
+    ``lidar_s``; a camera frame: ``camera_s`` after its stamp. Seeded: the same bytes each run.
+    """
+
+    lidar_s: tuple = (0.002, 0.012)
+    lidar_rotation_s: float = 0.1
+    camera_s: tuple = (0.020, 0.035)
+    seed: int = 0
+
+
 def _quaternion_xyzw(R: np.ndarray) -> np.ndarray:
     """(4,) unit quaternion (x, y, z, w) of a (3,3) rotation matrix."""
     from scipy.spatial.transform import Rotation
@@ -72,9 +91,11 @@ class BagWriter:
 
     ``compress=True`` uses lz4 chunk compression for ROS1 bags (ignored for ROS2).
     The ROS1 path is a file (``x.bag``); a ROS2 path is a directory that must not exist.
+    ``log_delays``: log times as a driver's (``LogDelays``); None: log time = stamp.
     """
 
-    def __init__(self, path, *, format: str = "ros1", compress: bool = False):
+    def __init__(self, path, *, format: str = "ros1", compress: bool = False,
+                 log_delays: LogDelays | None = None):
         from rosbags.typesys import Stores, get_typestore
 
         if format not in FORMATS:
@@ -89,6 +110,8 @@ class BagWriter:
 
             self.typestore.register(get_types_from_msg(
                 "geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage"))
+        self.log_delays = log_delays
+        self._delay_rng = np.random.default_rng(log_delays.seed) if log_delays else None
         self._writer = None
         self._connections: dict[str, object] = {}
         self._seq: dict[str, int] = {}
@@ -135,6 +158,11 @@ class BagWriter:
             return T["std_msgs/msg/Header"](seq=seq, stamp=stamp, frame_id=frame_id)
         return T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
 
+    def _delay_ns(self, lo_hi, after_s: float = 0.0) -> int:
+        if self.log_delays is None:
+            return 0
+        return int(round((after_s + self._delay_rng.uniform(*lo_hi)) * 1e9))
+
     def _write(self, topic: str, msgtype: str, msg, stamp_ns: int) -> None:
         conn = self._conn(topic, msgtype)
         if self._ros1:
@@ -145,10 +173,11 @@ class BagWriter:
 
     # messages -----------------------------------------------------------------------
     def write_pointcloud(self, topic: str, scan: LidarScan, *, frame_id: str,
-                         layout: str = "velodyne", big_endian: bool = False) -> None:
+                         layout: str = "velodyne", big_endian: bool = False, organised: bool = False) -> None:
         """Write ``scan`` as a sensor_msgs/PointCloud2 stamped ``scan.stamp_ns``.
 
-        layout "velodyne": unorganised; "ouster": organised, needs ``scan.shape`` =
+        layout "velodyne": unorganised unless ``organised`` (then, like "ouster", it needs
+        ``scan.shape``); "ouster": organised, needs ``scan.shape`` =
         (rings, columns) with points row-major. Invalid points (``~scan.valid``) keep
         NaN in the velodyne layout and (0,0,0) in the ouster layout, so the reader's valid
         mask equals ``scan.valid``. Coordinates and times are stored as float32 (ouster
@@ -158,9 +187,9 @@ class BagWriter:
             raise InputError(f"pointcloud layout {layout!r} unknown; use velodyne or ouster")
         fields, point_step = _LAYOUTS[layout]
         n = len(scan.points)
-        if layout == "ouster":
+        if layout == "ouster" or organised:
             if scan.shape is None or scan.shape[0] * scan.shape[1] != n:
-                raise InputError(f"{topic}: the ouster layout needs scan.shape = (rings, columns)")
+                raise InputError(f"{topic}: an organised cloud needs scan.shape = (rings, columns)")
             height, width = scan.shape
         else:
             height, width = 1, n
@@ -205,7 +234,10 @@ class BagWriter:
             data=np.frombuffer(arr.tobytes(), dtype=np.uint8),
             is_dense=bool(valid.all()),
         )
-        self._write(topic, msgtype, msg, scan.stamp_ns)
+        last_point_s = float(np.max(time_s)) if scan.time_s is not None and n else \
+            (self.log_delays.lidar_rotation_s if self.log_delays else 0.0)
+        delay = self._delay_ns(self.log_delays.lidar_s, last_point_s) if self.log_delays else 0
+        self._write(topic, msgtype, msg, scan.stamp_ns + delay)
 
     def write_image(self, topic: str, image: Image, *, frame_id: str,
                     compressed: str | None = None) -> None:
@@ -242,7 +274,8 @@ class BagWriter:
             msgtype = "sensor_msgs/msg/CompressedImage"
             msg = T[msgtype](header=header, format=compressed,
                              data=np.asarray(buf, dtype=np.uint8).reshape(-1))
-        self._write(topic, msgtype, msg, image.stamp_ns)
+        delay = self._delay_ns(self.log_delays.camera_s) if self.log_delays else 0
+        self._write(topic, msgtype, msg, image.stamp_ns + delay)
 
     def write_tf_static(self, transforms, *, stamp_ns: int) -> None:
         """Write one tf2_msgs/TFMessage on /tf_static.

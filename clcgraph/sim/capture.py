@@ -2,9 +2,14 @@
 
 Two schemes, as people record them:
 - one short bag per stationary board pose (clc's convention): each has /tf_static, two
-  scans per LIDAR (10 Hz) and two images per camera, stamps unsynchronised by a few ms;
+  scans per LIDAR (10 Hz) and two images per camera (``camera_hz``), the first frame
+  anywhere within the camera's period after the bag starts (recording starts at a random
+  moment of each sensor's cycle);
 - ``continuous=True``: one bag; the board holds each pose ``hold_s`` and moves to the next
-  over ``move_s``; LIDARs at 10 Hz, cameras at ``camera_hz``.
+  over ``move_s``; LIDARs at 10 Hz, cameras free-running at ``camera_hz`` (e.g. 5 or 15).
+``log_delays`` (on by default): log times as drivers write them (``bag_writer.LogDelays``:
+a scan one rotation after its stamp, a frame 20-35 ms after), so log order is not stamp
+order across topics; off: log time = stamp.
 Board poses are drawn 2.5-9 m from a sensor (a board smaller than 1.3 m proportionally
 closer; half of them in front of a camera), tilted up
 to ``tilt_max_deg``, and kept if >= 2 sensors see the board (>= 3 rings / the whole corner
@@ -28,7 +33,7 @@ from ..errors import InputError
 from ..geometry import R_from_r, rt_from_T
 from ..outputs.atomic import atomic_dir
 from ..progress import progress
-from .bag_writer import FORMATS, BagWriter
+from .bag_writer import FORMATS, BagWriter, LogDelays
 from .camera import render
 from .lidar import simulate_scan
 from .rig import Rig, load_rig
@@ -124,24 +129,33 @@ def _write(w: BagWriter, rig: Rig, scans, images):
 
 def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str = "ros1", continuous: bool = False,
              tilt_max_deg: float = 40.0, tf_error=(1.0, 0.03), hold_s: float = 2.0, move_s: float = 1.0,
-             camera_hz: float = 5.0, clutter: bool = True, compress: bool = False, force: bool = False) -> dict:
+             camera_hz: float = 5.0, clutter: bool = True, compress: bool = False, log_delays: bool = True,
+             force: bool = False) -> dict:
     """Simulate a capture session of the rig in ``rig_yaml`` into ``out_dir`` (replaced atomically).
     ``compress``: lz4-compressed ROS1 bags (as `rosbag record --lz4` writes them).
+    ``log_delays``: drivers' log times (see the module docstring); False: log time = stamp.
     ``force``: replace ``out_dir`` even if it is not a previous simulated session.
 
     Returns the truth dict that is also written to ``out_dir/truth.yaml``.
     """
     if format not in FORMATS:
         raise InputError(f"unknown bag format {format!r}; use one of {', '.join(FORMATS)}")
+    if not camera_hz > 0:
+        raise InputError(f"camera_hz must be > 0, got {camera_hz}")
     rig = rig_yaml if isinstance(rig_yaml, Rig) else load_rig(rig_yaml)
     rng = np.random.default_rng(seed)
+    # timing draws of their own: the scenes stay those of the seed whatever the rates
+    clock = np.random.default_rng([seed, 1])
+    phases = {"lidar": [13_000_000 * i for i in range(len(rig.lidars))],
+              "camera": [int(clock.uniform(0, 1e9 / camera_hz)) for _ in rig.cameras]}
+    delays = LogDelays(seed=seed) if log_delays else None
     with atomic_dir(out_dir, kind="session", force=force) as tmp:
         static = static_meshes(rng, clutter=clutter)
         tf = _tf_static(rig, rng, tf_error)
         ext = ".bag" if format == "ros1" else ""
         snapshots = []
         if continuous:
-            writer = BagWriter(tmp / f"session{ext}", format=format, compress=compress)
+            writer = BagWriter(tmp / f"session{ext}", format=format, compress=compress, log_delays=delays)
             writer.__enter__()
             writer.write_tf_static(tf, stamp_ns=T0_NS)
         poses = []
@@ -152,13 +166,12 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
                 if _lowest_z(rig, T_board) < 0.15:
                     continue
                 if continuous:
-                    stamps = _continuous_stamps(rig, t_ns, hold_s, camera_hz)
+                    stamps = _ticks(phases, t_ns, t_ns + int(hold_s * 1e9), camera_hz)
                 else:
                     t_ns = T0_NS + k * 10_000_000_000
-                    stamps = {"lidar": [[t_ns + 13_000_000 * i + m * 100_000_000 for m in range(2)]
-                                        for i in range(len(rig.lidars))],
-                              "camera": [[t_ns + 21_000_000 + 11_000_000 * j + m * 100_000_000 for m in range(2)]
-                                         for j in range(len(rig.cameras))]}
+                    stamps = {"lidar": [[t_ns + ph + m * 100_000_000 for m in range(2)] for ph in phases["lidar"]],
+                              "camera": [[t_ns + int(clock.uniform(0, 1e9 / camera_hz)) + int(m * 1e9 / camera_hz)
+                                          for m in range(2)] for _ in rig.cameras]}
                 scans, images, corners, seen = _observe(rig, T_board, static, rng, stamps)
                 if seen >= 2:
                     break
@@ -167,15 +180,16 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
             rt_l0_b = rt_from_T(np.linalg.inv(rig.lidars[0].T_base_sensor) @ T_board)
             if continuous:
                 if poses:  # the move from the previous pose: scans and images while the board travels
-                    _write_move(writer, rig, poses[-1], T_board, static, rng, t_ns - int(move_s * 1e9), move_s,
-                                camera_hz)
+                    _write_move(writer, rig, poses[-1], T_board, static, rng,
+                                _ticks(phases, t_ns - int(move_s * 1e9), t_ns, camera_hz), t_ns - int(move_s * 1e9),
+                                move_s)
                 _write(writer, rig, scans, images)
                 snapshots.append({"start_ns": int(t_ns), "end_ns": int(t_ns + hold_s * 1e9),
                                   "rt_lidar0_board": rt_l0_b.tolist(), "seen_by": int(seen)})
                 t_ns += int((hold_s + move_s) * 1e9)
             else:
                 name = f"pose{k:03d}{ext}"
-                with BagWriter(tmp / name, format=format, compress=compress) as w:
+                with BagWriter(tmp / name, format=format, compress=compress, log_delays=delays) as w:
                     w.write_tf_static(tf, stamp_ns=t_ns)
                     _write(w, rig, scans, images)
                 snapshots.append({"bag": name, "stamp_ns": int(t_ns), "rt_lidar0_board": rt_l0_b.tolist(),
@@ -189,32 +203,38 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
     return truth
 
 
-def _continuous_stamps(rig, t_ns, hold_s, camera_hz):
-    n_l = int(hold_s * 10)
-    n_c = max(1, int(hold_s * camera_hz))
-    return {"lidar": [[t_ns + 13_000_000 * i + m * 100_000_000 for m in range(n_l)] for i in range(len(rig.lidars))],
-            "camera": [[t_ns + 21_000_000 + 11_000_000 * j + int(m * 1e9 / camera_hz) for m in range(n_c)]
-                       for j in range(len(rig.cameras))]}
+def _ticks(phases, start_ns: int, stop_ns: int, camera_hz: float) -> dict:
+    """Stamps in [start_ns, stop_ns) of free-running sensors: LIDARs at 10 Hz, cameras at ``camera_hz``,
+    each on its own phase from T0_NS."""
+    def grid(phase, period_ns):
+        m = np.arange(np.ceil((start_ns - T0_NS - phase) / period_ns), np.ceil((stop_ns - T0_NS - phase) / period_ns))
+        return [T0_NS + int(phase + round(k * period_ns)) for k in m]
+    return {"lidar": [grid(ph, 100_000_000) for ph in phases["lidar"]],
+            "camera": [grid(ph, 1e9 / camera_hz) for ph in phases["camera"]]}
 
 
-def _write_move(w, rig, T_a, T_b, static, rng, t0_ns, move_s, camera_hz):
-    """Scans (10 Hz) and images (camera_hz) while the board moves from T_a to T_b."""
+def _write_move(w, rig, T_a, T_b, static, rng, stamps, t0_ns, move_s):
+    """Scans and images at ``stamps`` (``_ticks``) while the board moves from T_a (at t0_ns) to T_b."""
     from ..geometry import T_from_rt
 
     rt_a, rt_b = rt_from_T(T_a), rt_from_T(T_b)
-    for m in range(int(move_s * 10)):
-        t = t0_ns + m * 100_000_000
-        f = (m + 0.5) / (move_s * 10)
-        scene = make_scene(rig.board, T_from_rt((1 - f) * rt_a + f * rt_b), rng, static=static)
-        for i, L in enumerate(rig.lidars):
-            scan, _ = simulate_scan(L.model, L.T_base_sensor, scene, rng, stamp_ns=t + 13_000_000 * i, topic=L.topic)
+
+    def board_at(t):
+        f = (t - t0_ns) * 1e-9 / move_s
+        return T_from_rt((1 - f) * rt_a + f * rt_b)
+
+    for i, L in enumerate(rig.lidars):
+        for t in stamps["lidar"][i]:
+            scene = make_scene(rig.board, board_at(t + 50_000_000), rng, static=static)  # mid-rotation
+            scan, _ = simulate_scan(L.model, L.T_base_sensor, scene, rng, stamp_ns=t, topic=L.topic)
             w.write_pointcloud(L.topic, scan, frame_id=L.frame_id, layout=L.model.layout)
-        if camera_hz > 0 and m % max(1, int(round(10 / camera_hz))) == 0:
-            for j, C in enumerate(rig.cameras):
-                Tm = T_from_rt((1 - f) * rt_a + f * rt_b)
-                img, _ = render(C.sensor, C.T_base_sensor, scene, rig.board, Tm, rng, topic=C.topic,
-                                stamp_ns=t + 21_000_000 + 11_000_000 * j, colour=C.encoding == "bgr8")
-                w.write_image(C.topic, img, frame_id=C.frame_id, compressed=C.compressed)
+    for j, C in enumerate(rig.cameras):
+        for t in stamps["camera"][j]:
+            Tm = board_at(t)
+            scene = make_scene(rig.board, Tm, rng, static=static)
+            img, _ = render(C.sensor, C.T_base_sensor, scene, rig.board, Tm, rng, topic=C.topic, stamp_ns=t,
+                            colour=C.encoding == "bgr8")
+            w.write_image(C.topic, img, frame_id=C.frame_id, compressed=C.compressed)
 
 
 def _truth(rig: Rig, tf, snapshots, format, continuous, seed) -> dict:

@@ -245,12 +245,13 @@ def simulate_drive(plan: DrivePlan | None = None, *, seed: int = 0, progress=Non
 
 
 def write_drive_bag(drive: Drive, path, *, format: str = "ros1", base_frame: str = "base_link",
-                    layout: str = "velodyne") -> None:
+                    layout: str = "velodyne", log_delays: bool = True) -> None:
     """Write the scans and /tf_static (the perturbed guess, base_link -> each LIDAR) to a bag;
-    ``layout``: the point layout of the drivers (bag_writer: "velodyne" or organised "ouster")."""
-    from .bag_writer import BagWriter
+    ``layout``: the point layout of the drivers (bag_writer: "velodyne" or organised "ouster");
+    ``log_delays``: log times as drivers write them (bag_writer.LogDelays), else log time = stamp."""
+    from .bag_writer import BagWriter, LogDelays
 
-    with BagWriter(path, format=format) as w:
+    with BagWriter(path, format=format, log_delays=LogDelays() if log_delays else None) as w:
         w.write_tf_static([(base_frame, drive.frames[t], drive.T_base_lidar_guess[t]) for t in drive.scans],
                           stamp_ns=drive.t0_ns)
         allscans = sorted((s.stamp_ns, t, s) for t, ss in drive.scans.items() for s in ss)

@@ -53,12 +53,14 @@ def nearest_to_keyframes(mp, scans) -> list:
     return sorted(kept.values(), key=lambda s: s.stamp_ns)
 
 
-def make_calibration_frames(mp, calib_scans, o) -> list:
-    """One CalibrationFrame per keyframe (after ``calibration_skip_keyframes``), with statistics."""
+def make_calibration_frames(mp, calib_scans, o, *, skip_keyframes: int | None = None) -> list:
+    """One CalibrationFrame per keyframe after the first ``skip_keyframes`` (default: the
+    configured ``calibration_skip_keyframes``), with statistics."""
     stamps = mp.stamps_ns()
     cs = np.array([s.stamp_ns for s in calib_scans], dtype=np.int64)
+    skip = o.calibration_skip_keyframes if skip_keyframes is None else skip_keyframes
     out = []
-    for kid in mp.keyframe_ids[o.calibration_skip_keyframes:]:
+    for kid in mp.keyframe_ids[skip:]:
         kt = stamps[kid]
         j = int(np.argmin(np.abs(cs - kt)))
         t = cs[j]

@@ -16,7 +16,6 @@ and Marginals), ground (base_link roll/pitch/z).
 
 from __future__ import annotations
 
-import heapq
 import logging
 import time
 from dataclasses import dataclass, field
@@ -34,7 +33,7 @@ from .calibration_frames import make_calibration_frames, nearest_to_keyframes
 from .graph import fuse
 from .mapping import build_map
 from .registration import deskew_sources, ensemble, keyframe_edges, prepare_frames, refine_per_frame, score
-from .selection import select_frames
+from .selection import adapt_to_drive, select_frames
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +53,7 @@ class TargetlessResult:
     graph: dict = field(default_factory=dict)  # topic -> size of the final graph and its noise scales
     convergence: dict = field(default_factory=dict)  # topic -> how its graph solves stopped (graph.Estimate)
     frame_data: dict = field(default_factory=dict, repr=False)  # topic -> registration FrameData (report pictures)
+    frame_plan: dict = field(default_factory=dict)  # skipped keyframes, frame spacing, drive length (selection)
     timings_s: dict = field(default_factory=dict)
     peak_rss_mb: dict = field(default_factory=dict)  # stage -> process peak RSS after it
     notes: list = field(default_factory=list)
@@ -107,20 +107,23 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
     res = TargetlessResult(mapping_topic, {mapping_topic: np.eye(4)}, {mapping_topic: np.zeros((6, 6))},
                            {mapping_topic: np.eye(4)}, frames=dict(frames or {}), base_frame=base_frame, map_result=mp)
     edge_cache: dict = {}  # keyframe submap registrations, shared by the calibration LIDARs
+    plan = adapt_to_drive(mp, o)
+    res.frame_plan = plan.as_dict()
     for topic in calibration_topics:
         with _stage(timings, "calibration frames", memory):
             kept = nearest_to_keyframes(mp, scans.get(topic, ()))
             if not kept:
                 raise InputError(f"{topic}: no scans of this calibration topic")
-            cfs = make_calibration_frames(mp, kept, o)
+            cfs = make_calibration_frames(mp, kept, o, skip_keyframes=plan.skip_keyframes)
         Tg = np.linalg.inv(G0) @ np.asarray(T_base_sensor_guess[topic])
         res.T_lidar0_sensor_guess[topic] = Tg
         with _stage(timings, "selection", memory):
-            chosen = select_frames(cfs, mp, o)
+            chosen = select_frames(cfs, mp, o, spacing_m=plan.spacing_m)
         if len(chosen) < o.lidar_calibration_min_frames:
             reasons = sorted({cf.reason for cf in cfs if cf.reason})
             raise DegenerateError(f"{topic}: {len(chosen)} usable calibration frames of {len(cfs)} "
-                                  f"(< lidar_calibration_min_frames={o.lidar_calibration_min_frames}); "
+                                  f"(< lidar_calibration_min_frames={o.lidar_calibration_min_frames}) on a "
+                                  f"{plan.drive_length_m:.1f} m drive, {plan.spacing_m:.2f} m apart; "
                                   f"rejections: {'; '.join(reasons[:3]) or 'none'}")
         with _stage(timings, "registration", memory):
             fr = prepare_frames(list(progress(chosen, desc=f"dense targets {topic}")), mp, Tg, o, deskew_on=o.deskew)
@@ -186,7 +189,7 @@ def calibrate_targetless(bags, *, mapping_topic: str, calibration_topics, base_f
     calibration_topics = list(calibration_topics)
     topics = [mapping_topic] + calibration_topics
     # each topic streams from the bags when its stage needs it: a drive is never all in memory
-    scans = {t: _stamp_ordered(m.data for m in read_messages(bags, [t])) for t in topics}
+    scans = {t: (m.data for m in read_messages(bags, [t])) for t in topics}  # in stamp order
     counts = {t: message_count(bags, t) for t in topics}
     frames = {t: frame_id(bags[0], t) for t in topics}
     tf = read_tf_static(bags)
@@ -200,18 +203,6 @@ def calibrate_targetless(bags, *, mapping_topic: str, calibration_topics, base_f
     return calibrate_targetless_scans(scans, mapping_topic=mapping_topic, calibration_topics=calibration_topics,
                                       T_base_sensor_guess=guess, base_frame=base_frame, config=config,
                                       frames=frames, progress=progress, counts=counts)
-
-
-def _stamp_ordered(scans, window: int = 32):
-    """Scans in header-stamp order from a stream in log-time order (drivers stamp a scan a little
-    before it is logged, not always in the same order across topics and bags)."""
-    heap: list = []
-    for n, s in enumerate(scans):
-        heapq.heappush(heap, (s.stamp_ns, n, s))
-        if len(heap) > window:
-            yield heapq.heappop(heap)[2]
-    while heap:
-        yield heapq.heappop(heap)[2]
 
 
 # ------------------------------------------------------------------ outputs
@@ -240,6 +231,7 @@ def calibration_dict(res: TargetlessResult) -> dict:
         d["base_link"] = [{"topic": t, "frame": res.base_frame, "T_base_link_sensor": np.asarray(T).tolist(),
                            "rt_base_link_sensor": geo.rt_from_T(T).tolist()} for t, T in res.T_base_sensor.items()]
     d["graph"] = res.graph
+    d["calibration_frames"] = res.frame_plan  # how frames were taken from this drive
     d["convergence"] = res.convergence
     return d  # wall-clock timings go to timings.yaml: the same inputs give the same calibration.yaml
 

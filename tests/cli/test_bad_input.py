@@ -104,6 +104,23 @@ def test_unknown_config_key(capsys, tmp_path, good, model):
     assert not out.exists()
 
 
+def test_set_on_targetless_and_detect(capsys, tmp_path, good):
+    """--set is parsed the same way by every command with a config, before any bag is read."""
+    tl = ["targetless", "--bag", str(good), "--mapping-topic", "/lidar0", "--calibration-topics", "/lidar1",
+          "--out", str(tmp_path / "tl")]
+    _run(capsys, tl + ["--set", "targetless.nope=1"], "targetless.nope")
+    _run(capsys, tl + ["--set", "targetless.calibration_min_distance_between_frames=far"],
+         "targetless.calibration_min_distance_between_frames", "number")
+    _run(capsys, tl + ["--set", "targetless"], "--set", "SECTION.KEY=VALUE")
+    assert not (tmp_path / "tl").exists()
+    det = ["detect", str(good), "--topic", "/cam0"]
+    _run(capsys, det + ["--set", "detection.corners_z=3"], "detection.corners_z")
+    # the value reaches the detector
+    _run(capsys, det + ["--set", "detection.detector=bogus"], "unknown detector 'bogus'")
+    assert main(det + ["--set", "detection.detector=opencv"]) == 0
+    assert "0/1 images with a chessboard" in capsys.readouterr().out
+
+
 def test_unwritable_output(capsys, tmp_path, good, model):
     blocker = tmp_path / "file"
     blocker.write_text("x")

@@ -266,3 +266,45 @@ def test_tf_messages_tf2_would_refuse_are_dataerrors(parent, child, t, q, patter
     ((p, c, T),) = bag.decode_tf_message(_tf_msg("base", "lidar", q=(0, 0, 0.7072, 0.7072)), where="x")
     np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-12)
     np.testing.assert_allclose(T[:3, 3], [1, 2, 3])
+
+
+# ---------------------------------------------------------------- stamp order, not log order
+
+
+def test_stamp_ordered_sorts_a_drivers_log_and_names_what_it_cannot_place(caplog):
+    rng = np.random.default_rng(4)
+    stamps = np.sort(rng.integers(0, 10**10, 400))
+    delays = rng.uniform(0.0, 0.4e9, 400).astype(np.int64)  # logged up to 0.4 s after the stamp
+    delays[100] = 3 * 10**9  # one message logged 3 s late: beyond the 1 s the helper waits
+    log_t = stamps + delays
+    order = np.argsort(log_t, kind="stable")
+    items = [(int(log_t[k]), int(stamps[k]), "/cam" if k == 100 else "/lidar", k) for k in order]
+    assert [it[1] for it in items] != sorted(it[1] for it in items)  # log order is not stamp order
+    with caplog.at_level("WARNING"):
+        out = list(bag.stamp_ordered(items))
+    got = [s for s, _, _ in out]
+    assert got == sorted(got) and len(out) == 399 and 100 not in {p for _, _, p in out}
+    assert sorted(p for _, _, p in out) == sorted(set(range(400)) - {100})
+    assert any("/cam: 1 messages" in r.getMessage() and "skipped" in r.getMessage() for r in caplog.records)
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "ros2-mcap"])
+def test_drivers_log_times_are_read_in_stamp_order(tmp_path, fmt):
+    """BagWriter(log_delays=...) logs a scan one rotation after its stamp and a frame 20-35 ms
+    after: across topics the log order differs from the stamp order; read_messages undoes it."""
+    from clcgraph.sim.bag_writer import LogDelays
+
+    rng = np.random.default_rng(0)
+    path = tmp_path / ("d.bag" if fmt == "ros1" else "d")
+    T0 = 1_700_000_000 * 10**9
+    with BagWriter(path, format=fmt, log_delays=LogDelays(seed=1)) as w:
+        for k in range(20):
+            w.write_pointcloud("/lidar", _scan(rng, T0 + k * 10**8, "/lidar"), frame_id="l")
+        for k in range(10):
+            w.write_image("/cam", Image("/cam", T0 + 30_000_000 + k * 2 * 10**8, np.zeros((4, 4), np.uint8), "mono8"),
+                          frame_id="c")
+    with bag._Bag(path) as b:
+        logged = [(c.topic, bag._stamp(m, t)) for c, _, t, m in b.raw(b.connections(["/lidar", "/cam"]))]
+    assert [s for _, s in logged] != sorted(s for _, s in logged)
+    read = [(m.topic, m.stamp_ns) for m in bag.read_messages(path, ["/lidar", "/cam"])]
+    assert [s for _, s in read] == sorted(s for _, s in logged) and sorted(read) == sorted(logged)
