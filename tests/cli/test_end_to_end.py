@@ -98,7 +98,7 @@ lidars:
 cameras:
   - {topic: /cam/mono/image_raw, model: mono.cameramodel, encoding: mono8, frame_id: cam_mono, xyz: [1.6, -0.2, 1.5], rpy_deg: [0, 4, -5]}
   - {topic: /cam/small/image_color, model: small.cameramodel, encoding: bgr8, frame_id: cam_small, xyz: [1.5, 0.4, 1.55], rpy_deg: [0, 2, 20]}
-board: {corners_x: 10, corners_y: 10, spacing_m: 0.1, margin_m: 0.1}
+board: {corners: [10, 10], square_m: 0.1, size_m: [1.3, 1.3]}
 """
 
 

@@ -102,7 +102,7 @@ lidars:
   - {topic: /b, model: vlp16, layout: ouster, frame_id: b, xyz: [1.0, 0.3, 1.5], rpy_deg: [0, 3, 10]}
 cameras:
   - {topic: /cam, model: tiny.cameramodel, encoding: mono8, frame_id: cam, xyz: [0.5, 0, 1.5], rpy_deg: [0, 0, 0]}
-board: {corners_x: 10, corners_y: 10, spacing_m: 0.1, margin_m: 0.1}
+board: {corners: [10, 10], square_m: 0.1, size_m: [1.3, 1.3]}
 """)
     simulate(rig, tmp_path / "s", n_poses=2, seed=1, continuous=True, hold_s=1.0, move_s=0.5, camera_hz=15.0,
              clutter=False)
