@@ -197,7 +197,11 @@ def _judge(c: Capture, out: Path, truth: dict, bar_deg: float, bar_mm: float) ->
     from clcgraph.geometry import T_from_rt
 
     cal = yaml.safe_load((out / "calibration.yaml").read_text())
-    want = {s["topic"]: np.asarray(s["rt_lidar0_sensor"], float) for s in truth["sensors"]}
+    from clcgraph.geometry import rt_from_T
+
+    # a capture's truth.yaml has rt_lidar0_sensor, a drive's T_lidar0_sensor
+    want = {s["topic"]: np.asarray(s["rt_lidar0_sensor"], float) if "rt_lidar0_sensor" in s
+            else rt_from_T(np.asarray(s["T_lidar0_sensor"], float)) for s in truth["sensors"]}
     sensors = [s for s in cal["sensors"] if s["topic"] != cal.get("reference")]
     cov = np.asarray(cal.get("covariance_rt_lidar0_sensor") or np.zeros((0, 0)), float)
     worst = Outcome(c.name, "ok", "")
