@@ -36,11 +36,12 @@ def run(duration_s: float = 60.0, small: bool = False, seed: int = 0) -> list[tu
                                      T_base_sensor_guess=drive.T_base_lidar_guess, base_frame="base_link",
                                      config=Config())
     total = time.perf_counter() - t
-    for k, v in res.timings_s.items():
-        rows.append((k, v, v / duration_s, res.peak_rss_mb.get(k, float("nan"))))
+    for k, v in res.stats["stage_time_s"].items():
+        rows.append((k, v, v / duration_s, res.stats["peak_rss_mb"].get(k, float("nan"))))
     rows.append(("calibration total", total, total / duration_s, _peak_mb()))
-    e = geo.rt_from_T(np.linalg.inv(drive.T_lidar0_lidar(side, top)) @ res.T_lidar0_sensor[side])
-    sd_rot, sd_pos = geo.pose_stdevs(res.rt_lidar0_sensor(side), res.covariance_rt[side])
+    rt = res.rt_lidar0_sensor[res.sensor_index(side)]
+    e = geo.rt_from_T(np.linalg.inv(drive.T_lidar0_lidar(side, top)) @ geo.T_from_rt(rt))
+    sd_rot, sd_pos = geo.pose_stdevs(rt, res.covariance_block(side))
     rows.append((f"accuracy {side}: {np.degrees(np.linalg.norm(e[:3])):.4f} deg, {1e3 * np.linalg.norm(e[3:]):.2f} mm "
                  f"(1-sigma {np.degrees(sd_rot).max():.4f} deg, {1e3 * sd_pos.max():.2f} mm)", 0.0, 0.0, float("nan")))
     return rows

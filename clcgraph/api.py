@@ -13,6 +13,9 @@ SYNOPSIS
 
     # or all at once, as `clcgraph solve` does:
     result = clcgraph.calibrate_bags(["capture/*.bag"], topics, models, out="out/", config=cfg)
+    # targetless, from a drive (`clcgraph targetless`): the same Result type, the same outputs
+    result = clcgraph.calibrate_targetless(["drive.bag"], mapping_topic="/top/points",
+                                           calibration_topics=["/side/points"], out="out/", config=cfg)
 
 Every failure is a ``clcgraph.errors.ClcgraphError`` with a one-line message naming the
 bag, topic or sensor; nothing is written to ``out`` unless the whole calibration succeeded.
@@ -31,6 +34,7 @@ import numpy as np
 from .config import Config, ConfigError
 from .errors import DataError, DegenerateError, InputError
 from .progress import progress
+from .timing import StageClock
 from .types import (
     BoardGeometry,
     CameraBoardObservation,
@@ -154,7 +158,7 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
     kept only if >= 2 sensors saw the board; everything dropped is in ``Problem.rejected``.
     ``timings``: if given, filled with wall seconds per stage (read, segment, detect).
     """
-    clock = _Clock(timings)
+    clock = StageClock(timings)
     from . import cameras
     from .frontend.camera_board import choose_detector, detect_corners
     from .frontend.snapshots import assemble_snapshots
@@ -310,7 +314,7 @@ def calibrate(problem: Problem, config=None, *, timings: dict | None = None) -> 
     from .backend.solve import calibrate as solve
 
     cfg = _config(config)
-    clock = _Clock(timings)
+    clock = StageClock(timings)
     with clock("solve"):
         result = solve(problem, cfg.solve)
     with clock("uncertainty"):
@@ -319,7 +323,9 @@ def calibrate(problem: Problem, config=None, *, timings: dict | None = None) -> 
 
 
 def write_outputs(result: Result, out_dir, config=None, *, force: bool = False) -> dict[str, Path]:
-    """calibration.yaml, .cameramodels, problem.npz, config.resolved.yaml, report.html + plots, atomically.
+    """The one output path of both methods, atomically: calibration.yaml, .cameramodels,
+    timings.yaml, config.resolved.yaml, report.html + plots, ros/ (when the frames are known),
+    and (target-based) the replayable problem.npz.
 
     ``out_dir`` must be new, empty or a previous clcgraph output; ``force``: replace it anyway."""
     from .outputs.dump import save_problem
@@ -329,7 +335,7 @@ def write_outputs(result: Result, out_dir, config=None, *, force: bool = False) 
     cfg = _config(config)
     return write_results(
         result, out_dir, config=cfg,
-        problem_dump=lambda problem, path: save_problem(path, problem, cfg),
+        problem_dump=(lambda problem, path: save_problem(path, problem, cfg)) if result.method == "target" else None,
         extra_files={"report.html": lambda path: write_report(result, path.parent)},
         force=force,
     )
@@ -348,41 +354,9 @@ def calibrate_bags(bags, topics: Sequence[str], models: Sequence[str | Path] = (
     result = calibrate(read_problem(bags, topics, models, config=cfg, timings=timings), cfg, timings=timings)
     result = dataclasses.replace(result, stats={**result.stats, "stage_time_s": timings})
     if out is not None:
-        with _Clock(timings)("report"):
+        with StageClock(timings)("report"):
             write_outputs(result, out, cfg, force=force)
     return result
-
-
-class _Clock:
-    """Adds wall seconds per stage into a dict (or does nothing without one)."""
-
-    def __init__(self, into: dict | None):
-        self.into, self._name, self._t0 = into, None, 0.0
-
-    def start(self, name: str) -> None:
-        import time
-
-        self._name, self._t0 = name, time.perf_counter()
-
-    def stop(self) -> None:
-        import time
-
-        if self.into is not None and self._name:
-            self.into[self._name] = self.into.get(self._name, 0.0) + time.perf_counter() - self._t0
-        self._name = None
-
-    def __call__(self, name: str):
-        import contextlib
-
-        @contextlib.contextmanager
-        def stage():
-            self.start(name)
-            try:
-                yield
-            finally:
-                self.stop()
-
-        return stage()
 
 
 def check_out_dir(out, *, kind: str = "results", force: bool = False) -> None:
@@ -400,44 +374,10 @@ def check_out_dir(out, *, kind: str = "results", force: bool = False) -> None:
 
 
 def summary_table(result: Result) -> str:
-    """The final table `clcgraph solve` prints: pose, 1-sigma, observations and RMS per sensor."""
-    from .geometry import R_from_r, pose_stdevs
+    """The table `clcgraph solve` / `clcgraph targetless` print (outputs/tables.py)."""
+    from .outputs.tables import summary_table as _table
 
-    rows = [("sensor", "kind", "x [m]", "y [m]", "z [m]", "roll/pitch/yaw [deg]", "1-sigma [mm, deg]", "obs")]
-    p = result.problem
-    nobs = np.zeros(len(p.sensors), int)
-    for o in [*p.lidar_observations, *p.camera_observations]:
-        nobs[o.sensor] += 1
-    for i, s in enumerate(p.sensors):
-        rt = np.asarray(result.rt_lidar0_sensor[i], float)
-        ypr = _rpy_deg(R_from_r(rt[:3]))
-        sd_rot, sd_pos = pose_stdevs(rt, result.covariance_block(i))  # the largest per-axis sigma of each
-        sigma = "reference" if i == p.reference else f"{1e3 * np.max(sd_pos):.2f}, {np.degrees(np.max(sd_rot)):.3f}"
-        rows.append((s.topic, s.kind, *(f"{v:+.4f}" for v in rt[3:]), " ".join(f"{v:+.3f}" for v in ypr),
-                     sigma, str(nobs[i])))
-    widths = [max(len(r[k]) for r in rows) for k in range(len(rows[0]))]
-    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
-    rms, noise = result.rms, result.noise
-    lines.append(f"RMS: normalized {rms.get('normalized', float('nan')):.3f}, LIDAR {1e3 * rms.get('lidar_m', float('nan')):.1f} mm, "
-                 f"camera {rms.get('camera_px', float('nan')):.3f} px; re-estimated noise: LIDAR "
-                 f"{1e3 * noise.get('lidar_m', float('nan')):.1f} mm, camera {noise.get('camera_px', float('nan')):.3f} px")
-    used = int(np.sum(np.all(np.isfinite(result.rt_lidar0_board), axis=1)))
-    lines.append(f"{used} of {p.n_snapshots} snapshots used; {len(result.rejected)} rejections (see calibration.yaml)")
-    conv = result.stats.get("convergence") or {}
-    if conv and not conv.get("converged"):
-        lines.append("NOT CONVERGED: " + "; ".join(conv.get("warnings", ())))
-    verdict = result.stats.get("consistency") or {}
-    if verdict.get("passed") is False:  # written anyway (solve.refuse_inconsistent is off)
-        why = (verdict.get("failures") or verdict.get("unverifiable") or ["?"])[0]
-        lines.append(f"NOT SELF-CONSISTENT (see calibration.yaml consistency:): {why}")
-    return "\n".join(lines)
-
-
-def _rpy_deg(R: np.ndarray) -> np.ndarray:
-    """Roll, pitch, yaw (ZYX, degrees) of a rotation, for printing."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(R).as_euler("ZYX", degrees=True)[::-1]
+    return _table(result)
 
 
 # ---------------------------------------------------------------- the rest of the public API
@@ -450,11 +390,39 @@ def simulate(rig_yaml, out_dir, **kwargs):
     return _simulate(rig_yaml, out_dir, **kwargs)
 
 
-def calibrate_targetless(bags, **kwargs):
-    """Targetless LIDAR-LIDAR (+ base_link) calibration from a drive (clcgraph.targetless.pipeline)."""
+def calibrate_targetless(bags, *, mapping_topic: str, calibration_topics, base_frame: str | None = None,
+                         out=None, config=None, force: bool = False) -> Result:
+    """Targetless LIDAR-LIDAR (+ base_link) calibration from a drive (clcgraph.targetless.pipeline),
+    written like `clcgraph solve`'s when ``out`` is given (checked before the drive is mapped)."""
     from .targetless.pipeline import calibrate_targetless as _targetless
 
-    return _targetless(expand_bags(bags), **kwargs)
+    cfg = _config(config)
+    if out is not None:
+        check_out_dir(out, force=force)
+    result = _targetless(expand_bags(bags), mapping_topic=mapping_topic, calibration_topics=list(calibration_topics),
+                         base_frame=base_frame, config=cfg)
+    if out is not None:
+        with StageClock(result.stats["stage_time_s"])("report"):
+            write_outputs(result, out, cfg, force=force)
+    return result
+
+
+def replay(dump, *, inject_noise: bool = False, fit_seed: bool = False, exclude=(), seed: int = 0) -> Result:
+    """Re-solve a problem dump (problem.npz, or the --out directory holding it) with the dump's
+    settings: `clcgraph replay` (backend/replay.py). A targetless output has no dump: InputError."""
+    from .backend.replay import replay_problem
+    from .outputs.dump import load_problem
+
+    path = Path(dump)
+    if path.is_dir():
+        if not (path / "problem.npz").exists() and (path / "calibration.yaml").exists() \
+                and load_result(path).method == "targetless":
+            raise InputError(f"{path}: a targetless calibration has no problem dump to re-solve (that is "
+                             "`clcgraph solve`'s problem.npz); its 1-sigmas are in calibration.yaml and report.html")
+        path = path / "problem.npz"
+    problem, config = load_problem(path)
+    return replay_problem(problem, config.solve, inject_noise=inject_noise, fit_seed=fit_seed, exclude=exclude,
+                          seed=seed)
 
 
 def compare_to_truth(result: Result, truth: dict) -> list[dict]:
@@ -512,8 +480,9 @@ def run_demo(out=None, *, config=None, seed: int = 0, force: bool = False) -> tu
     return result, compare_to_truth(result, truth)
 
 
-def load_result(out_dir) -> dict:
-    """Read a calibration written by `clcgraph solve` (calibration.yaml), schema-checked."""
+def load_result(out_dir):
+    """Read a calibration written by `clcgraph solve` or `clcgraph targetless` (calibration.yaml),
+    schema-checked: an outputs.results.Calibration, the same type whichever method made it."""
     from .outputs.results import load_result as _load
 
     return _load(out_dir)

@@ -109,17 +109,14 @@ def _add_targetless(sub):
     _config_args(p, "settings (section 'targetless'; see `clcgraph config dump`)")
 
     def run(args):
-        from .api import check_out_dir
-        from .targetless.pipeline import calibrate_targetless, summary_table, write_targetless_outputs
+        from . import api
 
-        cfg = _load_config(args)
-        check_out_dir(args.out, force=args.force)  # before the drive is mapped, not after
         topics = [t for t in args.calibration_topics.split(",") if t]
-        res = calibrate_targetless(args.bag, mapping_topic=args.mapping_topic, calibration_topics=topics,
-                                   base_frame=args.base_frame, config=cfg)
-        paths = write_targetless_outputs(res, args.out, config=cfg, force=args.force)
-        print(summary_table(res))
-        print(f"wrote {paths['calibration']} and {paths['report']}")
+        result = api.calibrate_targetless(args.bag, mapping_topic=args.mapping_topic, calibration_topics=topics,
+                                          base_frame=args.base_frame, out=args.out, config=_load_config(args),
+                                          force=args.force)
+        print(api.summary_table(result))
+        print(f"wrote {args.out}/calibration.yaml and report.html")
         return 0
 
     p.set_defaults(func=run)
@@ -135,10 +132,9 @@ def _add_replay(sub):
     p.add_argument("--seed", type=int, default=0, help="rng seed for --inject-noise")
 
     def run(args):
-        import numpy as np
-
+        from .api import replay
         from .errors import InputError
-        from .outputs.dump import replay
+        from .outputs.tables import replay_lines
 
         _in_range(args.seed, "--seed", 0, 2**63 - 1)
         try:
@@ -146,17 +142,7 @@ def _add_replay(sub):
         except ValueError:
             raise InputError(f"--exclude: expected comma-separated integers, got '{args.exclude}'") from None
         res = replay(args.dump, inject_noise=args.inject_noise, fit_seed=args.fit_seed, exclude=exclude, seed=args.seed)
-        for i, s in enumerate(res.problem.sensors):
-            sd = res.stdev_rt(i) if np.all(np.isfinite(res.covariance_rt)) else np.full(6, np.nan)
-            print(f"{s.topic}: rt_lidar0_sensor {np.array2string(res.rt_lidar0_sensor[i], precision=6, max_line_width=10**4)}"
-                  f"  stdev {np.array2string(sd, precision=6, max_line_width=10**4)}")  # one line a sensor
-        for k, v in res.noise.items():
-            if isinstance(v, dict):  # per sensor: {sensor index: sigma}
-                v = ", ".join(f"{res.problem.sensor_name(int(i))} {s:.4g}" for i, s in v.items())
-                print(f"noise {k}: {v}")
-            else:
-                print(f"noise {k}: {v:.4g}")
-        print(f"{len(res.rejected)} rejected")
+        print(replay_lines(res))
         return 0
 
     p.set_defaults(func=run)
@@ -299,15 +285,12 @@ def _add_demo(sub):
 
     def run(args):
         from . import api
+        from .outputs.tables import truth_table
         from .sim.capture import DEMO_DIR
 
         result, errors = api.run_demo(args.out, config=_load_config(args), force=args.force)
         print(api.summary_table(result))
-        print(f"\nagainst the simulator's truth ({DEMO_DIR}/truth.yaml):")
-        print(f"{'sensor':34s} {'rotation [deg]':>15s} {'1-sigma':>8s} {'translation [mm]':>17s} {'1-sigma':>8s}")
-        for e in errors:
-            print(f"{e['topic']:34s} {e['rotation_deg']:15.3f} {e['sigma_deg']:8.3f} {e['translation_mm']:17.1f} "
-                  f"{e['sigma_mm']:8.1f}")
+        print(truth_table(errors, DEMO_DIR / "truth.yaml"))
         print(f"wrote {args.out or DEMO_DIR.parent / 'demo-out'}/calibration.yaml and report.html")
         return 0
 
@@ -705,22 +688,15 @@ def _add_show_uncertainty(sub):
 
         import numpy as np
 
+        from .api import replay
         from .backend.sectors import uncertainty_grid
         from .errors import InputError
-        from .outputs.dump import replay
         from .outputs.plots import plot_uncertainty_grid
 
         _in_range(args.radius, "--radius", 0, 1e5, low_open=True)
         _in_range(args.gridn, "--gridn", 2, 2000)
         _in_range(args.z, "--z", -1e5, 1e5)
-        path = Path(args.dump)
-        if path.is_dir():
-            cal = path / "calibration.yaml"
-            if not (path / "problem.npz").exists() and cal.exists() and "method: targetless" in cal.read_text():
-                raise InputError(f"{path}: a targetless calibration has no sector uncertainty (that needs "
-                                 "`clcgraph solve`'s problem.npz); its 1-sigmas are in calibration.yaml and report.html")
-            path = path / "problem.npz"
-        res = replay(path)
+        res = replay(args.dump)
         n = len(res.problem.sensors)
         if args.sensors:
             try:

@@ -17,7 +17,9 @@ import numpy as np
 _SMALL = 1e-7
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
+def skew(v: np.ndarray) -> np.ndarray:
+    """(...,3) -> (...,3,3) cross-product matrix: skew(a) @ b == cross(a, b)."""
+    v = np.asarray(v, dtype=float)
     z = np.zeros(v.shape[:-1])
     return np.stack(
         [
@@ -29,17 +31,12 @@ def _skew(v: np.ndarray) -> np.ndarray:
     )
 
 
-def skew(v: np.ndarray) -> np.ndarray:
-    """(...,3) -> (...,3,3) cross-product matrix: skew(a) @ b == cross(a, b)."""
-    return _skew(np.asarray(v, dtype=float))
-
-
 def R_from_r(r: np.ndarray) -> np.ndarray:
     """Rodrigues vector(s) (...,3) -> rotation matrices (...,3,3)."""
     r = np.asarray(r, dtype=float)
     th2 = np.sum(r * r, axis=-1)[..., None, None]
     th = np.sqrt(th2)
-    K = _skew(r)
+    K = skew(r)
     small = th2 < _SMALL**2
     with np.errstate(invalid="ignore", divide="ignore"):
         a = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / np.where(small, 1, th))
@@ -126,6 +123,43 @@ def transform(rt_a_b: np.ndarray, p_b: np.ndarray) -> np.ndarray:
     return np.asarray(p_b, dtype=float) @ R_from_r(rt_a_b[:3]).T + rt_a_b[3:]
 
 
+def invert_T(T: np.ndarray) -> np.ndarray:
+    """(4,4) inverse of a rigid transform (R^T, -R^T t), exact where np.linalg.inv rounds."""
+    T = np.asarray(T, dtype=float)
+    Ti = np.eye(4)
+    Ti[:3, :3] = T[:3, :3].T
+    Ti[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return Ti
+
+
+def rpy_from_R(R: np.ndarray) -> np.ndarray:
+    """Roll, pitch, yaw [rad] of a rotation, R = Rz(yaw) Ry(pitch) Rx(roll): rotations about the
+    fixed x, then y, then z axes (extrinsic x-y-z; URDF's rpy, tf's static_transform_publisher)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(np.asarray(R, dtype=float)).as_euler("xyz")
+
+
+def R_from_rpy(rpy: np.ndarray) -> np.ndarray:
+    """(3,3) R = Rz(yaw) Ry(pitch) Rx(roll) from roll, pitch, yaw [rad] (see rpy_from_R)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_euler("xyz", np.asarray(rpy, dtype=float)).as_matrix()
+
+
+def rpy_deg_from_R(R: np.ndarray) -> np.ndarray:
+    """rpy_from_R in degrees, for printing."""
+    return np.degrees(rpy_from_R(R))
+
+
+def T_from_xyz_rpy(xyz, rpy_deg) -> np.ndarray:
+    """(4,4) from a position [m] and roll, pitch, yaw [deg] (see rpy_from_R): how rigs are written."""
+    T = np.eye(4)
+    T[:3, :3] = R_from_rpy(np.radians(rpy_deg))
+    T[:3, 3] = np.asarray(xyz, dtype=float)
+    return T
+
+
 def pose3_from_rt(rt: np.ndarray):
     """(6,) rt -> gtsam.Pose3."""
     import gtsam
@@ -139,11 +173,25 @@ def rt_from_pose3(pose) -> np.ndarray:
     return rt_from_T(pose.matrix())
 
 
+def T_exp(xi: np.ndarray) -> np.ndarray:
+    """(4,4) Exp of a GTSAM Pose3 tangent xi = [omega, v]."""
+    import gtsam
+
+    return gtsam.Pose3.Expmap(np.asarray(xi, dtype=float)).matrix()
+
+
+def xi_log(T: np.ndarray) -> np.ndarray:
+    """(6,) GTSAM Pose3 tangent [omega, v] of a (4,4): T == T_exp(xi_log(T))."""
+    import gtsam
+
+    return np.asarray(gtsam.Pose3.Logmap(gtsam.Pose3(np.asarray(T, dtype=float))))
+
+
 def so3_right_jacobian(r: np.ndarray) -> np.ndarray:
     """Jr(r), (3,3): Exp(r + dr) = Exp(r) Exp(Jr(r) dr) to first order."""
     r = np.asarray(r, dtype=float)
     th = np.linalg.norm(r)
-    K = _skew(r)
+    K = skew(r)
     if th < 1e-6:
         return np.eye(3) - 0.5 * K + (K @ K) / 6.0
     return np.eye(3) - (1.0 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * (K @ K)
@@ -153,7 +201,7 @@ def so3_right_jacobian_inverse(r: np.ndarray) -> np.ndarray:
     """Jr^{-1}(r): d Log(Exp(r) Exp(w)) / dw at w = 0, (3,3)."""
     r = np.asarray(r, dtype=float)
     th = np.linalg.norm(r)
-    K = _skew(r)
+    K = skew(r)
     if th < 1e-6:
         return np.eye(3) + 0.5 * K + (K @ K) / 12.0
     c = 1.0 / th**2 - (1.0 + np.cos(th)) / (2.0 * th * np.sin(th))

@@ -202,7 +202,7 @@ class Problem:
     """Everything the solver needs; independent of bags. Dumped/replayed as a unit."""
 
     sensors: tuple[Sensor, ...]
-    board: BoardGeometry
+    board: BoardGeometry | None  # None for a targetless calibration (no observations)
     lidar_observations: tuple[LidarBoardObservation, ...]
     camera_observations: tuple[CameraBoardObservation, ...]
     snapshot_stamps_ns: np.ndarray  # (Nsnapshots,) int64
@@ -240,8 +240,37 @@ class SectorReport:
 
 
 @dataclass(frozen=True, eq=False)
+class TargetlessRun:
+    """What a targetless calibration measured besides the poses (``Result.targetless``).
+
+    Per calibration LIDAR (keyed by topic): the /tf_static guess, the final graph's size and
+    noise scales, how its solves stopped, per-frame scores; and the drawings' data, so that
+    outputs/ only draws: ``pictures["map"]`` ("map_points" (M,3), "trajectory" (K,3) in the map
+    frame, "keyframes" indices into it) and ``pictures["alignment"][topic]`` ("target" / "source_guess"
+    / "source_final": one frame's dense map and its scan moved by the guess / the result, (M,3) in
+    lidar0; "distances_guess" / "distances_final": every frame's points to the map, m).
+    """
+
+    T_lidar0_sensor_guess: Mapping[str, np.ndarray]  # topic -> (4,4)
+    graph: Mapping[str, dict] = field(default_factory=dict)
+    convergence: Mapping[str, dict] = field(default_factory=dict)
+    per_frame: Mapping[str, list] = field(default_factory=dict)  # topic -> list of dicts (score, keyframe, ...)
+    frame_plan: Mapping[str, object] = field(default_factory=dict)  # skipped keyframes, spacing, drive length
+    candidates: Mapping[str, list] = field(default_factory=dict)  # topic -> registration ensemble candidates
+    pictures: Mapping[str, object] = field(default_factory=dict, repr=False)
+    map_result: object = field(default=None, repr=False)  # the mapping's poses and keyframes
+    notes: tuple[str, ...] = ()  # what a person should know (non-convergence, guess kept)
+
+
+@dataclass(frozen=True, eq=False)
 class Result:
-    """The solve's answer with its uncertainty and diagnostics."""
+    """A calibration's answer with its uncertainty and diagnostics, whichever method made it.
+
+    ``method`` "target" (chessboard, backend/solve.py) or "targetless" (a drive,
+    targetless/pipeline.py). Both fill the poses, the covariance and ``problem.sensors``;
+    a targetless problem has no observations (and no board), its details are in
+    ``targetless``, and it may carry base_link poses from the ground plane.
+    """
 
     problem: Problem
     rt_lidar0_sensor: np.ndarray  # (Nsensors,6); the reference row is zero
@@ -251,19 +280,31 @@ class Result:
     rms: Mapping[str, float]  # normalized, lidar_m, camera_px
     rejected: tuple[Rejected, ...]  # frontend and solver rejections
     sectors: SectorReport | None = None
-    stats: Mapping[str, object] = field(default_factory=dict)  # iterations, timings, ...
+    stats: Mapping[str, object] = field(default_factory=dict)  # iterations, stage_time_s, peak_rss_mb, ...
     residuals: Mapping[str, object] = field(default_factory=dict)  # for plots
+    method: str = "target"  # "target" | "targetless"
+    frames: Mapping[str, str] = field(default_factory=dict)  # topic -> ROS frame_id, when known
+    base_frame: str | None = None  # the frame of T_base_sensor (e.g. base_link)
+    T_base_sensor: Mapping[str, np.ndarray] = field(default_factory=dict)  # topic -> (4,4), when known
+    targetless: TargetlessRun | None = None
+
+    def sensor_index(self, sensor: int | str) -> int:
+        """Index of a sensor given by index or topic."""
+        if isinstance(sensor, str):
+            return next(i for i, s in enumerate(self.problem.sensors) if s.topic == sensor)
+        return int(sensor)
 
     def variable_sensors(self) -> list[int]:
         """Sensor indices that have a block in covariance_rt, in block order."""
         return [i for i in range(len(self.problem.sensors)) if i != self.problem.reference]
 
-    def covariance_block(self, i: int) -> np.ndarray:
-        """(6,6) marginal covariance of rt_lidar0_sensor[i]; zeros for the reference."""
+    def covariance_block(self, sensor: int | str) -> np.ndarray:
+        """(6,6) marginal covariance of rt_lidar0_sensor of a sensor (index or topic); zeros for the reference."""
+        i = self.sensor_index(sensor)
         if i == self.problem.reference:
             return np.zeros((6, 6))
         k = self.variable_sensors().index(i)
         return self.covariance_rt[6 * k : 6 * k + 6, 6 * k : 6 * k + 6]
 
-    def stdev_rt(self, i: int) -> np.ndarray:
-        return np.sqrt(np.diag(self.covariance_block(i)))
+    def stdev_rt(self, sensor: int | str) -> np.ndarray:
+        return np.sqrt(np.diag(self.covariance_block(sensor)))

@@ -5,7 +5,8 @@ import pytest
 
 from clcgraph.config import Config
 from clcgraph.errors import DataError
-from clcgraph.outputs.dump import exclude_snapshots, load_problem, renoise_problem, save_problem
+from clcgraph.backend.replay import exclude_snapshots, renoise_problem
+from clcgraph.outputs.dump import load_problem, save_problem
 from clcgraph.geometry import compose_rt, invert_rt, transform
 from clcgraph.types import (BoardGeometry, CameraBoardObservation, LidarBoardObservation, PosePrior, Problem,
                             Rejected, Sensor)

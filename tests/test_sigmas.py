@@ -66,7 +66,7 @@ def test_printed_sigma_of_a_lidar_yawed_180_deg_matches_monte_carlo():
     off about one axis here; 30 trials measure a sigma to ~13% (1 sigma)."""
     from clcgraph.backend.solve import calibrate
     from clcgraph.config import Config
-    from clcgraph.outputs.dump import renoise_problem
+    from clcgraph.backend.replay import renoise_problem
     from clcgraph.outputs.results import calibration_dict
     from clcgraph.sim.observations import Rig, SimLidar, simulate_problem
     from clcgraph.types import Sensor

@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 
 from clcgraph.config import Config
-from clcgraph.outputs.dump import renoise_problem, replay, save_problem
+from clcgraph.api import replay
+from clcgraph.backend.replay import renoise_problem
+from clcgraph.outputs.dump import save_problem
 
 
 def _sim(**kw):

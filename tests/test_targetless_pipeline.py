@@ -11,7 +11,7 @@ from clcgraph import geometry as geo
 from clcgraph.config import Config
 from clcgraph.errors import DegenerateError
 from clcgraph.sim.drive import DrivePlan, simulate_drive, write_drive_bag
-from clcgraph.targetless.pipeline import calibrate_targetless, calibrate_targetless_scans, write_targetless_outputs
+from clcgraph.targetless.pipeline import calibrate_targetless, calibrate_targetless_scans
 
 TOP, SIDE = "/top/points", "/side/points"
 
@@ -19,6 +19,11 @@ TOP, SIDE = "/top/points", "/side/points"
 def _cfg():
     # a 15 s test drive has ~9 keyframes: skip fewer, space selected frames closer than the seed's 5 m
     return Config().replace(targetless=dict(calibration_skip_keyframes=1, calibration_min_distance_between_frames=1.0))
+
+
+def _T(res, topic):
+    """The result's (4,4) T_lidar0_sensor of a topic."""
+    return geo.T_from_rt(res.rt_lidar0_sensor[res.sensor_index(topic)])
 
 
 def _err(T_true, T):
@@ -38,15 +43,15 @@ def test_targetless_from_bag_accuracy_covariance_outputs(drive, tmp_path_factory
     res = calibrate_targetless([d / "drive.bag"], mapping_topic=TOP, calibration_topics=[SIDE], base_frame="base_link",
                                config=_cfg())
     T_true = drive.T_lidar0_lidar(SIDE, TOP)
-    g_deg, g_m = _err(T_true, res.T_lidar0_sensor_guess[SIDE])
+    g_deg, g_m = _err(T_true, res.targetless.T_lidar0_sensor_guess[SIDE])
     assert g_deg == pytest.approx(2.0, abs=1e-3) and g_m == pytest.approx(0.2, abs=1e-3)  # the perturbed guess
-    e_deg, e_m = _err(T_true, res.T_lidar0_sensor[SIDE])
+    e_deg, e_m = _err(T_true, _T(res, SIDE))
     assert e_deg <= 0.02 and e_m <= 0.003, (e_deg, e_m)
     # covariance consistent: the error composed (about the sensor's axes, along lidar0's) within
     # 3 of the per-axis sigmas
-    T = res.T_lidar0_sensor[SIDE]
+    T = _T(res, SIDE)
     err = np.r_[geo.r_from_R(T_true[:3, :3].T @ T[:3, :3]), T[:3, 3] - T_true[:3, 3]]
-    sd = np.r_[geo.pose_stdevs(res.rt_lidar0_sensor(SIDE), res.covariance_rt[SIDE])]
+    sd = np.r_[geo.pose_stdevs(geo.rt_from_T(T), res.covariance_block(SIDE))]
     assert np.all(np.abs(err) <= 3 * sd), (err, sd)
     assert np.all(sd < np.r_[np.radians([0.05] * 3), [0.005] * 3])  # and not uselessly large
     # base_link: roll/pitch from the ground while the body rolls/pitches 0.5 deg
@@ -57,16 +62,18 @@ def test_targetless_from_bag_accuracy_covariance_outputs(drive, tmp_path_factory
     assert up_err <= 0.1, up_err
     assert abs(Tb[2, 3] - Tt[2, 3]) <= 0.005
     assert np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) < 0.2  # guess yaw kept (zero for the reference)
-    # outputs
+    # outputs: the one output path of both methods
+    assert res.method == "targetless"
     out = d / "out"
-    paths = write_targetless_outputs(res, out)
-    cal = yaml.safe_load(paths["calibration"].read_text())
+    clcgraph.write_outputs(res, out)
+    cal = yaml.safe_load((out / "calibration.yaml").read_text())
     assert cal["reference"] == TOP and [s["topic"] for s in cal["sensors"]] == [TOP, SIDE]
-    assert np.allclose(np.array(cal["sensors"][1]["T_lidar0_sensor"]), res.T_lidar0_sensor[SIDE])
+    assert np.allclose(np.array(cal["sensors"][1]["T_lidar0_sensor"]), _T(res, SIDE))
     assert np.array(cal["covariance_rt_lidar0_sensor"]).shape == (6, 6)  # the reference excluded, as solve writes it
     loaded = clcgraph.load_result(out)  # the same loader as for `clcgraph solve`
-    assert np.allclose(loaded["sensors"][1]["T_lidar0_sensor"], res.T_lidar0_sensor[SIDE])
-    assert np.allclose(loaded["covariance_rt_lidar0_sensor"], res.covariance_rt[SIDE])
+    assert np.allclose(loaded["sensors"][1]["T_lidar0_sensor"], _T(res, SIDE))
+    assert np.allclose(loaded["covariance_rt_lidar0_sensor"], res.covariance_block(SIDE))
+    assert loaded.method == "targetless" and np.allclose(loaded.T_lidar0_sensor(SIDE), _T(res, SIDE))
     assert loaded["base_link"][0]["T_base_link_sensor"].shape == (4, 4)
     g = cal["graph"][SIDE]  # the final graph: keyframe poses linked by submap registrations
     assert g["keyframes"] >= 3 and g["keyframe_edges"] >= g["keyframes"] - 1 and g["frames"] >= 2
@@ -75,7 +82,12 @@ def test_targetless_from_bag_accuracy_covariance_outputs(drive, tmp_path_factory
     assert "timings_s" not in cal and "mapping" in yaml.safe_load((out / "timings.yaml").read_text())["timings_s"]
     assert np.allclose(geo.T_from_rt(np.array(cal["base_link"][1]["rt_base_link_sensor"])),
                        np.array(cal["base_link"][1]["T_base_link_sensor"]))
-    assert "static_transform_publisher" in (out / "static_tf.txt").read_text()
+    # tf under base_link (the ground plane's), the reference's own pose included, nothing base <- base
+    tf_lines = (out / "ros" / "static_tf_ros2.sh").read_text().splitlines()
+    assert len(tf_lines) == 2 and all("static_transform_publisher" in ln and "--frame-id base_link" in ln
+                                      for ln in tf_lines)
+    assert "--child-frame-id side_lidar" in tf_lines[1]
+    assert '<child link="side_lidar"/>' in (out / "ros" / "sensors.urdf.xml").read_text()
     html = (out / "report.html").read_text()
     for png in ("map_top.png", "scores_side_points.png", "aligned_side_points.png", "distances_side_points.png"):
         assert png in html and (out / png).stat().st_size > 1000
@@ -94,11 +106,11 @@ def test_cli_targetless_prints_the_table_and_writes_outputs(drive, tmp_path, cap
     out = capsys.readouterr().out
     assert rc == 0, out
     lines = out.splitlines()
-    assert lines[0].split()[:2] == ["sensor", "x"] and any(ln.startswith(SIDE) for ln in lines)
+    assert lines[0].split()[:3] == ["sensor", "kind", "x"] and any(ln.startswith(SIDE) for ln in lines)
     assert any(ln.startswith(f"base_link <- {TOP}") for ln in lines) and "report.html" in lines[-1]
     side = next(ln for ln in lines if ln.startswith(SIDE)).split()
     T_true = drive.T_lidar0_lidar(SIDE, TOP)
-    assert np.allclose([float(v) for v in side[1:4]], T_true[:3, 3], atol=0.003)  # printed x y z, to 3 mm
+    assert np.allclose([float(v) for v in side[2:5]], T_true[:3, 3], atol=0.003)  # printed x y z, to 3 mm
     cal = yaml.safe_load((tmp_path / "out" / "calibration.yaml").read_text())
     assert cal["method"] == "targetless" and (tmp_path / "out" / "config.resolved.yaml").exists()
     # the result feeds the same tools as a target-based one; format-for-ros takes base_link <- top
@@ -129,11 +141,11 @@ def test_two_calibration_lidars_share_the_map():
                                      T_base_sensor_guess=dr.T_base_lidar_guess, config=_cfg())
     for t in (SIDE, "/rear/points"):
         T_true = dr.T_lidar0_lidar(t, TOP)
-        e_deg, e_m = _err(T_true, res.T_lidar0_sensor[t])
+        e_deg, e_m = _err(T_true, _T(res, t))
         assert e_deg <= 0.03 and e_m <= 0.004, (t, e_deg, e_m)
-        T = res.T_lidar0_sensor[t]  # the rear LIDAR is turned 185 deg: compose, never subtract rt
+        T = _T(res, t)  # the rear LIDAR is turned 185 deg: compose, never subtract rt
         err = np.r_[geo.r_from_R(T_true[:3, :3].T @ T[:3, :3]), T[:3, 3] - T_true[:3, 3]]
-        sd = np.r_[geo.pose_stdevs(res.rt_lidar0_sensor(t), res.covariance_rt[t])]
+        sd = np.r_[geo.pose_stdevs(geo.rt_from_T(T), res.covariance_block(t))]
         assert np.all(np.abs(err) <= 3 * sd), (t, err, sd)
         assert res.graph[t]["keyframe_edges"] >= 1
 
@@ -146,7 +158,7 @@ def test_a_better_scoring_initial_guess_is_kept_with_honest_sigmas(drive, monkey
     monkeypatch.setattr(pl, "score", lambda frames, T, o: 0.0 if np.allclose(T, guess) else 1.0)
     res = calibrate_targetless_scans(drive.scans, mapping_topic=TOP, calibration_topics=[SIDE],
                                      T_base_sensor_guess=drive.T_base_lidar_guess, config=_cfg())
-    assert np.allclose(res.T_lidar0_sensor[SIDE], guess) and "initial guess kept" in res.notes[0]
+    assert np.allclose(_T(res, SIDE), guess) and "initial guess kept" in res.targetless.notes[0]
     # the guess is 2 deg / 20 cm off and its sigmas say so (>= 1/3 of the distance to the registration)
     sd = res.stdev_rt(SIDE)
     assert np.degrees(np.linalg.norm(sd[:3])) > 0.6 and np.linalg.norm(sd[3:]) > 0.06

@@ -8,8 +8,9 @@ import pytest
 from clcgraph import geometry as geo
 from clcgraph.config import Config
 from clcgraph.targetless.calibration_frames import interpolate_pose
-from clcgraph.targetless.deskew import deskew, exp, twist_between
-from clcgraph.targetless.graph import fuse
+from clcgraph.geometry import T_exp as exp
+from clcgraph.targetless.deskew import deskew, twist_between
+from clcgraph.targetless.keyframe_graph import fuse
 from clcgraph.targetless.ground import base_from_ground, fit_ground
 from clcgraph.targetless.registration import FrameMeasurement
 
@@ -84,7 +85,7 @@ def _linked_world(rng, n_kf=10, n_frames=8, s_kf=1e-5, s_fr=1e-6):
     (coherently: frames near the same keyframes see its error the same way)."""
     import gtsam
 
-    from clcgraph.targetless.graph import KeyframeEdge
+    from clcgraph.targetless.keyframe_graph import KeyframeEdge
 
     X = [gtsam.Pose3(gtsam.Rot3.Yaw(0.02 * j), np.array([1.0 * j, 0.1 * np.sin(j), 0.0])) for j in range(n_kf)]
     E = gtsam.Pose3(gtsam.Rot3.Ypr(0.3, -0.1, 0.05), np.array([0.5, 0.8, -0.4]))

@@ -20,18 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
+from clcgraph.geometry import rpy_deg_from_R
+
 
 def _T(rt: np.ndarray) -> np.ndarray:
     from clcgraph.geometry import T_from_rt
 
     return T_from_rt(rt)
-
-
-def _rpy_deg(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    yaw, pitch, roll = Rotation.from_matrix(R).as_euler("ZYX", degrees=True)
-    return np.array([roll, pitch, yaw])
 
 
 def _angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
@@ -41,7 +36,7 @@ def _angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
 
 def jackknife(dump: Path, sensor: int = 1) -> tuple[np.ndarray, np.ndarray, list[int]]:
     """(full rt (6,), leave-one-out rts (n,6), the snapshot left out of each)."""
-    from clcgraph.outputs.dump import replay
+    from clcgraph.api import replay
 
     full = replay(dump)
     used = [int(k) for k in np.flatnonzero(np.isfinite(full.rt_lidar0_board).all(axis=1))]
@@ -75,9 +70,9 @@ def main(argv=None) -> int:
         sd = np.sqrt(np.diag(cov))
         print(f"run{k}: {len(used)} boards used (snapshots {used})")
         print(f"  clcgraph T_lidar_camera: t = {np.round(T[:3, 3] * 1e3, 1)} mm  1-sigma {np.round(sd[3:] * 1e3, 2)} mm; "
-              f"roll/pitch/yaw = {np.round(_rpy_deg(T[:3, :3]), 3)} deg  1-sigma(r) {np.round(np.degrees(sd[:3]), 3)} deg")
+              f"roll/pitch/yaw = {np.round(rpy_deg_from_R(T[:3, :3]), 3)} deg  1-sigma(r) {np.round(np.degrees(sd[:3]), 3)} deg")
         print(f"  ACFR (mean of 50):       t = {np.round(Ta[:3, 3] * 1e3, 1)} mm  std {np.round(sa[3:] * 1e3, 1)} mm; "
-              f"roll/pitch/yaw = {np.round(_rpy_deg(Ta[:3, :3]), 3)} deg  std {np.round(np.degrees(sa[:3]), 3)} deg")
+              f"roll/pitch/yaw = {np.round(rpy_deg_from_R(Ta[:3, :3]), 3)} deg  std {np.round(np.degrees(sa[:3]), 3)} deg")
         dt = T[:3, 3] - Ta[:3, 3]
         print(f"  difference: rotation {_angle_deg(T[:3, :3], Ta[:3, :3]):.3f} deg, translation "
               f"{np.round(dt * 1e3, 1)} mm (|dt| {np.linalg.norm(dt) * 1e3:.1f} mm)")

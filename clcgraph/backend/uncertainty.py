@@ -10,16 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from clcgraph.geometry import R_from_r, so3_right_jacobian
-
-
-def _skew_batch(v: np.ndarray) -> np.ndarray:
-    """(...,3) -> (...,3,3) cross-product matrices."""
-    z = np.zeros(v.shape[:-1])
-    x, y, w = v[..., 0], v[..., 1], v[..., 2]
-    return np.stack(
-        [np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2
-    )
+from clcgraph.geometry import R_from_r, skew, so3_right_jacobian
 
 
 def point_transform_jacobians(rt_lidar0_sensor: np.ndarray, i: int, j: int, p_i: np.ndarray):
@@ -37,14 +28,14 @@ def point_transform_jacobians(rt_lidar0_sensor: np.ndarray, i: int, j: int, p_i:
     v = q - tj
     p_j = v @ Rj  # R_j^T v
     # d(R(r) p)/dr = -R [p]x Jr(r)
-    dq_dri = -np.einsum("ab,...bc,cd->...ad", Ri, _skew_batch(p_i), so3_right_jacobian(ri))
+    dq_dri = -np.einsum("ab,...bc,cd->...ad", Ri, skew(p_i), so3_right_jacobian(ri))
     shape = p_i.shape[:-1]
     dpj_drti = np.empty(shape + (3, 6))
     dpj_drti[..., :3] = np.einsum("ba,...bc->...ac", Rj, dq_dri)
     dpj_drti[..., 3:] = Rj.T
     # R_j^T = R(-r_j): d(R(-r) v)/dr = R(-r) [v]x Jr(-r)
     dpj_drtj = np.empty(shape + (3, 6))
-    dpj_drtj[..., :3] = np.einsum("ba,...bc,cd->...ad", Rj, _skew_batch(v), so3_right_jacobian(-rj))
+    dpj_drtj[..., :3] = np.einsum("ba,...bc,cd->...ad", Rj, skew(v), so3_right_jacobian(-rj))
     dpj_drtj[..., 3:] = -Rj.T
     return p_j, dpj_drti, dpj_drtj
 

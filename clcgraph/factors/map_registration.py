@@ -1,5 +1,5 @@
 """A sensor scan registered to a map made of keyframe submaps: the extrinsic's factor in the
-targetless graph (targetless/graph.py).
+targetless graph (targetless/keyframe_graph.py).
 
 The registration of one calibration scan against a dense target gave ``Z`` = T_anchor_sensor,
 with anchor = the mapping LIDAR at the scan's stamp. The target was assembled from keyframe

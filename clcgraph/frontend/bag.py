@@ -37,6 +37,7 @@ from typing import Iterable, Iterator, Sequence
 import numpy as np
 
 from ..errors import DataError, InputError
+from ..geometry import invert_T
 from ..types import Image, LidarScan
 from .images import decode_image
 from .pointcloud import decode_pointcloud2, stamp_ns_of
@@ -128,7 +129,7 @@ class TfTree:
         nbrs: dict[str, list[tuple[str, np.ndarray]]] = {}
         for (p, c), T in self.edges.items():
             nbrs.setdefault(p, []).append((c, T))
-            nbrs.setdefault(c, []).append((p, _invert_T(T)))
+            nbrs.setdefault(c, []).append((p, invert_T(T)))
         for f in (target_frame, source_frame):
             if f not in nbrs:
                 raise DataError(
@@ -146,13 +147,6 @@ class TfTree:
                         return found[b]
                     todo.append(b)
         raise DataError(f"tf_static: no chain of transforms from {source_frame!r} to {target_frame!r}")
-
-
-def _invert_T(T: np.ndarray) -> np.ndarray:
-    Ti = np.eye(4)
-    Ti[:3, :3] = T[:3, :3].T
-    Ti[:3, 3] = -T[:3, :3].T @ T[:3, 3]
-    return Ti
 
 
 # tf_static holds a vehicle's frames; a kilometre apart is already absurd, 10^6 m is garbage

@@ -1,4 +1,5 @@
-"""Problem dumps: save a Problem + Config to a versioned, pickle-free .npz, load it, replay it.
+"""Problem dumps: save a Problem + Config to a versioned, pickle-free .npz and load it (re-solving
+one is backend/replay.py's, joined by ``api.replay``).
 
 File layout (``FORMAT_VERSION`` 2; version 1 dumps, whose board was corners_x/corners_y/
 spacing_m/margin_m, are read and converted): one ``.npz`` (numpy's zip of ``.npy`` arrays, read with
@@ -24,7 +25,6 @@ import numpy as np
 
 from clcgraph.config import BoardOptions, Config, ConfigError
 from clcgraph.errors import DataError, InputError
-from clcgraph.geometry import compose_rt, invert_rt, transform
 from clcgraph.types import (
     BoardGeometry,
     CameraBoardObservation,
@@ -346,129 +346,3 @@ def _upgrade_v1(meta: dict, path: Path) -> dict:
                            if k not in ("corners_x", "corners_y", "spacing_m", "margin_m")}
     config["board"] = board
     return {**meta, "board": board, "config": config, "version": 2}
-
-
-def renoise_problem(
-    problem: Problem,
-    rt_lidar0_sensor: np.ndarray,
-    rt_lidar0_board: np.ndarray,
-    *,
-    sigma_lidar_m: float,
-    sigma_camera_px: float,
-    rng: np.random.Generator,
-) -> Problem:
-    """A copy of ``problem`` whose observations are the ones the given geometry predicts plus noise.
-
-    LIDAR points are moved along their rays onto the given board plane, then by N(0, sigma_lidar_m)
-    in range; camera corners are the board corners projected through the given poses plus
-    N(0, sigma_camera_px) per coordinate. Observations of snapshots without a finite board pose
-    are dropped. Used for Monte-Carlo uncertainty checks (replay --inject-noise).
-    """
-    from clcgraph import cameras
-
-    rts = np.asarray(rt_lidar0_sensor, float)
-    boards = np.asarray(rt_lidar0_board, float)
-    ok = np.all(np.isfinite(boards), axis=1)
-    lidar = []
-    for o in problem.lidar_observations:
-        if not ok[o.snapshot]:
-            continue
-        rt_l_b = compose_rt(invert_rt(rts[o.sensor]), boards[o.snapshot])
-        T_n = transform(np.r_[rt_l_b[:3], 0, 0, 0], np.array([[0.0, 0, 1]]))[0]
-        u = o.points / np.linalg.norm(o.points, axis=1, keepdims=True)
-        s = (T_n @ rt_l_b[3:]) / (u @ T_n)
-        s = s + rng.normal(0.0, sigma_lidar_m, size=s.shape)
-        p = u * s[:, None]
-        d = T_n @ rt_l_b[3:]
-        # normal towards the sensor (at the origin) means n . x = d < 0 on the board
-        plane = np.r_[-T_n, -d] if d > 0 else np.r_[T_n, d]
-        lidar.append(LidarBoardObservation(o.sensor, o.snapshot, p, plane, sigma_lidar_m, o.indices))
-    corners = problem.board.corners()
-    camera = []
-    for o in problem.camera_observations:
-        if not ok[o.snapshot]:
-            continue
-        s = problem.sensors[o.sensor]
-        p_c = transform(compose_rt(invert_rt(rts[o.sensor]), boards[o.snapshot]), corners)
-        q = cameras.project(p_c, s.lensmodel, s.intrinsics)
-        q = q + rng.normal(0.0, sigma_camera_px, size=q.shape)
-        q[~np.all(np.isfinite(o.corners_px), axis=1)] = np.nan  # keep the same missing corners
-        camera.append(CameraBoardObservation(o.sensor, o.snapshot, q))
-    return Problem(problem.sensors, problem.board, tuple(lidar), tuple(camera), problem.snapshot_stamps_ns,
-                   problem.rejected, problem.priors, problem.lidar_visibility_points)
-
-
-def exclude_snapshots(problem: Problem, exclude) -> Problem:
-    """A copy of ``problem`` without the observations of the snapshot indices in ``exclude``.
-
-    Snapshot indices are kept (not renumbered), so results stay comparable with the full solve;
-    the excluded snapshots get NaN board poses.
-    """
-    ex = {int(k) for k in exclude}
-    bad = ex - set(range(problem.n_snapshots))
-    if bad:
-        raise InputError(f"--exclude: no snapshot {min(bad)} (the problem has {problem.n_snapshots})")
-    return Problem(
-        problem.sensors, problem.board,
-        tuple(o for o in problem.lidar_observations if o.snapshot not in ex),
-        tuple(o for o in problem.camera_observations if o.snapshot not in ex),
-        problem.snapshot_stamps_ns,
-        problem.rejected + tuple(Rejected("excluded by the user", "snapshot", None, k) for k in sorted(ex)),
-        problem.priors, problem.lidar_visibility_points,
-    )
-
-
-def replay(
-    path: str | Path,
-    *,
-    inject_noise: bool = False,
-    fit_seed: bool = False,
-    exclude=(),
-    seed: int = 0,
-):
-    """Re-solve a problem dump, like the seed's fit-from-inputs-dump -> types.Result.
-
-    - ``exclude``: snapshot indices to drop (the seed's --exclude); indices are not renumbered.
-    - ``inject_noise``: solve once, then replace the observations by what that solution predicts
-      plus fresh noise with the re-estimated sigmas (``renoise_problem``, rng seeded by ``seed``)
-      and solve again: one Monte-Carlo sample for checking the reported uncertainty.
-    - ``fit_seed``: stop after the seed (initial estimate): the Result carries the seed poses,
-      a NaN covariance, empty noise/rms, and ``stats["stage"] == "seed"``.
-    The dump's config supplies the solve options.
-    """
-    from clcgraph.backend.solve import calibrate
-
-    problem, config = load_problem(path)
-    if exclude:
-        problem = exclude_snapshots(problem, exclude)
-    if fit_seed:
-        return _seed_result(problem, config)
-    result = calibrate(problem, config.solve)
-    if not inject_noise:
-        return result
-    noisy = renoise_problem(
-        problem, result.rt_lidar0_sensor, result.rt_lidar0_board,
-        sigma_lidar_m=float(result.noise["lidar_m"]),
-        sigma_camera_px=float(result.noise.get("camera_px", config.solve.sigma_camera_px)),
-        rng=np.random.default_rng(seed),
-    )
-    return calibrate(noisy, config.solve)
-
-
-def _seed_result(problem: Problem, config: Config):
-    """The seed's estimate as a Result (no covariance: NaN; no noise/rms; stats["stage"] = "seed")."""
-    from clcgraph.backend.seed import seed as seed_poses
-    from clcgraph.types import Result
-
-    rt_sensor, rt_board = seed_poses(problem, config.solve)[:2]
-    nv = 6 * (len(problem.sensors) - 1)
-    return Result(
-        problem=problem,
-        rt_lidar0_sensor=np.asarray(rt_sensor, float),
-        covariance_rt=np.full((nv, nv), np.nan),
-        rt_lidar0_board=np.asarray(rt_board, float),
-        noise={},
-        rms={},
-        rejected=problem.rejected,
-        stats={"stage": "seed"},
-    )

@@ -183,7 +183,12 @@ def report_html(result: Result, plots: dict[str, Path], *, title: str = "clcgrap
 
 
 def write_report(result: Result, out_dir, *, title: str = "clcgraph calibration") -> Path:
-    """Draw every plot into ``out_dir`` and write ``out_dir/report.html`` referencing them."""
+    """Draw every plot into ``out_dir`` and write ``out_dir/report.html`` referencing them; the one
+    report entry point of both methods (a targetless result: report_targetless.py)."""
+    if result.method == "targetless":
+        from .report_targetless import write_targetless_report
+
+        return write_targetless_report(result, out_dir, title=title.replace("calibration", "targetless calibration"))
     from .plots import plot_all
 
     out_dir = Path(out_dir)

@@ -1,17 +1,21 @@
-"""Result files: calibration.yaml, one .cameramodel per sensor, config.resolved.yaml, the dump.
+"""Result files of both methods: calibration.yaml, one .cameramodel per sensor, timings.yaml,
+config.resolved.yaml, the dump, ROS tf / URDF / launch files when the sensors' frames are known.
 
 Everything is written into a temporary directory next to ``out_dir`` and renamed into
 place at the end, so a failure leaves no half-written output.
 
 SYNOPSIS
     paths = write_results(result, "out/", config=config, problem_dump=save_problem)
-    cal = load_result("out/")          # dict, schema-checked
-    cal["sensors"][1]["T_lidar0_sensor"]   # (4,4) nested lists
+    cal = load_result("out/")              # Calibration, schema-checked, whichever method made it
+    cal.method                             # "target" or "targetless"
+    cal["sensors"][1]["T_lidar0_sensor"]   # (4,4) array; cal reads like the YAML's mapping
+    cal.T_lidar0_sensor("/lidar1/points")  # the same by topic
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Callable
 
@@ -20,7 +24,7 @@ import yaml
 
 from .. import __version__
 from ..errors import DataError, InputError
-from ..geometry import T_from_rt, invert_rt, pose_stdevs
+from ..geometry import T_from_rt, invert_rt, pose_stdevs, rt_from_T
 from ..types import Result, Sensor
 from .atomic import atomic_dir
 
@@ -28,10 +32,13 @@ log = logging.getLogger(__name__)
 
 CALIBRATION_FILE = "calibration.yaml"
 CONFIG_FILE = "config.resolved.yaml"
-TOP_KEYS = ("reference", "sensors", "covariance_rt_lidar0_sensor", "rms", "noise", "snapshots", "sectors")
-# `clcgraph targetless` writes the same sensors and covariance, its graph instead of the fit
-# statistics, and optionally base_link poses from the ground plane
-TARGETLESS_KEYS = ("reference", "sensors", "covariance_rt_lidar0_sensor", "graph")
+TIMINGS_FILE = "timings.yaml"
+METHODS = ("target", "targetless")
+# Every calibration.yaml has the common keys and those of its method (a file without `method`
+# is a target-based one of an older clcgraph). Targetless writes its graph instead of the fit
+# statistics, and optionally base_link poses from the ground plane.
+COMMON_KEYS = ("reference", "sensors", "covariance_rt_lidar0_sensor")
+METHOD_KEYS = {"target": ("rms", "noise", "snapshots", "sectors"), "targetless": ("graph",)}
 SENSOR_KEYS = ("topic", "kind", "rt_lidar0_sensor", "T_lidar0_sensor", "stdev_rt")
 
 # The placeholder lens a LIDAR's .cameramodel carries (clc does the same): only its
@@ -70,25 +77,43 @@ def stdev_fields(sd_rot_rad: np.ndarray, sd_pos_m: np.ndarray) -> dict:
 
 
 def calibration_dict(result: Result) -> dict:
-    """The calibration.yaml content as a plain dict (see write_results for the shape)."""
+    """The calibration.yaml content as a plain dict: the common part, then the method's sections."""
     problem = result.problem
-    ref = problem.reference
     sensors = []
     for i, s in enumerate(problem.sensors):
         rt = np.asarray(result.rt_lidar0_sensor[i], dtype=float)
         sd_rot, sd_pos = pose_stdevs(rt, result.covariance_block(i))
-        sensors.append(
-            {
-                "topic": s.topic,
-                "kind": s.kind,
-                "rt_lidar0_sensor": _floats(rt),
-                "T_lidar0_sensor": _floats(T_from_rt(rt)),
-                "stdev_rt": _floats(result.stdev_rt(i)),
-                **stdev_fields(sd_rot, sd_pos),
-                # this sensor's re-estimated noise: m (LIDAR range) or px (camera corners)
-                "noise_sigma": _scalar(result.noise.get("per_sensor", {}).get(i)),
-            }
-        )
+        entry = {
+            "topic": s.topic,
+            "kind": s.kind,
+            "rt_lidar0_sensor": _floats(rt),
+            "T_lidar0_sensor": _floats(T_from_rt(rt)),
+            "stdev_rt": _floats(result.stdev_rt(i)),
+            **stdev_fields(sd_rot, sd_pos),
+        }
+        if result.method == "target":  # this sensor's re-estimated noise: m (LIDAR range) or px (camera corners)
+            entry["noise_sigma"] = _scalar(result.noise.get("per_sensor", {}).get(i))
+        sensors.append(entry)
+    d = {
+        "clcgraph_version": __version__,
+        "method": result.method,
+        "reference": problem.sensors[problem.reference].topic,
+        "sensors": sensors,
+        # symmetrized: marginals come out of the solver symmetric only to rounding
+        "covariance_rt_lidar0_sensor": _floats(0.5 * (np.asarray(result.covariance_rt, float) + np.asarray(result.covariance_rt, float).T)),
+        "coordinates": COORDINATES,
+    }
+    if result.frames:
+        d["frames"] = {t: str(f) for t, f in result.frames.items()}
+    if result.T_base_sensor:
+        d["base_link"] = [{"topic": t, "frame": result.base_frame, "T_base_link_sensor": _floats(T),
+                           "rt_base_link_sensor": _floats(rt_from_T(np.asarray(T, float)))}
+                          for t, T in result.T_base_sensor.items()]
+    return {**d, **(_target_sections(result) if result.method == "target" else _targetless_sections(result))}
+
+
+def _target_sections(result: Result) -> dict:
+    problem = result.problem
     rejected = [
         {
             "index": None if r.snapshot is None else int(r.snapshot),
@@ -100,25 +125,37 @@ def calibration_dict(result: Result) -> dict:
     ]
     used = np.flatnonzero(np.all(np.isfinite(np.asarray(result.rt_lidar0_board, float).reshape(-1, 6)), axis=1))
     return {
-        "clcgraph_version": __version__,
-        "reference": problem.sensors[ref].topic,
         # the chessboard as configured (inner corners, square, physical size, pattern offset)
         "board": problem.board.spec(),
-        "sensors": sensors,
-        # symmetrized: marginals come out of the solver symmetric only to rounding
-        "covariance_rt_lidar0_sensor": _floats(0.5 * (np.asarray(result.covariance_rt, float) + np.asarray(result.covariance_rt, float).T)),
         "rms": {k: _scalar(result.rms.get(k)) for k in ("normalized", "lidar_m", "camera_px")},
         "noise": {k: _scalar(result.noise.get(k)) for k in ("lidar_m", "camera_px")},
         "snapshots": {"used": int(len(used)), "used_indices": [int(k) for k in used],
                       "total": int(problem.n_snapshots), "rejected": rejected},
         "sectors": sectors_dict(result),
         "convergence": dict(result.stats.get("convergence") or {}),
-        "coordinates": COORDINATES,
         # the self-consistency verdict (backend/consistency.py): the checks and their numbers
         # (6 significant digits: the checks' eigen-decompositions differ in the last digits
         # between BLAS thread counts, and the same inputs must give the same bytes)
         "consistency": _plain(result.stats.get("consistency"), digits=6),
     }
+
+
+def _targetless_sections(result: Result) -> dict:
+    run = result.targetless
+    return {
+        # per calibration LIDAR: the final graph (keyframe poses linked by submap registrations)
+        # and how its solves stopped; how the calibration frames were taken from this drive
+        "graph": _plain(dict(run.graph)),
+        "calibration_frames": _plain(dict(run.frame_plan)),
+        "convergence": _plain(dict(run.convergence)),
+    }
+
+
+def timings_dict(result: Result) -> dict:
+    """timings.yaml: wall seconds (and peak RSS, MB) per stage; kept out of calibration.yaml
+    so that the same inputs give the same calibration.yaml."""
+    return {"timings_s": {k: float(v) for k, v in (result.stats.get("stage_time_s") or {}).items()},
+            "peak_rss_mb": {k: float(v) for k, v in (result.stats.get("peak_rss_mb") or {}).items()}}
 
 
 def _plain(v, digits: int | None = None):
@@ -196,11 +233,15 @@ def write_results(
     out_dir = Path(out_dir).absolute()
     names: dict[str, Path] = {}
     with atomic_dir(out_dir, force=force) as tmp:
+        cal = calibration_dict(result)
         (tmp / CALIBRATION_FILE).write_text(
             "# clcgraph calibration: rt_a_b maps points in frame b into frame a (mrcal rt: Rodrigues r, then t)\n"
-            + yaml.safe_dump(calibration_dict(result), sort_keys=False, default_flow_style=None, width=200)
+            + yaml.safe_dump(cal, sort_keys=False, default_flow_style=None, width=200)
         )
         names[CALIBRATION_FILE] = out_dir / CALIBRATION_FILE
+        (tmp / TIMINGS_FILE).write_text(yaml.safe_dump(timings_dict(result), sort_keys=False))
+        names[TIMINGS_FILE] = out_dir / TIMINGS_FILE
+        extra_files = {**ros_tf_files(result, cal), **(extra_files or {})}
         if config is not None:
             (tmp / CONFIG_FILE).write_text(config.to_yaml())
             names[CONFIG_FILE] = out_dir / CONFIG_FILE
@@ -209,7 +250,7 @@ def write_results(
         if problem_dump is not None:
             problem_dump(result.problem, tmp / "problem.npz")
             names["problem.npz"] = out_dir / "problem.npz"
-        for name, content in (extra_files or {}).items():
+        for name, content in extra_files.items():
             path = tmp / name
             path.parent.mkdir(parents=True, exist_ok=True)
             if callable(content):
@@ -223,17 +264,98 @@ def write_results(
     return names
 
 
+class _OneFrame:
+    """A tf tree of one frame (``lookup(f, f)`` is the identity): the ROS files of a result whose
+    poses are all in the reference's frame."""
+
+    def lookup(self, target: str, source: str) -> np.ndarray:
+        if target != source:
+            raise InputError(f"no transform {target} <- {source}")
+        return np.eye(4)
+
+
+def ros_tf_files(result: Result, cal: dict) -> dict[str, str]:
+    """{"ros/<name>": text}: tf, URDF and launch files (outputs/ros.py) under base_link when the
+    result has base_link <- reference, else under the reference's frame; {} unless every sensor's
+    frame_id is known (a target-based result leaves that to `clcgraph format-for-ros`)."""
+    from .ros import format_for_ros, ros_files
+
+    topics = [s.topic for s in result.problem.sensors]
+    if not result.frames or any(t not in result.frames for t in topics):
+        return {}
+    ref = topics[result.problem.reference]
+    parent = result.base_frame if ref in result.T_base_sensor else result.frames[ref]
+    ros = format_for_ros(cal, _OneFrame(), base_frame=parent, frames=dict(result.frames))
+    ros["transforms"] = {f: e for f, e in ros["transforms"].items() if f != parent}  # no parent <- parent
+    return {f"ros/{name}": text for name, text in ros_files(ros).items()}
+
+
 def _fail(path, msg):
     raise DataError(f"{path}: not a clcgraph calibration: {msg}")
 
 
-def load_result(out_dir: str | Path) -> dict:
-    """Read ``out_dir/calibration.yaml`` (or that file itself) back, checking its schema; of
-    `clcgraph solve` or of `clcgraph targetless` (``method: targetless``).
+class Calibration(Mapping):
+    """A calibration.yaml read back (``load_result``), whichever method wrote it.
 
-    Returns the dict with, per sensor, ``rt_lidar0_sensor`` as a (6,) array and
+    Reads like the YAML's mapping (``cal["sensors"][1]["T_lidar0_sensor"]``, arrays where the
+    file has matrices) and has the common part as attributes: ``method`` ("target" or
+    "targetless"), ``reference`` (topic), ``topics``, ``covariance_rt`` ((6(N-1),6(N-1)), the
+    reference excluded), ``base_link`` (topic -> (4,4) T_base_link_sensor, {} if none).
+    """
+
+    def __init__(self, data: dict, path: Path):
+        self._d, self.path = data, path
+
+    def __getitem__(self, key):
+        return self._d[key]
+
+    def __iter__(self):
+        return iter(self._d)
+
+    def __len__(self):
+        return len(self._d)
+
+    def __repr__(self):
+        return f"Calibration({self.method}, {self.path}, sensors {self.topics})"
+
+    @property
+    def method(self) -> str:
+        return self._d["method"]
+
+    @property
+    def reference(self) -> str:
+        return self._d["reference"]
+
+    @property
+    def topics(self) -> list[str]:
+        return [s["topic"] for s in self._d["sensors"]]
+
+    @property
+    def covariance_rt(self) -> np.ndarray:
+        return self._d["covariance_rt_lidar0_sensor"]
+
+    @property
+    def base_link(self) -> dict[str, np.ndarray]:
+        return {b["topic"]: b["T_base_link_sensor"] for b in self._d.get("base_link") or []}
+
+    def sensor(self, topic: str) -> dict:
+        """The ``sensors`` entry of a topic."""
+        for s in self._d["sensors"]:
+            if s["topic"] == topic:
+                return s
+        raise InputError(f"{topic} is not a sensor of the calibration in {self.path}")
+
+    def T_lidar0_sensor(self, topic: str) -> np.ndarray:
+        return self.sensor(topic)["T_lidar0_sensor"]
+
+
+def load_result(out_dir: str | Path) -> Calibration:
+    """Read ``out_dir/calibration.yaml`` (or that file itself) back, checking its schema; of
+    `clcgraph solve` or of `clcgraph targetless` (its ``method``; none: an older target-based file).
+
+    The Calibration has, per sensor, ``rt_lidar0_sensor`` as a (6,) array and
     ``T_lidar0_sensor`` as a (4,4) array; the covariance as a (6(N-1),6(N-1)) array (the
-    reference excluded); targetless ``base_link`` poses as arrays.
+    reference excluded); ``base_link`` poses as arrays.
     """
     path = Path(out_dir)
     if path.is_dir():
@@ -246,8 +368,10 @@ def load_result(out_dir: str | Path) -> dict:
         _fail(path, f"invalid YAML ({str(e).splitlines()[0]})")
     if not isinstance(d, dict):
         _fail(path, "not a mapping")
-    targetless = d.get("method") == "targetless"
-    missing = [k for k in (TARGETLESS_KEYS if targetless else TOP_KEYS) if k not in d]
+    d.setdefault("method", "target")
+    if d["method"] not in METHODS:
+        _fail(path, f"method {d['method']!r} is not one of {', '.join(METHODS)}")
+    missing = [k for k in COMMON_KEYS + METHOD_KEYS[d["method"]] if k not in d]
     if missing:
         _fail(path, f"missing keys {missing}")
     if not isinstance(d["sensors"], list) or not d["sensors"]:
@@ -277,7 +401,7 @@ def load_result(out_dir: str | Path) -> dict:
     if not np.allclose(C, C.T, atol=1e-12 + 1e-9 * np.abs(C).max(initial=0)):
         _fail(path, "covariance_rt_lidar0_sensor is not symmetric")
     d["covariance_rt_lidar0_sensor"] = C
-    for key in ("graph",) if targetless else ("rms", "noise", "snapshots"):
+    for key in METHOD_KEYS[d["method"]]:
         if not isinstance(d[key], dict):
             _fail(path, f"'{key}' must be a mapping")
     for k, b in enumerate(d.get("base_link") or []):
@@ -286,7 +410,7 @@ def load_result(out_dir: str | Path) -> dict:
             b["rt_base_link_sensor"] = np.array(b["rt_base_link_sensor"], dtype=float).reshape(6)
         except (KeyError, ValueError, TypeError):
             _fail(path, f"base_link[{k}] needs T_base_link_sensor (4x4) and rt_base_link_sensor (6)")
-    return d
+    return Calibration(d, path)
 
 
 def sensors_from_calibration(cal: dict) -> list[Sensor]:

@@ -16,6 +16,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..errors import InputError
+from ..geometry import rpy_from_R
 
 
 def _frame_of(topic: str, frames: dict) -> str:
@@ -95,7 +96,7 @@ def T_from_ros_entry(entry: dict) -> np.ndarray:
 def _xyz_rpy(entry: dict) -> tuple[np.ndarray, np.ndarray]:
     T = T_from_ros_entry(entry)
     # URDF rpy: fixed axes, R = Rz(yaw) Ry(pitch) Rx(roll) == scipy's extrinsic "xyz"
-    return T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_euler("xyz")
+    return T[:3, 3], rpy_from_R(T[:3, :3])
 
 
 def _f(v) -> str:

@@ -43,11 +43,7 @@ class LidarSpec:
 
 
 def _rt(rpy_deg, xyz):
-    r = np.radians(rpy_deg)
-    cr, sr, cp, sp, cy, sy = np.cos(r[0]), np.sin(r[0]), np.cos(r[1]), np.sin(r[1]), np.cos(r[2]), np.sin(r[2])
-    R = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]]) @ np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]]) @ np.array(
-        [[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    return tuple(geo.rt_from_R_t(R, np.asarray(xyz, float)))
+    return tuple(geo.rt_from_T(geo.T_from_xyz_rpy(xyz, rpy_deg)))
 
 
 @dataclass(frozen=True)

@@ -41,20 +41,12 @@ import yaml
 from .. import cameras
 from ..config import Config, ConfigError
 from ..errors import InputError
+from ..geometry import T_from_xyz_rpy
 from ..types import BoardGeometry, Sensor
 from .lidar import LidarModel
 
 # camera optical axes (right-down-forward) in a front-left-up frame
 R_FLU_CAMERA = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-
-
-def T_from_xyz_rpy(xyz, rpy_deg) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_euler("ZYX", np.asarray(rpy_deg, float)[::-1], degrees=True).as_matrix()
-    T[:3, 3] = np.asarray(xyz, float)
-    return T
 
 
 @dataclass(frozen=True, eq=False)

@@ -13,25 +13,14 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def _log(T: np.ndarray) -> np.ndarray:
-    import gtsam
-
-    return np.asarray(gtsam.Pose3.Logmap(gtsam.Pose3(np.asarray(T, float))))
-
-
-def exp(xi: np.ndarray) -> np.ndarray:
-    """(4,4) Exp of a GTSAM tangent [omega, v]."""
-    import gtsam
-
-    return gtsam.Pose3.Expmap(np.asarray(xi, float)).matrix()
+from ..geometry import xi_log
 
 
 def twist_between(T_a: np.ndarray, T_b: np.ndarray, dt: float) -> np.ndarray:
     """(6,) body twist [omega, v] per second taking pose T_a to T_b in dt seconds."""
     if dt <= 0:
         return np.zeros(6)
-    return _log(np.linalg.inv(T_a) @ T_b) / dt
+    return xi_log(np.linalg.inv(T_a) @ T_b) / dt
 
 
 def deskew(points: np.ndarray, time_s: np.ndarray | None, xi: np.ndarray) -> np.ndarray:

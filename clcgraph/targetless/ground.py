@@ -18,6 +18,7 @@ import logging
 import numpy as np
 
 from ..errors import DegenerateError
+from ..geometry import R_from_r
 from ..planes import fit_plane, ransac_plane
 
 log = logging.getLogger(__name__)
@@ -55,12 +56,8 @@ def base_from_ground(n: np.ndarray, d: float, T_base_lidar_guess: np.ndarray, *,
     z = np.array([0.0, 0.0, 1.0])
     v = np.cross(a, z)
     s, c = np.linalg.norm(v), a @ z
-    if s < 1e-12:
-        Rfix = np.eye(3)
-    else:
-        k = v / s
-        K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-        Rfix = np.eye(3) + s * K + (1 - c) * K @ K  # minimal rotation a -> z: keeps the heading
+    # the minimal rotation a -> z (about a x z): keeps the heading
+    Rfix = np.eye(3) if s < 1e-12 else R_from_r(v / s * np.arctan2(s, c))
     T = np.eye(4)
     T[:3, :3] = Rfix @ R0
     T[:3, 3] = [T_base_lidar_guess[0, 3], T_base_lidar_guess[1, 3], d]

@@ -22,7 +22,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import DegenerateError, DataError
-from .deskew import deskew, exp, twist_between
+from ..geometry import T_exp
+from .deskew import deskew, twist_between
 
 log = logging.getLogger(__name__)
 
@@ -173,7 +174,7 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
         dt = (scan.stamp_ns - last_stamp) * 1e-9
         lost = (scan.stamp_ns - prev_scan_ns) * 1e-9 > o.mapping_lost_timeout  # sensor gap, not a skipped frame
         prev_scan_ns = scan.stamp_ns
-        T = T_last @ exp(twist * dt)
+        T = T_last @ T_exp(twist * dt)
         T_pred = T
         xi = twist
         n_it = max(1, o.deskew_iterations if tau is not None else 1)

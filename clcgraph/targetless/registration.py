@@ -11,7 +11,7 @@ All clouds of one frame are expressed in the mapping LIDAR frame at the calibrat
 scan's stamp (the interpolated pose), so every registration directly estimates
 T_lidar0_sensor. A dense target is made of keyframe submaps (each keyframe's frames up to
 the next keyframe); each frame's measurement records how its registration would move if a
-submap moved (``influence``), which is how targetless/graph.py ties frames to keyframe poses.
+submap moved (``influence``), which is how targetless/keyframe_graph.py ties frames to keyframe poses.
 """
 
 from __future__ import annotations
@@ -229,7 +229,7 @@ def plane_residuals(fd: FrameData, T: np.ndarray, max_corr: float, sub: int = 1)
 def batched_icp(frames, T0: np.ndarray, o, *, iterations: int = 15, sub: int = 2) -> np.ndarray:
     """The seed's Batched ICP: one T_lidar0_sensor registering all frames at once (point-to-plane
     Gauss-Newton over the stacked residuals, Huber-weighted), fine then ultra-fine correspondences."""
-    from .deskew import exp
+    from ..geometry import T_exp
 
     T = np.asarray(T0, float)
     for corr in (o.max_corr_dist_fine, o.max_corr_dist_ultra_fine):
@@ -243,7 +243,7 @@ def batched_icp(frames, T0: np.ndarray, o, *, iterations: int = 15, sub: int = 2
             if not np.isfinite(H).all() or np.linalg.cond(H) > 1e12:
                 return T
             dx = -np.linalg.solve(H, g)
-            T = T @ exp(dx)
+            T = T @ T_exp(dx)
             if np.linalg.norm(dx[:3]) < 1e-7 and np.linalg.norm(dx[3:]) < 1e-6:
                 break
     return T
@@ -318,7 +318,7 @@ def keyframe_edges(mp, positions, o, *, cache: dict | None = None, max_cond: flo
     ``cache``: (a, b) -> KeyframeEdge or None, shared between calibration LIDARs."""
     import small_gicp
 
-    from .graph import KeyframeEdge
+    from .keyframe_graph import KeyframeEdge
     from .mapping import degeneracy
 
     cache = {} if cache is None else cache

@@ -1,0 +1,92 @@
+"""The text tables the CLI prints, for both methods (formatting lives here, not in cli/).
+
+SYNOPSIS
+    print(summary_table(result))            # pose, 1-sigma and observations per sensor
+    print(replay_lines(result))             # `clcgraph replay`: one line a sensor, the noise
+    print(truth_table(errors, "truth.yaml"))  # `clcgraph demo`: errors against the simulator's truth
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..geometry import pose_stdevs, rpy_deg_from_R, R_from_r
+from ..types import Result
+
+
+def _columns(rows) -> list[str]:
+    widths = [max(len(r[k]) for r in rows) for k in range(len(rows[0]))]
+    return ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
+
+
+def _observations(result: Result) -> list[str]:
+    """Per sensor: its board observations (target) or calibration frames (targetless)."""
+    p = result.problem
+    if result.method == "targetless":
+        graph = result.targetless.graph
+        return [str(graph.get(s.topic, {}).get("frames", "-")) for s in p.sensors]
+    nobs = np.zeros(len(p.sensors), int)
+    for o in [*p.lidar_observations, *p.camera_observations]:
+        nobs[o.sensor] += 1
+    return [str(n) for n in nobs]
+
+
+def summary_table(result: Result) -> str:
+    """The final table `clcgraph solve` and `clcgraph targetless` print: pose, 1-sigma and
+    observations per sensor, then base_link poses (if any), then the fit's verdicts."""
+    rows = [("sensor", "kind", "x [m]", "y [m]", "z [m]", "roll/pitch/yaw [deg]", "1-sigma [mm, deg]",
+             "frames" if result.method == "targetless" else "obs")]
+    p = result.problem
+    for i, (s, n) in enumerate(zip(p.sensors, _observations(result))):
+        rt = np.asarray(result.rt_lidar0_sensor[i], float)
+        sd_rot, sd_pos = pose_stdevs(rt, result.covariance_block(i))  # the largest per-axis sigma of each
+        sigma = "reference" if i == p.reference else f"{1e3 * np.max(sd_pos):.2f}, {np.degrees(np.max(sd_rot)):.3f}"
+        rows.append((s.topic, s.kind, *(f"{v:+.4f}" for v in rt[3:]),
+                     " ".join(f"{v:+.3f}" for v in rpy_deg_from_R(R_from_r(rt[:3]))), sigma, n))
+    for t, T in result.T_base_sensor.items():
+        T = np.asarray(T, float)
+        rows.append((f"{result.base_frame} <- {t}", "lidar", *(f"{v:+.4f}" for v in T[:3, 3]),
+                     " ".join(f"{v:+.3f}" for v in rpy_deg_from_R(T[:3, :3])), "ground plane", "-"))
+    lines = _columns(rows)
+    if result.method == "targetless":
+        return "\n".join(lines + list(result.targetless.notes))
+    rms, noise = result.rms, result.noise
+    lines.append(f"RMS: normalized {rms.get('normalized', float('nan')):.3f}, LIDAR {1e3 * rms.get('lidar_m', float('nan')):.1f} mm, "
+                 f"camera {rms.get('camera_px', float('nan')):.3f} px; re-estimated noise: LIDAR "
+                 f"{1e3 * noise.get('lidar_m', float('nan')):.1f} mm, camera {noise.get('camera_px', float('nan')):.3f} px")
+    used = int(np.sum(np.all(np.isfinite(result.rt_lidar0_board), axis=1)))
+    lines.append(f"{used} of {p.n_snapshots} snapshots used; {len(result.rejected)} rejections (see calibration.yaml)")
+    conv = result.stats.get("convergence") or {}
+    if conv and not conv.get("converged"):
+        lines.append("NOT CONVERGED: " + "; ".join(conv.get("warnings", ())))
+    verdict = result.stats.get("consistency") or {}
+    if verdict.get("passed") is False:  # written anyway (solve.refuse_inconsistent is off)
+        why = (verdict.get("failures") or verdict.get("unverifiable") or ["?"])[0]
+        lines.append(f"NOT SELF-CONSISTENT (see calibration.yaml consistency:): {why}")
+    return "\n".join(lines)
+
+
+def replay_lines(result: Result) -> str:
+    """`clcgraph replay`: rt_lidar0_sensor and its stdev, one line a sensor; the noise; rejections."""
+    out = []
+    for i, s in enumerate(result.problem.sensors):
+        sd = result.stdev_rt(i) if np.all(np.isfinite(result.covariance_rt)) else np.full(6, np.nan)
+        out.append(f"{s.topic}: rt_lidar0_sensor {np.array2string(result.rt_lidar0_sensor[i], precision=6, max_line_width=10**4)}"
+                   f"  stdev {np.array2string(sd, precision=6, max_line_width=10**4)}")
+    for k, v in result.noise.items():
+        if isinstance(v, dict):  # per sensor: {sensor index: sigma}
+            out.append(f"noise {k}: " + ", ".join(f"{result.problem.sensor_name(int(i))} {s:.4g}" for i, s in v.items()))
+        else:
+            out.append(f"noise {k}: {v:.4g}")
+    out.append(f"{len(result.rejected)} rejected")
+    return "\n".join(out)
+
+
+def truth_table(errors: list[dict], truth_path) -> str:
+    """`clcgraph demo`: rotation and translation errors against the simulator's truth, with 1-sigmas."""
+    out = [f"\nagainst the simulator's truth ({truth_path}):",
+           f"{'sensor':34s} {'rotation [deg]':>15s} {'1-sigma':>8s} {'translation [mm]':>17s} {'1-sigma':>8s}"]
+    for e in errors:
+        out.append(f"{e['topic']:34s} {e['rotation_deg']:15.3f} {e['sigma_deg']:8.3f} {e['translation_mm']:17.1f} "
+                   f"{e['sigma_mm']:8.1f}")
+    return "\n".join(out)
