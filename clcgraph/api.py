@@ -486,3 +486,200 @@ def load_result(out_dir):
     from .outputs.results import load_result as _load
 
     return _load(out_dir)
+
+
+# ---------------------------------------------------------------- the commands' wiring (cli/ only parses and prints)
+
+
+def lidar_scans(bags, topic: str, *, every: bool = False, limit: int | None = None) -> list:
+    """The scans of a PointCloud2 topic: the first of each bag (or every one); InputError if the
+    topic holds something else."""
+    from .frontend.bag import first_messages, read_messages
+    from .types import LidarScan
+
+    paths = expand_bags(bags)[:limit]
+    if every:
+        scans = [m.data for m in read_messages(paths, [topic])]
+    else:
+        scans = [first_messages(b, [topic]).get(topic) for b in paths]
+    bad = next((i for i, x in enumerate(scans) if not isinstance(x, LidarScan)), None)
+    if bad is not None:
+        where = paths[bad] if not every else ", ".join(map(str, paths))
+        what = "no message" if scans[bad] is None else type(scans[bad]).__name__
+        raise InputError(f"{where}: topic {topic} holds {what}, not sensor_msgs/PointCloud2")
+    return scans
+
+
+def bag_summaries(paths) -> list:
+    """`clcgraph show-bag`: per bag, (BagInfo, {PointCloud2 topic: its first raw message})."""
+    from .frontend.bag import POINTCLOUD2, bag_info, first_raw_message
+
+    out = []
+    for path in paths:
+        info = bag_info(path)
+        out.append((info, {t.topic: first_raw_message(path, t.topic) for t in info.topics
+                           if t.msgtype == POINTCLOUD2 and t.count}))
+    return out
+
+
+def write_bag_previews(paths, out_dir) -> list[Path]:
+    """Each LIDAR's first scan and each camera's first image of every bag, as PNGs in ``out_dir``."""
+    from .frontend.bag import DECODABLE, bag_info, first_messages
+    from .outputs.plots import plot_image_preview, plot_scan_preview
+    from .types import LidarScan
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for path in paths:
+        topics = [t.topic for t in bag_info(path).topics if t.msgtype in DECODABLE and t.count]
+        for topic, m in first_messages(path, topics).items():
+            name = out / f"{Path(path).stem}{topic.replace('/', '_')}.png"
+            (plot_scan_preview if isinstance(m, LidarScan) else plot_image_preview)(
+                m, name, title=f"{Path(path).name} {topic}")
+            written.append(name)
+    return written
+
+
+def segment_bags(bags, topic: str, *, every: bool = False, config=None, dump=None, png=None) -> list:
+    """`clcgraph segment`: (scan, LidarBoardObservation | Rejected) per scan; ``dump``: an npz of
+    the intermediate stages; ``png``: a directory for a picture of each scan's segmentation."""
+    from .frontend.lidar_board import Debug, segment_many
+    from .outputs.debug import write_segmentation_dump
+    from .outputs.plots import plot_segmentation
+
+    cfg = _config(config)
+    scans = lidar_scans(bags, topic, every=every)
+    debugs = [Debug() for _ in scans]
+    results = segment_many(scans, cfg.segmentation, cfg.lidar, board_geometry(cfg), debug=debugs)
+    if dump:
+        write_segmentation_dump(dump, debugs)
+    if png:
+        Path(png).mkdir(parents=True, exist_ok=True)
+        for k, (scan, r, dbg) in enumerate(zip(scans, results, debugs)):
+            plot_segmentation(scan, dbg, r, Path(png) / f"{k:05d}_{scan.stamp_ns}.png")
+    return list(zip(scans, results))
+
+
+def detect_bags(bags, topic: str, *, every: bool = False, config=None, png=None) -> list:
+    """`clcgraph detect`: (image, (N,2) corners | Rejected) per image (the first of each bag unless
+    ``every``); ``png``: a directory for an annotated picture of each."""
+    from .frontend.camera_board import detect_in_bags, draw_detection
+
+    cfg = _config(config)
+    if png:
+        import cv2
+
+        Path(png).mkdir(parents=True, exist_ok=True)
+    out = []
+    for k, (im, res) in enumerate(detect_in_bags(expand_bags(bags), topic, cfg.detection, board_geometry(cfg),
+                                                 every=every)):
+        out.append((im, res))
+        if png:
+            cv2.imwrite(str(Path(png) / f"{k:05d}_{im.stamp_ns}.png"), draw_detection(im, res))
+    return out
+
+
+def infer_lidar_spacing(bags, topic: str) -> tuple[int, int]:
+    """(number of rings, Npoints_per_rotation) of a LIDAR topic, from its first scans."""
+    from .frontend.lidar_preprocess import infer_lidar_spacing as _infer
+
+    return _infer(lidar_scans(bags, topic, limit=5))
+
+
+def format_for_ros(bag, calibration, *, base_frame: str = "base_link", out=None, force: bool = False):
+    """`clcgraph format-for-ros`: (the transforms under ``base_frame``, the files written into
+    ``out`` (none without it)); frames from the bag's header frame_ids and /tf_static."""
+    from .frontend.bag import frame_id, read_tf_static
+    from .outputs.ros import format_for_ros as _format
+    from .outputs.ros import infer_frames, ros_files
+
+    cal = load_result(calibration)
+    tf = read_tf_static(bag)
+    frames = infer_frames(cal.topics, tf.frames, frame_ids={t: frame_id(bag, t) for t in cal.topics})
+    ros = _format(cal, tf, base_frame=base_frame, frames=frames)
+    if not out:
+        return ros, []
+    from .outputs.atomic import atomic_dir
+
+    files = ros_files(ros)
+    with atomic_dir(out, kind="ros", force=force) as tmp:
+        for name, text in files.items():
+            (tmp / name).write_text(text)
+    return ros, [Path(out) / name for name in files]
+
+
+def show_aligned(bag, calibration, *, topics=None, png, threshold_range: float | None = None) -> dict:
+    """`clcgraph show-aligned`: the first scan of each LIDAR topic (default: every LIDAR of the
+    calibration) moved into lidar0 by the calibration, drawn into ``png``; returns the clouds."""
+    from .frontend.bag import first_messages
+    from .outputs.plots import align_clouds, render_aligned_clouds
+
+    cal = load_result(calibration)
+    topics = list(topics or [s["topic"] for s in cal["sensors"] if s["kind"] == "lidar"])
+    rts = {t: cal.sensor(t)["rt_lidar0_sensor"] for t in topics}
+    first = first_messages(bag, topics)
+    clouds = {}
+    for t in topics:
+        if t not in first:
+            raise InputError(f"{bag}: no message on {t}")
+        pts = first[t].points[first[t].valid]
+        clouds[t] = pts if threshold_range is None else pts[np.linalg.norm(pts, axis=1) < threshold_range]
+    render_aligned_clouds(clouds, rts, png)
+    return align_clouds(clouds, rts)
+
+
+def view_clouds(clouds: dict, *, title: str = "clcgraph") -> None:
+    """The Open3D viewer on clouds (topic -> (N,3)), one colour each; InputError without a display."""
+    import os
+
+    if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
+        raise InputError("--viewer needs a display (DISPLAY is not set); the PNG was written")
+    import open3d as o3d
+
+    geoms = []
+    for k, pts in enumerate(clouds.values()):
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+        pc.paint_uniform_color(np.eye(3)[k % 3] * 0.8)
+        geoms.append(pc)
+    o3d.visualization.draw_geometries(geoms, window_name=title)
+
+
+def uncertainty_grid_png(dump, png, *, sensors: tuple[int, int] | None = None, radius: float = 20.0,
+                         gridn: int = 41, z: float = 0.0):
+    """`clcgraph show-uncertainty`: the worst-direction stdev of a point moved from sensor i to j
+    over a grid around lidar0 (default: lidar0 and the worst other sensor), drawn into ``png``;
+    returns (title, (gridn, gridn) stdev in m)."""
+    from .backend.sectors import uncertainty_grid
+    from .outputs.plots import plot_uncertainty_grid
+
+    res = replay(dump)
+    n = len(res.problem.sensors)
+    if sensors is not None:
+        i, j = sensors
+        if not (0 <= i < n and 0 <= j < n and i != j):
+            raise InputError(f"--sensors {i},{j}: need two different indices in 0..{n - 1}")
+    else:
+        i = res.problem.reference
+        j = max((k for k in range(n) if k != i), key=lambda k: np.trace(res.covariance_block(k)[3:, 3:]))
+    xs, ys, stdev = uncertainty_grid(res, i, j, radius=radius, gridn=gridn, z=z)
+    title = f"{res.problem.sensor_name(i)} -> {res.problem.sensor_name(j)}"
+    plot_uncertainty_grid(stdev, xs, ys, png, title=title)
+    return title, stdev
+
+
+def simulate_drive(out, *, duration_s: float = 60.0, small: bool = False, format: str = "ros1",
+                   layout: str = "velodyne", seed: int = 0, force: bool = False):
+    """`clcgraph simulate-drive`: a street drive into ``out`` (bag + truth.yaml); returns (the
+    bag's path, the DrivePlan)."""
+    from .outputs.atomic import atomic_dir
+    from .sim.drive import DrivePlan, simulate_drive as _simulate, write_drive_bag, write_truth
+
+    check_out_dir(out, kind="session", force=force)  # before the ray casting
+    plan = DrivePlan.small(duration_s=duration_s) if small else DrivePlan(duration_s=duration_s)
+    drive = _simulate(plan, seed=seed, progress=lambda items, desc: progress(items, desc=desc, total=len(items), unit="scan"))
+    with atomic_dir(Path(out), kind="session", force=force) as tmp:
+        bag = tmp / ("drive.bag" if format == "ros1" else "drive")
+        write_drive_bag(drive, bag, format=format, layout=layout)
+        write_truth(drive, tmp / "truth.yaml")
+    return Path(out) / bag.name, plan

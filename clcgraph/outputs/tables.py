@@ -3,6 +3,7 @@
 SYNOPSIS
     print(summary_table(result))            # pose, 1-sigma and observations per sensor
     print(replay_lines(result))             # `clcgraph replay`: one line a sensor, the noise
+    print(bag_table(info, clouds))          # `clcgraph show-bag`; segmentation_line, detection_line, ...
     print(truth_table(errors, "truth.yaml"))  # `clcgraph demo`: errors against the simulator's truth
 """
 
@@ -11,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..geometry import pose_stdevs, rpy_deg_from_R, R_from_r
-from ..types import Result
+from ..types import Rejected, Result
 
 
 def _columns(rows) -> list[str]:
@@ -90,3 +91,47 @@ def truth_table(errors: list[dict], truth_path) -> str:
         out.append(f"{e['topic']:34s} {e['rotation_deg']:15.3f} {e['sigma_deg']:8.3f} {e['translation_mm']:17.1f} "
                    f"{e['sigma_mm']:8.1f}")
     return "\n".join(out)
+
+
+# ---------------------------------------------------------------- looking at bags
+
+_DATATYPES = {1: "int8", 2: "uint8", 3: "int16", 4: "uint16", 5: "int32", 6: "uint32", 7: "float32", 8: "float64"}
+
+
+def bag_table(info, clouds: dict) -> str:
+    """`clcgraph show-bag`: a bag's topics (type, count, time span), then each PointCloud2
+    topic's layout from its first message (``clouds``: topic -> raw message); a blank line last."""
+    out = [f"{info.path}: {info.message_count} messages, {info.duration_s:.3f} s"]
+    rows = [("topic", "type", "count", "first [s]", "last [s]", "span [s]")]
+    for t in info.topics:
+        seen = t.first_ns is not None
+        rows.append((t.topic, t.msgtype, str(t.count), f"{t.first_ns * 1e-9:.3f}" if seen else "-",
+                     f"{t.last_ns * 1e-9:.3f}" if seen else "-", f"{(t.last_ns - t.first_ns) * 1e-9:.3f}" if seen else "-"))
+    out += ["  " + line for line in _columns(rows)]
+    for topic, m in clouds.items():
+        out.append(f"  {topic}: PointCloud2 {m.height} x {m.width}, point_step {m.point_step}, "
+                   f"row_step {m.row_step}, {'big' if m.is_bigendian else 'little'} endian, frame {m.header.frame_id}")
+        for fld in m.fields:
+            dt = _DATATYPES.get(int(fld.datatype), f"datatype {fld.datatype}")
+            out.append(f"      {fld.name:<14} offset {fld.offset:>3}  {dt}" + (f" x{fld.count}" if fld.count != 1 else ""))
+    return "\n".join(out) + "\n"
+
+
+def segmentation_line(scan, r) -> str:
+    """`clcgraph segment`: one scan's board (points, distance, normal, RMS) or why not."""
+    t = f"{scan.stamp_ns * 1e-9:.6f}"
+    if isinstance(r, Rejected):
+        return f"{t} rejected: {r.reason}"
+    return (f"{t} board: {len(r.indices)} points at {np.linalg.norm(r.points.mean(axis=0)):.2f} m, normal "
+            f"{np.round(r.plane[:3], 3).tolist()}, RMS {r.rms_m * 1e3:.1f} mm")
+
+
+def detection_line(image, r) -> str:
+    """`clcgraph detect`: one image's corners found, or why not."""
+    t = f"{image.stamp_ns * 1e-9:.6f}"
+    return f"{t} rejected: {r.reason}" if isinstance(r, Rejected) else f"{t} found {len(r)} corners"
+
+
+def found_count(found: list, what: str) -> str:
+    """'3/5 scans with a board': how many of (item, result) pairs found something."""
+    return f"{sum(not isinstance(r, Rejected) for _, r in found)}/{len(found)} {what}"

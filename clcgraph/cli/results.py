@@ -1,0 +1,91 @@
+"""Commands that use a calibration: format-for-ros, show-aligned, show-uncertainty."""
+
+from __future__ import annotations
+
+from .common import add_command, add_force, in_range, topics_list
+
+
+
+def _bag_and_calibration(p, bag_help: str) -> None:
+    p.add_argument("bag", help=bag_help)
+    p.add_argument("--calibration", required=True, metavar="DIR", help="the --out directory of clcgraph solve or targetless")
+
+
+def _format_for_ros(args) -> int:
+    from .. import api
+    from ..outputs.ros import ros_yaml
+
+    ros, written = api.format_for_ros(args.bag, args.calibration, base_frame=args.base_frame, out=args.out,
+                                      force=args.force)
+    for path in written:
+        print(f"wrote {path}")
+    if not args.out:
+        print(ros_yaml(ros), end="")
+    return 0
+
+
+def add_format_for_ros(sub):
+    p = add_command(sub, "format-for-ros", run=_format_for_ros,
+                    help="base_link-relative transforms of a calibration, for ROS (YAML, URDF, launch)")
+    _bag_and_calibration(p, "a bag with /tf_static (the vehicle's frames) and the sensor topics")
+    p.add_argument("--base-frame", default="base_link", help="parent frame of the published transforms")
+    p.add_argument("--out", default=None, metavar="DIR", help="write ros.yaml, URDF and launch snippets here")
+    add_force(p)
+
+
+def _show_aligned(args) -> int:
+    from .. import api
+
+    if args.threshold_range is not None:
+        in_range(args.threshold_range, "--threshold-range", 0, 1e5, low_open=True)
+    aligned = api.show_aligned(args.bag, args.calibration, topics=topics_list(args.topics) if args.topics else None,
+                               png=args.png, threshold_range=args.threshold_range)
+    print(f"wrote {args.png}")
+    if args.viewer:  # after the PNG is written and reported: a missing display fails only the viewer
+        api.view_clouds(aligned, title="clcgraph show-aligned")
+    return 0
+
+
+def add_show_aligned(sub):
+    p = add_command(sub, "show-aligned", run=_show_aligned,
+                    help="LIDAR clouds of a bag aligned by a calibration, rendered to PNG")
+    _bag_and_calibration(p, "the bag to show (its first scan of each LIDAR)")
+    p.add_argument("--topics", default=None, help="comma-separated LIDAR topics (default: every LIDAR of the calibration)")
+    p.add_argument("--png", default="aligned.png", help="output picture")
+    p.add_argument("--threshold-range", type=float, default=None, metavar="M", help="drop points farther than this")
+    p.add_argument("--viewer", action="store_true", help="also open the Open3D viewer (needs a display)")
+
+
+def _show_uncertainty(args) -> int:
+    from .. import api
+    from ..errors import InputError
+
+    in_range(args.radius, "--radius", 0, 1e5, low_open=True)
+    in_range(args.gridn, "--gridn", 2, 2000)
+    in_range(args.z, "--z", -1e5, 1e5)
+    sensors = None
+    if args.sensors:
+        try:
+            sensors = tuple(int(x) for x in args.sensors.split(","))
+        except ValueError:
+            sensors = ()
+        if len(sensors) != 2:
+            raise InputError(f"--sensors {args.sensors!r}: expected two indices I,J")
+    title, stdev = api.uncertainty_grid_png(args.dump, args.png, sensors=sensors, radius=args.radius,
+                                            gridn=args.gridn, z=args.z)
+    print(f"{title}: worst-direction stdev {1e3 * stdev.min():.2f} .. {1e3 * stdev.max():.2f} mm; wrote {args.png}")
+    return 0
+
+
+def add_show_uncertainty(sub):
+    p = add_command(sub, "show-uncertainty", run=_show_uncertainty,
+                    help="worst-direction uncertainty of points moved between two sensors, over a grid (PNG)")
+    p.add_argument("dump", help="problem.npz of a calibration (its --out directory or the file)")
+    p.add_argument("--sensors", default=None, metavar="I,J", help="sensor indices (default: lidar0 and the worst other sensor)")
+    p.add_argument("--radius", type=float, default=20.0, help="half-width of the grid (m)")
+    p.add_argument("--gridn", type=int, default=41, help="grid points per side")
+    p.add_argument("--z", type=float, default=0.0, help="height of the grid in lidar0 (m)")
+    p.add_argument("--png", default="uncertainty.png", help="output picture")
+
+
+COMMANDS = (add_format_for_ros, add_show_aligned, add_show_uncertainty)
