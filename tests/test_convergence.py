@@ -125,7 +125,7 @@ def test_an_unconverged_final_solve_that_still_moves_is_a_solve_error(monkeypatc
 
 def test_targetless_graph_reports_convergence(caplog):
     from clcgraph import geometry as geo
-    from clcgraph.targetless.deskew import exp
+    from clcgraph.geometry import T_exp as exp
     from clcgraph.targetless.keyframe_graph import fuse
     from clcgraph.targetless.registration import FrameMeasurement
 
