@@ -37,6 +37,9 @@ RULES: dict[str, tuple[str, ...]] = {
     "clcgraph.sim": ("gtsam", "clcgraph.backend", "clcgraph.factors", "clcgraph.targetless", *_LIBRARY),
     "clcgraph.cameras": ("clcgraph.frontend", "clcgraph.backend", "clcgraph.outputs", *_LIBRARY),
     "clcgraph.planes": _LIBRARY,
+    # the command parses, calls the API and prints: it wires no stage itself
+    "clcgraph.cli": ("gtsam", "open3d", "rosbags", "clcgraph.frontend", "clcgraph.backend", "clcgraph.factors",
+                     "clcgraph.targetless"),
     "clcgraph.progress": ("clcgraph",),
     "clcgraph.timing": ("clcgraph",),
 }
