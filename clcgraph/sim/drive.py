@@ -126,10 +126,8 @@ def base_pose(plan: DrivePlan, t: np.ndarray) -> np.ndarray:
     a = np.radians(plan.body_tilt_deg)
     roll = a * (0.6 * np.sin(2 * np.pi * t / 2.3) + 0.4 * np.sin(2 * np.pi * t / 3.7 + 1.0))
     pitch = a * (0.6 * np.sin(2 * np.pi * t / 2.9 + 0.5) + 0.4 * np.sin(2 * np.pi * t / 4.3 + 2.0))
-    from scipy.spatial.transform import Rotation
-
     out = np.zeros((len(t), 4, 4))
-    out[:, :3, :3] = Rotation.from_euler("ZYX", np.stack([yaw, pitch, roll], axis=1)).as_matrix()
+    out[:, :3, :3] = geo.R_from_rpy(np.stack([roll, pitch, yaw], axis=1))
     out[:, 0, 3], out[:, 1, 3], out[:, 3, 3] = x, y, 1.0
     return out
 

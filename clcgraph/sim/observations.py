@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import cameras
-from ..geometry import R_from_r, compose_rt, invert_rt, rt_from_R_t, transform
+from ..geometry import R_from_r, R_from_rpy, compose_rt, invert_rt, rt_from_R_t, transform
 from ..types import BoardGeometry, CameraBoardObservation, LidarBoardObservation, Problem, Sensor
 
 T0_NS = 1_700_000_000_000_000_000
@@ -52,9 +52,7 @@ class Truth:
 
 
 def _rt(yaw_deg=0.0, pitch_deg=0.0, roll_deg=0.0, xyz=(0.0, 0.0, 0.0), base=np.eye(3)):
-    from scipy.spatial.transform import Rotation
-
-    R = Rotation.from_euler("ZYX", [yaw_deg, pitch_deg, roll_deg], degrees=True).as_matrix() @ base
+    R = R_from_rpy(np.radians([roll_deg, pitch_deg, yaw_deg])) @ base
     return rt_from_R_t(R, np.asarray(xyz, float))
 
 
