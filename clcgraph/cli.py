@@ -807,6 +807,15 @@ def main(argv: list[str] | None = None) -> int:
         return _failure(args, e, received)
 
 
+def _forget_unhandled_keyboard_interrupt() -> None:
+    """CPython marks a KeyboardInterrupt that leaves an exec()/eval() of a *string* as unhandled
+    (dataclasses, namedtuple and rosbags' message serializers run such code), even when a caller
+    catches it, and under `python -m` (unlike a script or -c) the interpreter then ends the process
+    by SIGINT instead of the exit code we return. Every exec() of a string clears that mark first;
+    the interruption was handled here, so clear it."""
+    exec("")  # noqa: S102 - an empty string: runs nothing
+
+
 def _failure(args, e: BaseException, received: list) -> int:
     """One line on stderr for a command that did not finish (a traceback only with --verbose)."""
     from .errors import ClcgraphError
@@ -817,6 +826,7 @@ def _failure(args, e: BaseException, received: list) -> int:
         signum = received[0] if received else signal.SIGINT
         left = "; nothing half-written in --out" if getattr(args, "out", None) else ""
         print(f"clcgraph {args.command}: interrupted by {signal.Signals(signum).name}{left}", file=sys.stderr)
+        _forget_unhandled_keyboard_interrupt()
         return _EXIT_ON_SIGNAL[signum]
     if isinstance(e, ClcgraphError):
         if args.verbose:
