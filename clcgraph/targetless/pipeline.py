@@ -30,6 +30,7 @@ from ..outputs.atomic import atomic_dir
 from ..outputs.report import convergence_html
 from ..outputs.results import COORDINATES, stdev_fields
 from .calibration_frames import make_calibration_frames, nearest_to_keyframes
+from .determinism import single_threaded_blas
 from .graph import fuse
 from .mapping import build_map
 from .registration import deskew_sources, ensemble, keyframe_edges, prepare_frames, refine_per_frame, score
@@ -80,6 +81,7 @@ def _stage(timings, name, memory=None):
     return _T()
 
 
+@single_threaded_blas()
 def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_topics, T_base_sensor_guess: dict,
                                base_frame: str | None = None, config: Config | None = None, frames: dict | None = None,
                                progress=None, counts: dict | None = None) -> TargetlessResult:
@@ -373,6 +375,7 @@ def _alignment_plots(res: TargetlessResult, topic: str, fds, d: Path, o) -> list
     return [f"aligned_{name}.png", f"distances_{name}.png"]
 
 
+@single_threaded_blas()
 def write_targetless_outputs(res: TargetlessResult, out_dir, *, config: Config | None = None,
                              force: bool = False) -> dict:
     """Write calibration.yaml, static_tf.txt, urdf_snippet.xml, report.html (+ PNGs) atomically into out_dir
