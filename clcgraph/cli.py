@@ -788,8 +788,20 @@ def main(argv: list[str] | None = None) -> int:
     # 2-core machine, starve the Python code between registrations (mapping ran 15-20 % slower).
     # A default for this process only, set before any OpenMP runtime loads; a user's value wins.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    received: list[int] = []
+    # the handlers go in first: a Ctrl-C while the parser's imports load is one line too
+    words = [w for w in (sys.argv[1:] if argv is None else argv) if not w.startswith("-")]
+    args = argparse.Namespace(command=words[0] if words else "", verbose=False)  # until parsed
+    try:
+        with _signals_raise(received):
+            args = build_parser().parse_args(argv)
+            _set_up_logging(args)
+            return int(args.func(args) or 0)
+    except (KeyboardInterrupt, _Terminated, Exception) as e:
+        return _failure(args, e, received)
+
+
+def _set_up_logging(args) -> None:
     # progress notes are for someone watching: piped or logged runs get warnings and errors only
     quiet = args.quiet or not sys.stderr.isatty()
     level = logging.DEBUG if args.verbose else logging.WARNING if quiet else logging.INFO
@@ -797,14 +809,6 @@ def main(argv: list[str] | None = None) -> int:
     from . import progress
 
     progress.set_enabled(not args.quiet)
-    from .errors import ClcgraphError
-
-    received: list[int] = []
-    try:
-        with _signals_raise(received):
-            return int(args.func(args) or 0)
-    except (KeyboardInterrupt, _Terminated, Exception) as e:
-        return _failure(args, e, received)
 
 
 def _forget_unhandled_keyboard_interrupt() -> None:

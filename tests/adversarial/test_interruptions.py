@@ -160,8 +160,9 @@ def test_a_signal_exits_in_one_line_and_keeps_the_previous_output(tmp_path, rig,
 
 
 # Installed as sitecustomize in the child: the first exec() of a string once clcgraph's signal
-# handlers are in place (rosbags compiles its message serializers that way) gets a SIGINT while
-# its code runs, so the KeyboardInterrupt leaves that exec(). CPython then marks the interrupt
+# handlers are in place (a dataclass of the parser's imports at start-up; rosbags compiles its
+# message serializers that way later) gets a SIGINT while its code runs, so the
+# KeyboardInterrupt leaves that exec(). CPython then marks the interrupt
 # as unhandled and, under `python -m`, used to end the process by SIGINT (-2) instead of 130.
 _SIGINT_INSIDE_EXEC = r"""
 import builtins, signal
