@@ -62,7 +62,20 @@ def main(argv: list[str] | None = None) -> int:
     # 2-core machine, starve the Python code between registrations (mapping ran 15-20 % slower).
     # A default for this process only, set before any OpenMP runtime loads; a user's value wins.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    args = build_parser().parse_args(argv)
+    received: list[int] = []
+    # the handlers go in first: a Ctrl-C while the parser's imports load is one line too
+    words = [w for w in (sys.argv[1:] if argv is None else argv) if not w.startswith("-")]
+    args = argparse.Namespace(command=words[0] if words else "", verbose=False)  # until parsed
+    try:
+        with _signals_raise(received):
+            args = build_parser().parse_args(argv)
+            _set_up_logging(args)
+            return int(args.func(args) or 0)
+    except (KeyboardInterrupt, _Terminated, Exception) as e:
+        return _failure(args, e, received)
+
+
+def _set_up_logging(args) -> None:
     # progress notes are for someone watching: piped or logged runs get warnings and errors only
     quiet = args.quiet or not sys.stderr.isatty()
     level = logging.DEBUG if args.verbose else logging.WARNING if quiet else logging.INFO
@@ -70,12 +83,15 @@ def main(argv: list[str] | None = None) -> int:
     from .. import progress
 
     progress.set_enabled(not args.quiet)
-    received: list[int] = []
-    try:
-        with _signals_raise(received):
-            return int(args.func(args) or 0)
-    except (KeyboardInterrupt, _Terminated, Exception) as e:
-        return _failure(args, e, received)
+
+
+def _forget_unhandled_keyboard_interrupt() -> None:
+    """CPython marks a KeyboardInterrupt that leaves an exec()/eval() of a *string* as unhandled
+    (dataclasses, namedtuple and rosbags' message serializers run such code), even when a caller
+    catches it, and under `python -m` (unlike a script or -c) the interpreter then ends the process
+    by SIGINT instead of the exit code we return. Every exec() of a string clears that mark first;
+    the interruption was handled here, so clear it."""
+    exec("")  # noqa: S102 - an empty string: runs nothing
 
 
 def _failure(args, e: BaseException, received: list) -> int:
@@ -88,6 +104,7 @@ def _failure(args, e: BaseException, received: list) -> int:
         signum = received[0] if received else signal.SIGINT
         left = "; nothing half-written in --out" if getattr(args, "out", None) else ""
         print(f"clcgraph {args.command}: interrupted by {signal.Signals(signum).name}{left}", file=sys.stderr)
+        _forget_unhandled_keyboard_interrupt()
         return _EXIT_ON_SIGNAL[signum]
     if isinstance(e, ClcgraphError):
         if args.verbose:

@@ -23,6 +23,7 @@ import numpy as np
 
 from ..errors import DegenerateError, DataError
 from ..geometry import T_exp
+from . import gicp
 from .deskew import deskew, twist_between
 
 log = logging.getLogger(__name__)
@@ -66,23 +67,21 @@ def crop_range(points: np.ndarray, valid: np.ndarray, rmin: float, rmax: float) 
 
 
 def voxel_down(points: np.ndarray, leaf: float) -> np.ndarray:
-    """(M,3) voxel-grid centroids."""
+    """(M,3) voxel-grid centroids (single-threaded: the same points in the same order every run)."""
     import small_gicp
 
     if len(points) == 0:
         return points
-    return np.asarray(small_gicp.voxelgrid_sampling(np.ascontiguousarray(points, float), leaf).points())[:, :3]
+    cloud = small_gicp.voxelgrid_sampling(np.ascontiguousarray(points, float), leaf, num_threads=1)
+    return np.asarray(cloud.points())[:, :3]
 
 
 def register(target, target_tree, source_pts: np.ndarray, T0: np.ndarray, *, kind: str = "GICP",
              max_corr: float = 1.0, iters: int = 30, threads: int = 2, leaf: float = 0.2):
     """small_gicp registration of (M,3) source points to a preprocessed target; returns RegistrationResult."""
-    import small_gicp
-
-    src, _ = small_gicp.preprocess_points(np.ascontiguousarray(source_pts, float), leaf, num_neighbors=10,
-                                          num_threads=threads)
-    return small_gicp.align(target, src, target_tree, init_T_target_source=T0, registration_type=kind,
-                            max_correspondence_distance=max_corr, num_threads=threads, max_iterations=iters)
+    src, _ = gicp.preprocess(source_pts, leaf, threads=threads)
+    return gicp.align(target, src, target_tree, init_T_target_source=T0, registration_type=kind,
+                      max_correspondence_distance=max_corr, max_iterations=iters)
 
 
 def voxel_pick(points: np.ndarray, leaf: float) -> np.ndarray:
@@ -102,24 +101,18 @@ class LocalMap:
     Gaussian voxel map (VGICP, the NDT-like option; voxel size ``mapper_resolution``)."""
 
     def __init__(self, points: np.ndarray, leaf: float, o):
-        import small_gicp
-
         self.o = o
-        self.cloud, self.tree = small_gicp.preprocess_points(np.ascontiguousarray(points, float), leaf,
-                                                             num_neighbors=10, num_threads=o.mapper_num_threads)
+        self.cloud, self.tree = gicp.preprocess(points, leaf, threads=o.mapper_num_threads)
         self.voxels = None
         if o.mapper_registrator in ("VGICP", "NDT"):
-            self.voxels = small_gicp.GaussianVoxelMap(o.mapper_resolution)
-            self.voxels.insert(self.cloud)
+            self.voxels = gicp.voxel_map(self.cloud, o.mapper_resolution)
 
     def align(self, src, T0: np.ndarray, max_corr: float):
-        import small_gicp
-
         kw = dict(init_T_target_source=T0, max_correspondence_distance=max_corr,
-                  num_threads=self.o.mapper_num_threads, max_iterations=self.o.mapper_max_iterations)
+                  max_iterations=self.o.mapper_max_iterations)
         if self.voxels is not None:
-            return small_gicp.align(self.voxels, src, **kw)
-        return small_gicp.align(self.cloud, src, self.tree, registration_type="GICP", **kw)
+            return gicp.align(self.voxels, src, **kw)
+        return gicp.align(self.cloud, src, self.tree, registration_type="GICP", **kw)
 
 
 def degeneracy(H: np.ndarray) -> float:
@@ -184,10 +177,8 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
                 f0 = res.frames[0]
                 f0.points, f0.twist = deskew(first_raw[0], first_raw[1], xi).astype(np.float32), xi.copy()
                 local = LocalMap(f0.points, map_leaf, o)
-            import small_gicp
-
-            src, _ = small_gicp.preprocess_points(np.ascontiguousarray(deskew(raw[pick], None if tau is None else tau[pick], xi)),
-                                                  leaf_in, num_neighbors=10, num_threads=o.mapper_num_threads)
+            src, _ = gicp.preprocess(deskew(raw[pick], None if tau is None else tau[pick], xi), leaf_in,
+                                     threads=o.mapper_num_threads)
             fine = max(o.mapper_max_correspondence_distance, 3 * leaf_in)
             r = local.align(src, T, fine)
             if it == 0 and (not r.converged or r.num_inliers < 0.5 * src.size()):

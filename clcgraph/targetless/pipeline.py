@@ -29,6 +29,7 @@ from ..errors import DegenerateError, InputError
 from ..timing import StageClock
 from ..types import Problem, Result, Sensor, TargetlessRun
 from .calibration_frames import make_calibration_frames, nearest_to_keyframes
+from .determinism import single_threaded_blas
 from .keyframe_graph import fuse
 from .mapping import build_map
 from .registration import deskew_sources, ensemble, keyframe_edges, prepare_frames, refine_per_frame, score
@@ -37,6 +38,7 @@ from .selection import adapt_to_drive, select_frames
 log = logging.getLogger(__name__)
 
 
+@single_threaded_blas()
 def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_topics, T_base_sensor_guess: dict,
                                base_frame: str | None = None, config: Config | None = None, frames: dict | None = None,
                                progress=None, counts: dict | None = None) -> Result:

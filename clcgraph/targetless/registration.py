@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import gicp
 from .deskew import deskew
 from .mapping import register, voxel_down
 
@@ -103,7 +104,6 @@ def _adjoint_to_sensor(T_lidar0_sensor: np.ndarray, xi: np.ndarray) -> np.ndarra
 
 def prepare_frames(chosen, mp, T_guess: np.ndarray, o, *, deskew_on: bool = True, progress=None) -> list:
     """Dense targets and deskewed, cropped sources for the selected calibration frames."""
-    import small_gicp
     from scipy.spatial import cKDTree
 
     out = []
@@ -117,8 +117,7 @@ def prepare_frames(chosen, mp, T_guess: np.ndarray, o, *, deskew_on: bool = True
         if o.crop_z_calibration_pointclouds:
             zmax = (src @ T_guess[:3, :3].T + T_guess[:3, 3])[:, 2].max() + o.crop_z_calibration_pointclouds_value
             tgt = tgt[tgt[:, 2] <= zmax]
-        t, tree = small_gicp.preprocess_points(np.ascontiguousarray(tgt), max(o.leaf_size_dense_map, 0.02),
-                                               num_neighbors=10, num_threads=o.mapper_num_threads)
+        t, tree = gicp.preprocess(tgt, max(o.leaf_size_dense_map, 0.02), threads=o.mapper_num_threads)
         tpts = np.asarray(t.points())[:, :3]
         out.append(FrameData(cf, tpts, src, t, tree, cKDTree(tpts), parts, raw_pts=raw, raw_time=tau))
         if progress is not None:
@@ -147,12 +146,11 @@ def score(frames, T: np.ndarray, o, *, sub: int = 4) -> float:
 
 
 def _run(fd, T0, kind, corr, o, leaf):
-    if kind == "VGICP":  # needs a voxel map: the raw-array overload builds it
-        import small_gicp
-
-        return small_gicp.align(fd.target_pts, fd.source_pts, T0, registration_type="VGICP", voxel_resolution=corr,
-                                downsampling_resolution=leaf, max_correspondence_distance=corr,
-                                num_threads=o.mapper_num_threads, max_iterations=min(o.solver_iterations, 60)).T_target_source
+    if kind == "VGICP":  # needs a voxel map of the target at the correspondence distance
+        tgt, _ = gicp.preprocess(fd.target_pts, leaf, threads=o.mapper_num_threads)
+        src, _ = gicp.preprocess(fd.source_pts, leaf, threads=o.mapper_num_threads)
+        return gicp.align(gicp.voxel_map(tgt, corr), src, init_T_target_source=T0, max_correspondence_distance=corr,
+                          max_iterations=min(o.solver_iterations, 60)).T_target_source
     r = register(fd.target, fd.tree, fd.source_pts, T0, kind=kind, max_corr=corr, iters=min(o.solver_iterations, 60),
                  threads=o.mapper_num_threads, leaf=leaf)
     return r.T_target_source
@@ -316,8 +314,6 @@ def keyframe_edges(mp, positions, o, *, cache: dict | None = None, max_cond: flo
     (KeyframeEdge list); a failed or degenerate registration gives no edge. The mapping's
     relative poses are the initial guesses (millimetres off), so one fine GICP pass suffices.
     ``cache``: (a, b) -> KeyframeEdge or None, shared between calibration LIDARs."""
-    import small_gicp
-
     from .keyframe_graph import KeyframeEdge
     from .mapping import degeneracy
 
@@ -326,14 +322,12 @@ def keyframe_edges(mp, positions, o, *, cache: dict | None = None, max_cond: flo
     positions = sorted(set(int(p) for p in positions))
     pairs = [(a, b) for a in positions for b in (a + 1, a + 2) if b in positions and (a, b) not in cache]
     needed = sorted({p for ab in pairs for p in ab})
-    clouds = {p: small_gicp.preprocess_points(np.ascontiguousarray(submap(mp, p)), leaf, num_neighbors=10,
-                                              num_threads=o.mapper_num_threads) for p in needed}
+    clouds = {p: gicp.preprocess(submap(mp, p), leaf, threads=o.mapper_num_threads) for p in needed}
     pose = {p: mp.frames[mp.keyframe_ids[p]].T_map_lidar for p in needed}
     for a, b in pairs:
-        r = small_gicp.align(clouds[a][0], clouds[b][0], clouds[a][1],
-                             init_T_target_source=np.linalg.inv(pose[a]) @ pose[b], registration_type="GICP",
-                             max_correspondence_distance=o.max_corr_dist_fine, num_threads=o.mapper_num_threads,
-                             max_iterations=min(o.solver_iterations, 60))
+        r = gicp.align(clouds[a][0], clouds[b][0], clouds[a][1],
+                       init_T_target_source=np.linalg.inv(pose[a]) @ pose[b], registration_type="GICP",
+                       max_correspondence_distance=o.max_corr_dist_fine, max_iterations=min(o.solver_iterations, 60))
         H = np.asarray(r.H)
         ok = r.converged and r.num_inliers >= min_inlier_share * clouds[b][0].size() and degeneracy(H) <= max_cond
         cache[a, b] = KeyframeEdge(a, b, np.asarray(r.T_target_source), H) if ok else None

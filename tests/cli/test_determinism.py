@@ -1,10 +1,13 @@
 """The same inputs give the same bytes: `clcgraph solve` in fresh processes with different
 PYTHONHASHSEED, BLAS/OpenMP thread counts and mrgingham ``detection.jobs`` writes a
 byte-identical calibration.yaml and problem.npz (whose only difference may be the recorded
-``detection.jobs`` setting itself)."""
+``detection.jobs`` setting itself); `clcgraph targetless` with different PYTHONHASHSEED, BLAS /
+OpenMP threads and ``targetless.mapper_num_threads`` writes byte-identical files (but for the
+wall-clock timings and the recorded thread setting)."""
 
 import json
 import os
+import re
 import subprocess
 import sys
 import zipfile
@@ -66,3 +69,46 @@ def test_solve_is_byte_identical_across_processes_threads_and_hash_seeds(tmp_pat
     meta_b = json.loads(str(np.load(b / "problem.npz")["meta"]))
     assert meta_a["config"]["detection"].pop("jobs") == 1 and meta_b["config"]["detection"].pop("jobs") == 2
     assert meta_a == meta_b
+
+
+# Fewer, coarser points and iterations than the defaults: the test is about bytes, not accuracy,
+# and every multi-threaded step (mapping, dense targets, the registration ensemble, per-frame
+# refinement, keyframe edges, graph, ground) still runs.
+_FAST = ["targetless.mapping_max_source_points=4000", "targetless.lidar_calibration_max_frames=2",
+         "targetless.leaf_size_dense_map=0.1", "targetless.leaf_size_input=0.2", "targetless.solver_iterations=20"]
+
+
+def _start_targetless(bag, out, *, threads: int, hashseed: str) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONHASHSEED": hashseed, "OMP_NUM_THREADS": str(threads),
+           "OPENBLAS_NUM_THREADS": str(threads)}
+    sets = [a for kv in [*_FAST, f"targetless.mapper_num_threads={threads}"] for a in ("--set", kv)]
+    cmd = [sys.executable, "-m", "clcgraph", "-q", "targetless", "--bag", str(bag), "--mapping-topic", "/top/points",
+           "--calibration-topics", "/side/points", "--base-frame", "base_link", "--out", str(out), *sets]
+    return subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
+@pytest.mark.slow
+def test_targetless_is_byte_identical_across_processes_threads_and_hash_seeds(tmp_path):
+    """small_gicp's threaded downsampling and registration reductions, and OpenBLAS's threaded dot
+    products, changed the last digits with the thread count (targetless/gicp.py, determinism.py)."""
+    drive = tmp_path / "drive"
+    assert main(["-q", "simulate-drive", "--out", str(drive), "--duration", "5", "--small", "--seed", "1"]) == 0
+    a, b = tmp_path / "a", tmp_path / "b"
+    runs = [_start_targetless(drive / "drive.bag", a, threads=1, hashseed="0"),
+            _start_targetless(drive / "drive.bag", b, threads=2, hashseed="4242")]
+    for p in runs:  # both at once: the two cores are shared either way
+        _, err = p.communicate(timeout=600)
+        assert p.returncode == 0, err
+    names = sorted(f.name for f in a.iterdir())
+    assert names == sorted(f.name for f in b.iterdir())
+    assert {"calibration.yaml", "static_tf.txt", "urdf_snippet.xml", "report.html", "map_top.png"} <= set(names)
+    for name in names:
+        ba, bb = (a / name).read_bytes(), (b / name).read_bytes()
+        if name == "timings.yaml":  # wall-clock: the one file allowed to differ
+            continue
+        if name == "report.html":  # its timings table is wall-clock too
+            ba, bb = (re.sub(rb"<h2>timings \[s\]</h2><table.*?</table>", b"", x) for x in (ba, bb))
+        if name == "config.resolved.yaml":  # records the thread setting it ran with
+            ba, bb = (x.replace(b"mapper_num_threads: %d" % n, b"") for x, n in ((ba, 1), (bb, 2)))
+        assert ba == bb, name
+    assert b"time_s" not in (a / "calibration.yaml").read_bytes()
