@@ -35,8 +35,8 @@ HOWTO = {
     "extrinsics and projected through its lens model, on the camera's own image. The dashed outline is the board's "
     "edge fitted to the corners the camera detected (no extrinsics involved). Right extrinsics put the board's "
     "points inside it, reaching its edges, and the walls' and the ground's points on the walls and the ground; "
-    "a shift or rotation shows as points spilling past one edge of the board. The title gives the worst spill, in "
-    "px and in sigmas of the calibration's own uncertainty (about 3 or less is right).",
+    "a shift or rotation shows as points spilling past one edge of the board. The caption gives the worst spill, "
+    "in px and in sigmas of the calibration's own uncertainty (about 3 or less is right).",
     "clouds-before-after.png": "The LIDARs' clouds of one snapshot in the lidar0 frame, cropped to the board and "
     "what is around it, with the nominal /tf_static extrinsics (top row, when the bag has them) and the solved "
     "ones. Each LIDAR has its colour; where they overlap, the colours must coincide: one wall, one board. The "
@@ -147,7 +147,21 @@ table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #bbb;padding
 th{background:#eee}img{max-width:100%;border:1px solid #ddd}.howto{background:#f4f8ff;padding:.5em 1em;border-left:4px solid #58f}
 code{background:#f3f3f3}.warn{background:#fff3f0;padding:.5em 1em;border-left:4px solid #e43}
 .ok{background:#f0fff3;padding:.5em 1em;border-left:4px solid #2a4}
-.verdict{font-size:130%;padding:.6em 1em;margin:.5em 0}pre{background:#f6f6f6;padding:.5em;overflow-x:auto;font-size:85%}"""
+.verdict{font-size:130%;padding:.6em 1em;margin:.5em 0}
+pre{background:#f6f6f6;padding:.5em;white-space:pre-wrap;word-break:break-all;font-size:85%}"""
+
+# section headings of the figures (file-like names stay the figures' alt texts)
+_HEADINGS = {
+    "lidar-on-camera": "LIDAR points on the camera images",
+    "clouds-before-after.png": "Overlapping LIDAR clouds, before and after",
+    "camera-residuals-and-coverage.png": "Camera reprojection errors and image coverage",
+    "lidar-residuals.png": "LIDAR residuals against range and ring",
+    "residuals-histogram.png": "Residual histograms",
+    "residuals-per-snapshot.png": "Residuals per snapshot",
+    "geometry.png": "Sensor and board geometry",
+    "sectors.png": "Uncertainty and observations per sector",
+    "coverage.png": "Board coverage per LIDAR",
+}
 
 
 def _consistency(result: Result) -> str:
@@ -196,7 +210,8 @@ def _png(fig_fn, *args, **kwargs) -> bytes:
     return buf.getvalue()
 
 
-def _img(name: str, png: bytes) -> str:
+def embed_png(name: str, png: bytes) -> str:
+    """An <img> holding the PNG itself (a data URI): the page needs no other file."""
     return (f"<img src='data:image/png;base64,{base64.b64encode(png).decode('ascii')}' alt='{html.escape(name)}' "
             f"title='{html.escape(name)}'>")
 
@@ -508,12 +523,12 @@ def report_html(result: Result, *, title: str = "clcgraph calibration", inputs: 
     for name, caption, png in figures:
         key = "lidar-on-camera" if name.startswith("lidar-on-camera") else name
         if key not in shown:
-            parts.append(f"<h2>{html.escape(key.removesuffix('.png').replace('-', ' '))}</h2>")
+            parts.append(f"<h2>{html.escape(_HEADINGS.get(key, key))}</h2>")
             parts.append(f"<p class='howto'>{html.escape(HOWTO.get(key, ''))}</p>")
             shown.add(key)
         if caption:
             parts.append(f"<p>{html.escape(caption)}</p>")
-        parts.append(_img(name, png))
+        parts.append(embed_png(name, png))
     parts += ["<h2>Convergence</h2>", convergence_html(result.stats.get("convergence") or {}),
               "<h2>Consistency</h2>", _consistency(result),
               "<h2>Rejections</h2>", _rejections(result), "</body></html>"]
