@@ -47,32 +47,32 @@ def test_lidar_board_points_fall_on_the_cameras_boards(solved):
     result, truth = solved
     rows = ev.lidar_board_in_images(result)
     assert len(rows) >= 16 and {r["camera"] for r in rows} == {2, 3} and {r["lidar"] for r in rows} == {0, 1}
-    # within the calibration's uncertainty: no point beyond the board's outline by more than 4 sigma
-    # (its own pixel sigma: the extrinsics' covariance, the LIDAR's range noise, the camera's noise)
-    worst = max(r["worst_sigma"] for r in rows)
-    assert worst < 4.0, worst
-    assert np.median([r["worst_px"] for r in rows]) < 1.0  # in pixels: typically well under one
+    # within the calibration's uncertainty: no spill beyond the board's outline by more than 4 sigma
+    # (each point's own pixel sigma: the extrinsics' covariance, the LIDAR's range noise, the camera's noise)
+    assert max(r["spill_sigma"] for r in rows) < 4.0
+    assert max(r["worst_px"] / r["sigma_px"] for r in rows) < 4.0  # this simulator's boards have no rim: every point
+    assert np.median([r["spill_px"] for r in rows]) < 1.0  # in pixels: typically well under one
     assert 0.05 < np.median([r["sigma_px"] for r in rows]) < 3.0  # the sigma is a real one, not a floor
     # the truth passes the same check: the metric measures the extrinsics, not the simulator
     exact = ev.lidar_board_in_images(result, rt_lidar0_sensor=truth.rt_lidar0_sensor)
-    assert max(r["worst_px"] / r["sigma_px"] for r in exact) < 4.0
+    assert max(r["spill_px"] / r["sigma_px"] for r in exact) < 4.0
 
 
 def test_the_board_check_fails_on_a_wrong_calibration(solved):
     result, _ = solved
     sd = np.degrees(result.stdev_rt(2)[:3]).max()
     rt = np.array(result.rt_lidar0_sensor)
-    rt[2] = compose_rt(rt[2], np.r_[0.0, np.radians(0.3), 0, 0, 0, 0])  # camera 2 turned 0.3 deg about its y
+    rt[2] = compose_rt(rt[2], np.r_[0.0, np.radians(0.5), 0, 0, 0, 0])  # camera 2 turned 0.5 deg about its y
     rows = ev.lidar_board_in_images(result, rt_lidar0_sensor=rt)
-    assert 0.3 > 4 * sd  # a wrong calibration, by more than its uncertainty
+    assert 0.5 > 6 * sd  # a wrong calibration, by several times its uncertainty
     cam2 = [r for r in rows if r["camera"] == 2]
-    assert max(r["worst_px"] for r in cam2) > 1.5
+    assert max(r["spill_px"] for r in cam2) > 1.5  # a row of points, not a stray one
     # the sigmas of the solved calibration turn the spill into many sigma
     good = {(r["camera"], r["lidar"], r["snapshot"]): r["sigma_px"] for r in ev.lidar_board_in_images(result)}
-    assert max(r["worst_px"] / good[r["camera"], r["lidar"], r["snapshot"]] for r in cam2) > 4.0
+    assert max(r["spill_px"] / good[r["camera"], r["lidar"], r["snapshot"]] for r in cam2) > 4.0
     # the other camera is untouched
     cam3 = [r for r in rows if r["camera"] == 3]
-    assert max(r["worst_px"] for r in cam3) < 4.0
+    assert max(r["spill_px"] / good[r["camera"], r["lidar"], r["snapshot"]] for r in cam3) < 4.0
 
 
 def test_image_coverage_rule():

@@ -747,10 +747,14 @@ def plot_map_trajectory(points: np.ndarray, trajectory: np.ndarray, path, *, key
     if keyframes is not None and len(keyframes):
         k = np.asarray(keyframes, float).reshape(-1, 3)
         ax.plot(k[:, 0], k[:, 1], "k.", ms=4, label="keyframes")
+    lo, hi = crop_box([p, t], margin_m=1.0)  # a stray far point must not set the scale
+    lo, hi = np.minimum(lo, t.min(0) - 1.0), np.maximum(hi, t.max(0) + 1.0)
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    ax.set_title("map (top view) and trajectory")
+    ax.set_title("map (top view, 1-99 % of the points) and trajectory")
     ax.legend(fontsize=8, loc="upper left")
     return _save(fig, path, dpi=80, tight=False)
 

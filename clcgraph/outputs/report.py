@@ -35,7 +35,8 @@ HOWTO = {
     "extrinsics and projected through its lens model, on the camera's own image. The dashed outline is the board's "
     "edge fitted to the corners the camera detected (no extrinsics involved). Right extrinsics put the board's "
     "points inside it, reaching its edges, and the walls' and the ground's points on the walls and the ground; "
-    "a shift or rotation shows as points spilling past one edge of the board. The caption gives the worst spill, "
+    "a shift or rotation shows as a row of points spilling past one edge of the board. The caption gives the "
+    "spill (how far past the outline the third-farthest point lies: one or two edge returns hit the board's rim), "
     "in px and in sigmas of the calibration's own uncertainty (about 3 or less is right).",
     "clouds-before-after.png": "The LIDARs' clouds of one snapshot in the lidar0 frame, cropped to the board and "
     "what is around it, with the nominal /tf_static extrinsics (top row, when the bag has them) and the solved "
@@ -217,8 +218,12 @@ def embed_png(name: str, png: bytes) -> str:
 
 
 def _snapshot_name(k, inputs) -> str:
-    src = (inputs.sources.get(k) if inputs is not None else None)
-    return f"snapshot {k}" + (f" ({Path(src.split(' period ')[0]).name}{' period ' + src.split(' period ')[1] if ' period ' in src else ''})" if src else "")
+    """'snapshot 7 (pose007.bag)' (the bag's name, and its period for a continuous bag) when known."""
+    src = inputs.sources.get(k) if inputs is not None else None
+    if not src:
+        return f"snapshot {k}"
+    bag, _, period = src.partition(" period ")
+    return f"snapshot {k} ({Path(bag).name}{' period ' + period if period else ''})"
 
 
 def _max_ray_angle(cam) -> float:
@@ -283,6 +288,8 @@ def _scan_clouds(result, inputs, k, *, max_points: int = 30000) -> dict:
 
 def _lidar_on_camera_figures(result, inputs, checks: dict) -> list[tuple[str, str, bytes]]:
     """Per camera: (name, caption, png) of the LIDAR points on its image, solved beside nominal."""
+    from . import plots  # matplotlib only when drawing
+
     p = result.problem
     rts = _all_rts(result, inputs)
     out = []
@@ -303,8 +310,8 @@ def _lidar_on_camera_figures(result, inputs, checks: dict) -> list[tuple[str, st
         for side, (label, rt) in zip(("left", "right"), rts.items()):
             q, r = _into_camera(result, i_cam, rt, clouds)
             rows = [x for x in checks.get(label, ()) if x["camera"] == i_cam and x["snapshot"] == k]
-            spill = "" if not rows else (f": board points at most {max(x['worst_px'] for x in rows):.1f} px past the outline"
-                                         + (f" ({max(x['worst_sigma'] for x in rows):.1f} sigma)" if label == "solved" else ""))
+            spill = "" if not rows else (f": board points spill {max(x['spill_px'] for x in rows):.1f} px past the outline"
+                                         + (f" ({max(x['spill_sigma'] for x in rows):.1f} sigma)" if label == "solved" else ""))
             panels.append({"q": q, "range": r, "outline": outline})
             says.append(f"{side if len(rts) > 1 else 'the'} picture: {label} extrinsics{spill}")
         v = np.concatenate([x["range"] for x in panels])
@@ -313,18 +320,14 @@ def _lidar_on_camera_figures(result, inputs, checks: dict) -> list[tuple[str, st
         caption = (f"{i_cam}: {cam.topic}, {_snapshot_name(k, inputs)}, {what}. " + "; ".join(says)
                    + f". Colour: LIDAR range, {norm[0]:.1f} m (blue) to {norm[1]:.1f} m (red), the bar at the bottom.")
         out.append((f"lidar-on-camera-{i_cam}.png", caption,
-                    _png(_plot("plot_lidar_on_image"), panels, cam.imagersize, image=image, norm=norm)))
+                    _png(plots.plot_lidar_on_image, panels, cam.imagersize, image=image, norm=norm)))
     return out
-
-
-def _plot(name):
-    from . import plots
-
-    return getattr(plots, name)
 
 
 def _clouds_figure(result, inputs) -> tuple[str, bytes] | None:
     """The overlapping LIDAR clouds of the snapshot most LIDARs saw the board in, before and after."""
+    from . import plots
+
     p = result.problem
     lidars = [i for i, s in enumerate(p.sensors) if s.is_lidar]
     if len(lidars) < 2:
@@ -346,7 +349,7 @@ def _clouds_figure(result, inputs) -> tuple[str, bytes] | None:
     half = max(p.board.width_m, p.board.height_m) + 1.5
     box = (centre - [half, half, half * 0.6], centre + [half, half, half * 0.6])
     caption = f"{_snapshot_name(k, inputs)}, {2 * half:.1f} m around the board"
-    return caption, _png(_plot("plot_cloud_overlap"), states, box=box,
+    return caption, _png(plots.plot_cloud_overlap, states, box=box,
                          board={"centre": centre, "normal": R[:, 2], "along": R[:, 0], "up": R[:, 1],
                                 "half_size": (p.board.width_m / 2, p.board.height_m / 2)})
 
@@ -420,18 +423,19 @@ def _verdicts(result: Result, inputs, checks: dict, coverage: list) -> str:
                      + html.escape("; ".join(conv.get("warnings", ()))) + "</div>")
     rows = checks.get("solved", [])
     if rows:
-        worst = max(rows, key=lambda x: x["worst_sigma"])
+        worst = max(rows, key=lambda x: x["spill_sigma"])
         p = result.problem
         nominal = checks.get("nominal /tf_static", [])
-        nom = (f" With the nominal /tf_static extrinsics the worst is {max(x['worst_px'] for x in nominal):.1f} px."
+        nom = (f" With the nominal /tf_static extrinsics the spill is up to {max(x['spill_px'] for x in nominal):.1f} px."
                if nominal else "")
-        ok = worst["worst_sigma"] <= 4.0
+        ok = worst["spill_sigma"] <= 4.0
         parts.append(
             f"<div class='verdict {'ok' if ok else 'warn'}'>LIDAR board points on the cameras' boards: "
             f"<b>{'on the board' if ok else 'OFF THE BOARD'}</b>: over {len(rows)} (camera, LIDAR, snapshot) views, the "
-            f"worst point lies {worst['worst_px']:.2f} px past the board's outline = {worst['worst_sigma']:.1f} sigma "
-            f"({html.escape(p.sensors[worst['lidar']].topic)} in {html.escape(p.sensors[worst['camera']].topic)}, "
-            f"{html.escape(_snapshot_name(worst['snapshot'], inputs))}; more than 4 sigma is flagged).{nom}</div>")
+            f"largest spill past the board's outline (a view's third-farthest point: one or two rim returns do not count) is "
+            f"{worst['spill_px']:.2f} px = {worst['spill_sigma']:.1f} sigma ({html.escape(p.sensors[worst['lidar']].topic)} "
+            f"in {html.escape(p.sensors[worst['camera']].topic)}, {html.escape(_snapshot_name(worst['snapshot'], inputs))}; "
+            f"more than 4 sigma is flagged).{nom}</div>")
     for c in coverage:
         if c["coverage"].get("warning"):
             parts.append(f"<div class='verdict warn'>Image coverage of {html.escape(c['title'])}: "

@@ -27,7 +27,7 @@ from .. import geometry as geo
 from ..config import Config
 from ..errors import DegenerateError, InputError
 from ..outputs.atomic import atomic_dir
-from ..outputs.report import convergence_html
+from ..outputs.report import convergence_html, embed_png
 from ..outputs.results import COORDINATES, stdev_fields
 from .calibration_frames import make_calibration_frames, nearest_to_keyframes
 from .graph import fuse
@@ -292,39 +292,23 @@ def _urdf(res: TargetlessResult) -> str:
 
 
 def _plots(res: TargetlessResult, d: Path, o) -> list:
-    from ..outputs.plots import subplots  # Figure objects: the user's matplotlib backend is left alone
+    """The report's figures as PNG files in ``d`` (names returned), drawn by outputs/plots.py from plain arrays."""
+    from ..outputs import plots
+    from .mapping import voxel_down
 
     out = []
     mp = res.map_result
     P = mp.poses()
     kf = np.array(mp.keyframe_ids)
-    fig, ax = subplots(figsize=(8, 6))
-    from .mapping import voxel_down
-
     near = [mp.frames[k].points[np.linalg.norm(mp.frames[k].points, axis=1) <= o.viz_max_range] for k in kf]
     pts = voxel_down(np.concatenate([p @ mp.frames[k].T_map_lidar[:3, :3].T + mp.frames[k].T_map_lidar[:3, 3]
                                      for p, k in zip(near, kf)]), o.mapping_viz_leaf_size)
-    ax.scatter(pts[:, 0], pts[:, 1], s=0.2, c=pts[:, 2], cmap="viridis")
-    ax.plot(P[:, 0, 3], P[:, 1, 3], "r-", lw=1, label="trajectory")
-    ax.plot(P[kf, 0, 3], P[kf, 1, 3], "k.", label="keyframes")
-    ax.set_aspect("equal")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_title("map (top view) and trajectory")
-    ax.legend(loc="upper left", bbox_to_anchor=(1, 1))
-    fig.savefig(d / "map_top.png", dpi=90, bbox_inches="tight")
+    plots.plot_map_trajectory(pts, P[:, :3, 3], d / "map_top.png", keyframes=P[kf, :3, 3])
     out.append("map_top.png")
     for topic, rows in res.per_frame.items():
         name = topic.strip("/").replace("/", "_")
-        fig, ax = subplots(figsize=(7, 3.5))
-        x = np.arange(len(rows))
-        ax.bar(x - 0.2, [r["score_guess"] for r in rows], 0.4, label="initial guess")
-        ax.bar(x + 0.2, [r["score_final"] for r in rows], 0.4, label="final")
-        ax.set_xlabel("calibration frame")
-        ax.set_ylabel("truncated mean sq. distance [m^2]")
-        ax.set_title(f"{topic}: per-frame scores")
-        ax.legend()
-        fig.savefig(d / f"scores_{name}.png", dpi=90, bbox_inches="tight")
+        plots.plot_frame_scores([r["score_guess"] for r in rows], [r["score_final"] for r in rows],
+                                d / f"scores_{name}.png", title=f"{topic}: per-frame scores")
         out.append(f"scores_{name}.png")
         fds = res.frame_data.get(topic)
         if fds:
@@ -335,7 +319,7 @@ def _plots(res: TargetlessResult, d: Path, o) -> list:
 def _alignment_plots(res: TargetlessResult, topic: str, fds, d: Path, o) -> list:
     """Before/after views of one frame near the sensor (top and side), and the distances of all
     frames' points to the dense map before and after."""
-    from ..outputs.plots import subplots
+    from ..outputs import plots
     from .mapping import voxel_down
 
     name = topic.strip("/").replace("/", "_")
@@ -344,32 +328,17 @@ def _alignment_plots(res: TargetlessResult, topic: str, fds, d: Path, o) -> list
     c = after[:3, 3]
     box = 10.0  # m around the sensor: far enough for structure, near enough to see centimetres
     tg = voxel_down(fd.target_pts, o.calibration_viz_leaf_size / 3)
-    tg = tg[np.all(np.abs(tg[:, :2] - c[:2]) < box, axis=1)]
-    fig, axs = subplots(2, 2, figsize=(13, 8), height_ratios=[2, 1], layout="constrained")
-    for col, (T, title) in enumerate(((before, "before (tf_static)"), (after, "after"))):
-        s = fd.source_pts @ T[:3, :3].T + T[:3, 3]
-        s = s[np.all(np.abs(s[:, :2] - c[:2]) < box, axis=1)]
-        for row, (i, j, lab) in enumerate(((0, 1, "y"), (0, 2, "z"))):
-            a = axs[row, col]
-            a.scatter(tg[:, i], tg[:, j], s=0.2, c="0.6", label="mapping (dense)")
-            a.scatter(s[:, i], s[:, j], s=0.5, c="r", label=topic)
-            a.set_aspect("equal")
-            a.set_xlabel("x [m]")
-            a.set_ylabel(f"{lab} [m]")
-            a.set_title(f"{title}: {'top' if row == 0 else 'side'} view, {box:.0f} m around the sensor")
-    axs[0, 1].legend(loc="upper left", bbox_to_anchor=(1, 1))
-    fig.savefig(d / f"aligned_{name}.png", dpi=90, bbox_inches="tight")
-    fig, ax = subplots(figsize=(7, 3.5))
-    bins = np.linspace(0, o.calibration_eval_max_corr_distance * 3, 61)
-    for T, lab, col in ((before, "before", "C0"), (after, "after", "C3")):
-        dist = np.concatenate([f.kdtree.query(f.source_pts[::4] @ T[:3, :3].T + T[:3, 3])[0] for f in fds])
-        ax.hist(np.minimum(dist, bins[-1]), bins, histtype="step", color=col,
-                label=f"{lab}: median {1e3 * np.median(dist):.1f} mm")
-    ax.set_xlabel("distance of each point to the nearest dense-map point [m] (last bin: farther)")
-    ax.set_ylabel("points")
-    ax.set_title(f"{topic}: all {len(fds)} calibration frames")
-    ax.legend()
-    fig.savefig(d / f"distances_{name}.png", dpi=90, bbox_inches="tight")
+    moved = lambda T: fd.source_pts @ T[:3, :3].T + T[:3, 3]  # noqa: E731
+    lo, hi = plots.crop_box([tg[np.all(np.abs(tg[:, :2] - c[:2]) < box, axis=1)], moved(after)], margin_m=0.2)
+    lo[:2], hi[:2] = np.maximum(lo[:2], c[:2] - box), np.minimum(hi[:2], c[:2] + box)
+    plots.plot_cloud_overlap({"before (tf_static)":
+                              {"mapping (dense)": tg, topic: moved(before)},
+                              "after (solved)": {"mapping (dense)": tg, topic: moved(after)}},
+                             d / f"aligned_{name}.png", box=(lo, hi))
+    dist = {lab: np.concatenate([f.kdtree.query(f.source_pts[::4] @ T[:3, :3].T + T[:3, 3])[0] for f in fds])
+            for T, lab in ((before, "before"), (after, "after"))}
+    plots.plot_distance_histograms(dist, d / f"distances_{name}.png", max_m=o.calibration_eval_max_corr_distance * 3,
+                                   title=f"{topic}: all {len(fds)} calibration frames")
     return [f"aligned_{name}.png", f"distances_{name}.png"]
 
 
@@ -409,7 +378,7 @@ def write_targetless_outputs(res: TargetlessResult, out_dir, *, config: Config |
                 f"<th>scale frames</th><th>scale edges</th><th>common mode</th></tr>{gr}</table>"
                 + "".join(f"<h2>convergence: {t}</h2>" + convergence_html(c) for t, c in res.convergence.items())
                 + f"<h2>timings [s]</h2><table border=1>{tim}</table>"
-                + "".join(f'<h2>{p}</h2><img src="{p}">' for p in pngs)
+                + "".join(f"<h2>{p}</h2>" + embed_png(p, (tmp / p).read_bytes()) for p in pngs)
                 + "".join(f"<p>{n}</p>" for n in res.notes) + "</body></html>")
         (tmp / "report.html").write_text(html)
     return {"calibration": out_dir / "calibration.yaml", "report": out_dir / "report.html"}
