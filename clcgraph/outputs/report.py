@@ -265,7 +265,7 @@ def _all_rts(result, inputs) -> dict:
     return out
 
 
-def _scan_clouds(result, inputs, k, *, max_points: int = 30000) -> dict:
+def _scan_clouds(result, inputs, k, *, max_points: int = 15000) -> dict:
     """{LIDAR sensor: (N,3) own frame} at snapshot k: the whole scans when the report has them, else the
     board points the LIDARs found."""
     p = result.problem
