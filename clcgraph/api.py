@@ -125,38 +125,52 @@ def classify_topics(bags: Sequence[Path], topics: Sequence[str]) -> tuple[list[s
     return lidars, cams
 
 
-def _tf_priors(bags, sensors: Sequence[Sensor], sigma_rad: float, sigma_m: float) -> tuple[PosePrior, ...]:
-    """Nominal poses of every non-reference sensor from /tf_static, as priors with per-axis
-    sigmas ``sigma_rad`` (rotation) and ``sigma_m`` (translation)."""
+def nominal_poses(bags, sensors: Sequence[Sensor], *, strict: bool = False) -> dict[int, np.ndarray]:
+    """sensor index -> nominal rt_lidar0_sensor from the bags' /tf_static (every non-reference sensor
+    whose frame it links to lidar0's). ``strict``: InputError for a missing /tf_static or path (the
+    priors need them all); else those sensors are left out (the report shows what there is)."""
     from .frontend.bag import frame_id, read_tf_static
     from .geometry import rt_from_T
 
+    bags = list(bags)
     tf = read_tf_static(bags)
     if not tf.frames:
-        raise InputError(f"--prior-from-tf-static: no /tf_static in {bags[0]} ...")
+        if strict:
+            raise InputError(f"--prior-from-tf-static: no /tf_static in {bags[0]} ...")
+        return {}
     frames = [frame_id(bags[0], s.topic) for s in sensors]
     ref = next(i for i, s in enumerate(sensors) if s.is_lidar)
-    priors = []
+    out = {}
     for i, s in enumerate(sensors):
         if i == ref:
             continue
         try:
-            T = tf.lookup(frames[ref], frames[i])
+            out[i] = rt_from_T(tf.lookup(frames[ref], frames[i]))
         except Exception as e:
-            raise InputError(f"--prior-from-tf-static: /tf_static has no path {frames[ref]} <- {frames[i]} "
-                             f"(sensor {s.topic}): {str(e).splitlines()[0] if str(e) else ''}") from None
-        priors.append(PosePrior(sensor=i, rt_lidar0_sensor=rt_from_T(T), sigma_rt=np.repeat([float(sigma_rad), float(sigma_m)], 3)))
-    return tuple(priors)
+            if strict:
+                raise InputError(f"--prior-from-tf-static: /tf_static has no path {frames[ref]} <- {frames[i]} "
+                                 f"(sensor {s.topic}): {str(e).splitlines()[0] if str(e) else ''}") from None
+    return out
+
+
+def _tf_priors(bags, sensors: Sequence[Sensor], sigma_rad: float, sigma_m: float) -> tuple[PosePrior, ...]:
+    """Nominal poses of every non-reference sensor from /tf_static, as priors with per-axis
+    sigmas ``sigma_rad`` (rotation) and ``sigma_m`` (translation)."""
+    sigma = np.repeat([float(sigma_rad), float(sigma_m)], 3)
+    return tuple(PosePrior(sensor=i, rt_lidar0_sensor=rt, sigma_rt=sigma)
+                 for i, rt in nominal_poses(bags, sensors, strict=True).items())
 
 
 def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (), *, config=None,
-                 timings: dict | None = None) -> Problem:
+                 timings: dict | None = None, report_material: dict | None = None) -> Problem:
     """Bags -> Problem: snapshots, LIDAR board segmentation, chessboard detection.
 
     ``topics``: LIDAR and camera topics in any order (the first LIDAR is lidar0);
     ``models``: one .cameramodel per camera topic, in the cameras' order. A snapshot is
     kept only if >= 2 sensors saw the board; everything dropped is in ``Problem.rejected``.
     ``timings``: if given, filled with wall seconds per stage (read, segment, detect).
+    ``report_material``: if given, filled with what the report draws: "snapshots" (index ->
+    Snapshot: a few decoded ones, see ``_report_snapshots``) and "sources" (index -> bag).
     """
     clock = StageClock(timings)
     from . import cameras
@@ -236,6 +250,10 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
         rejected.append(Rejected("board seen by no sensor", "snapshot", snapshot=k))
     lidar_obs = [o for o in lidar_obs if o.snapshot not in lonely]
     camera_obs = [o for o in camera_obs if o.snapshot not in lonely]
+    if report_material is not None:
+        keep = _report_snapshots(sensors, lidar_obs, camera_obs)
+        report_material["snapshots"] = {s.index: s for s in snaps if s.index in keep}
+        report_material["sources"] = {s.index: s.source for s in snaps}
     n_used = len(set(seen) - lonely)
     log.info("%d snapshots, %d with the board seen by >= 2 sensors; %d LIDAR and %d camera observations",
              len(snaps), n_used, len(lidar_obs), len(camera_obs))
@@ -262,6 +280,25 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
         priors=priors,
         lidar_visibility_points=visibility,
     )
+
+
+def _report_snapshots(sensors, lidar_obs, camera_obs) -> set[int]:
+    """The snapshots whose images and scans the report draws: per camera, the one where the most LIDARs
+    saw the board with it (then the most corners' spread); and the one where the most LIDARs saw the board
+    (then the most board points) for the clouds before / after."""
+    lidars_at: dict[int, int] = {}
+    points_at: dict[int, int] = {}
+    for o in lidar_obs:
+        lidars_at[o.snapshot] = lidars_at.get(o.snapshot, 0) + 1
+        points_at[o.snapshot] = points_at.get(o.snapshot, 0) + len(o.points)
+    keep = set()
+    for i in {o.sensor for o in camera_obs}:
+        obs = [o for o in camera_obs if o.sensor == i]
+        spread = lambda o: float(np.nanmax(o.corners_px, 0).sum() - np.nanmin(o.corners_px, 0).sum())  # noqa: E731
+        keep.add(max(obs, key=lambda o: (lidars_at.get(o.snapshot, 0), spread(o))).snapshot)
+    if lidars_at:
+        keep.add(max(lidars_at, key=lambda k: (lidars_at[k], points_at[k])))
+    return keep
 
 
 def _why_missed(sensors, lidar_obs, camera_obs, rejected) -> str:
@@ -322,12 +359,14 @@ def calibrate(problem: Problem, config=None, *, timings: dict | None = None) -> 
     return dataclasses.replace(result, sectors=sectors)
 
 
-def write_outputs(result: Result, out_dir, config=None, *, force: bool = False) -> dict[str, Path]:
+def write_outputs(result: Result, out_dir, config=None, *, force: bool = False, report_inputs=None) -> dict[str, Path]:
     """The one output path of both methods, atomically: calibration.yaml, .cameramodels,
-    timings.yaml, config.resolved.yaml, report.html + plots, ros/ (when the frames are known),
-    and (target-based) the replayable problem.npz.
+    timings.yaml, config.resolved.yaml, report.html (one self-contained file), ros/ (when the
+    frames are known), and (target-based) the replayable problem.npz.
 
-    ``out_dir`` must be new, empty or a previous clcgraph output; ``force``: replace it anyway."""
+    ``out_dir`` must be new, empty or a previous clcgraph output; ``force``: replace it anyway.
+    ``report_inputs``: an ``outputs.evidence.ReportInputs`` (the run's record, images and clouds to
+    draw, nominal poses); without it the report draws what the Result holds."""
     from .outputs.dump import save_problem
     from .outputs.report import write_report
     from .outputs.results import write_results
@@ -336,7 +375,7 @@ def write_outputs(result: Result, out_dir, config=None, *, force: bool = False) 
     return write_results(
         result, out_dir, config=cfg,
         problem_dump=(lambda problem, path: save_problem(path, problem, cfg)) if result.method == "target" else None,
-        extra_files={"report.html": lambda path: write_report(result, path.parent)},
+        extra_files={"report.html": lambda path: write_report(result, path.parent, inputs=report_inputs)},
         force=force,
     )
 
@@ -351,12 +390,39 @@ def calibrate_bags(bags, topics: Sequence[str], models: Sequence[str | Path] = (
     if out is not None:
         check_out_dir(out, force=force)
     timings: dict[str, float] = {}
-    result = calibrate(read_problem(bags, topics, models, config=cfg, timings=timings), cfg, timings=timings)
+    material: dict = {}
+    problem = read_problem(bags, topics, models, config=cfg, timings=timings, report_material=material)
+    result = calibrate(problem, cfg, timings=timings)
     result = dataclasses.replace(result, stats={**result.stats, "stage_time_s": timings})
     if out is not None:
         with StageClock(timings)("report"):
-            write_outputs(result, out, cfg, force=force)
+            inputs = _report_inputs(bags, topics, models, out, cfg, problem, material)
+            write_outputs(result, out, cfg, force=force, report_inputs=inputs)
     return result
+
+
+def _report_inputs(bags, topics, models, out, cfg: Config, problem: Problem, material: dict):
+    """The report's record of this run (bags with sizes, models, the call, the settings), the
+    snapshots it draws, and the nominal poses from /tf_static when the bags have one."""
+    import shlex
+    import sys
+
+    from .outputs.evidence import ReportInputs
+
+    paths = expand_bags(bags)
+    size = lambda p: p.stat().st_size if p.is_file() else sum(f.stat().st_size for f in p.rglob("*") if f.is_file())  # noqa: E731
+    cams = [s.topic for s in problem.sensors if s.is_camera]
+    call = (f"clcgraph.calibrate_bags({[str(b) for b in bags]!r}, {list(topics)!r}, {[str(m) for m in models]!r}, "
+            f"out={str(out)!r})\nprocess: {shlex.join(sys.argv)}")
+    try:  # /tf_static is static: the first bag's (reading every bag's costs a second on 20 bags)
+        nominal = nominal_poses(paths[:1], problem.sensors)
+    except Exception as e:  # the nominal poses only add to the report: never lose the calibration
+        log.warning("report: no nominal poses from /tf_static (%s)", str(e).splitlines()[0] if str(e) else e)
+        nominal = {}
+    return ReportInputs(bags=tuple((str(p), size(p)) for p in paths), models=tuple(zip(cams, map(str, models))),
+                        command=call, config_yaml=cfg.to_yaml(), snapshots=material.get("snapshots", {}),
+                        sources=material.get("sources", {}), rt_nominal=nominal,
+                        nominal_source=f"/tf_static of {paths[0].name}" if nominal else "")
 
 
 def check_out_dir(out, *, kind: str = "results", force: bool = False) -> None:

@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import base64
 import html
+import io
 import re
+import shutil
 
 import matplotlib.image as mpimg
 import numpy as np
 import pytest
 
+import clcgraph
+from clcgraph.outputs import evidence as ev
 from clcgraph.outputs import plots
 from clcgraph.outputs.report import HOWTO, write_report
 from clcgraph.outputs.results import write_results
@@ -22,41 +27,77 @@ def report(tmp_path_factory):
     return result, out, write_report(result, out, title="test rig")
 
 
-def test_report_references_existing_pngs(report):
+def _embedded_pngs(text: str) -> dict:
+    """{alt name: decoded PNG image} of every <img> in the report (all must be data URIs)."""
+    imgs = re.findall(r"<img src='([^']+)' alt='([^']+)'", text)
+    out = {}
+    for src, alt in imgs:
+        assert src.startswith("data:image/png;base64,"), src[:60]
+        out[alt] = mpimg.imread(io.BytesIO(base64.b64decode(src.split(",", 1)[1])), format="png")
+    return out
+
+
+def test_report_is_one_self_contained_file(report, tmp_path):
+    result, out, path = report
+    assert sorted(p.name for p in out.iterdir()) == ["report.html"]  # no PNG beside it
+    alone = tmp_path / "mailed" / "report.html"
+    alone.parent.mkdir()
+    shutil.copy(path, alone)
+    text = alone.read_text()
+    # nothing the page would fetch: every src / href / url() / @import is a data URI or an anchor
+    refs = re.findall(r"""(?:src|href)\s*=\s*['"]?([^'" >]+)""", text) + re.findall(r"url\(([^)]*)\)", text)
+    assert refs and all(r.startswith(("data:", "#")) for r in refs), [r[:40] for r in refs if not r.startswith("data:")]
+    assert "@import" not in text and "<link" not in text and "<script" not in text
+    imgs = _embedded_pngs(text)
+    assert len(imgs) == len(re.findall("<img ", text))
+    for name, img in imgs.items():
+        assert img.shape[0] > 200 and img.shape[1] > 300, name
+        assert np.std(img[..., :3]) > 0.05, name  # not blank
+
+
+def test_report_figures_each_after_their_howto(report):
     result, out, path = report
     text = path.read_text()
-    srcs = re.findall(r"<img src='([^']+)'", text)
-    assert sorted(srcs) == sorted(HOWTO)  # every plot, each once
-    for s in srcs:
-        img = mpimg.imread(out / s)
-        assert img.shape[0] > 200 and img.shape[1] > 300
-        assert np.std(img[..., :3]) > 0.05  # not blank
-    # every plot has its how-to-read paragraph right before it
-    for name in HOWTO:
-        assert text.index(html.escape(HOWTO[name][:40])) < text.index(f"<img src='{name}'")
+    imgs = _embedded_pngs(text)
+    # the Result-only report: every figure but the clouds needing scans of two LIDARs' overlap is drawn
+    want = {"lidar-on-camera-2.png", "clouds-before-after.png", "camera-residuals-and-coverage.png", *plots.PLOTS}
+    assert want <= set(imgs), sorted(want - set(imgs))
+    for name in imgs:
+        key = "lidar-on-camera" if name.startswith("lidar-on-camera") else name
+        assert text.index(html.escape(HOWTO[key][:40])) < text.index(f"alt='{name}'")
+    assert "board points only (the report has no image of it)" in text
 
 
-def test_report_tables(report):
+def test_report_verdicts_at_the_top(report):
     result, out, path = report
     text = path.read_text()
-    assert "test rig" in text
-    for s in result.problem.sensors:
-        assert s.topic in text
-    # lidar1's position and its stdev in mm appear in the pose table
-    assert " ".join(f"{x:+.4f}" for x in LIDAR1_RT[3:]) in text
-    assert " ".join(f"{x:.2f}" for x in result.stdev_rt(1)[3:] * 1e3) in text
-    assert " ".join(f"{x:+.4f}" for x in CAMERA_RT[3:]) in text
-    assert "board not found" in text and "residual 8.1 sigma" in text
-    assert "<td>0.012</td>" in text and "<td>0.4</td>" in text
-    assert "Snapshots used: 7 of 8" in text
+    top = text.index("<h2>Poses</h2>")
+    assert text.index("Self-consistency: <b>not checked</b>") < top
+    assert text.index("LIDAR board points on the cameras' boards: <b>on the board</b>") < top
+    # make_result's camera sees corners in one band only: warned about, with the rule
+    assert text.index("Image coverage of 2: /cam/image: <b>too little</b>") < top
+    assert "no corner in the top third" in text
 
 
-def test_report_inside_atomic_write(tmp_path):
+def test_report_records_inputs_and_nominal(tmp_path, caplog):
+    from clcgraph.geometry import compose_rt
+
     result = make_result()
-    out = tmp_path / "out"
-    write_results(result, out, extra_files={"report.html": lambda p: write_report(result, p.parent)})
-    assert (out / "report.html").is_file() and (out / "sectors.png").is_file()
-    assert (out / "calibration.yaml").is_file()
+    nominal = compose_rt(LIDAR1_RT, np.r_[0, 0, np.radians(1.0), 0.02, 0, 0])  # 1 deg, 20 mm off
+    inputs = ev.ReportInputs(bags=(("/data/a.bag", 12_300_000), ("/data/b.bag", 4_500_000)),
+                             models=(("/cam/image", "/models/cam.cameramodel"),),
+                             command="clcgraph solve --bag '/data/*.bag' --topics x,y,z", config_yaml="solve:\n  x: 1\n",
+                             rt_nominal={1: nominal}, nominal_source="/tf_static of a.bag ...")
+    with caplog.at_level("WARNING"):
+        text = write_report(result, tmp_path, inputs=inputs).read_text()
+    assert "/data/a.bag" in text and "<td>12.3</td>" in text and "2 bag(s), 16.8 MB" in text
+    assert "/models/cam.cameramodel" in text and "LENSMODEL_OPENCV4" in text and "1280x800" in text
+    assert "clcgraph solve --bag &#x27;/data/*.bag&#x27;" in text and "solve:\n  x: 1" in text
+    assert f"clcgraph {clcgraph.__version__}" in text
+    row = re.search(r"<td>1</td><td>/lidar/rear/points</td><td>([0-9.]+)</td><td>[0-9.]+</td><td>([0-9.]+)</td>", text)
+    assert float(row.group(1)) == pytest.approx(1.0, abs=1e-3) and float(row.group(2)) == pytest.approx(20.0, abs=0.05)
+    assert text.index("Moved from the nominal pose (/tf_static of a.bag ...): up to 1.00 deg") < text.index("<h2>Poses</h2>")
+    assert any("corners only in rows" in r.message for r in caplog.records)  # the coverage warning is logged too
 
 
 def test_per_observation_rms_matches_numpy():

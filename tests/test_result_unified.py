@@ -85,7 +85,8 @@ def test_load_result_gives_the_same_type_for_both_methods(outputs):
     assert (d / "target" / "problem.npz").exists() and not (d / "targetless" / "problem.npz").exists()
     html = (d / "targetless" / "report.html").read_text()
     for png in ("map_top.png", "scores_side_points.png", "aligned_side_points.png", "distances_side_points.png"):
-        assert png in html and (d / "targetless" / png).stat().st_size > 1000
+        assert f"alt='{png}'" in html and not (d / "targetless" / png).exists()  # embedded, not beside it
+    assert html.count("data:image/png;base64,") == 4
 
 
 def test_an_older_file_without_method_loads_as_target_based(outputs, tmp_path):

@@ -90,7 +90,8 @@ def test_targetless_from_bag_accuracy_covariance_outputs(drive, tmp_path_factory
     assert '<child link="side_lidar"/>' in (out / "ros" / "sensors.urdf.xml").read_text()
     html = (out / "report.html").read_text()
     for png in ("map_top.png", "scores_side_points.png", "aligned_side_points.png", "distances_side_points.png"):
-        assert png in html and (out / png).stat().st_size > 1000
+        assert f"alt='{png}'" in html and not (out / png).exists()  # embedded, not beside it
+    assert html.count("data:image/png;base64,") == 4
 
 
 @pytest.mark.slow

@@ -47,9 +47,12 @@ def subplots(*grid, figsize, layout=None, **kwargs):
     return fig, fig.subplots(*grid, **kwargs)
 
 
-def _save(fig, path) -> Path:
-    path = Path(path)
-    fig.savefig(path, dpi=_DPI, bbox_inches="tight")
+def _save(fig, path, *, dpi: int = _DPI, tight: bool = True):
+    """Save as PNG to a path (returned as a Path) or to a binary file object (returned as is).
+    ``tight=False`` for figures laid out by ``layout="constrained"`` (a tight box costs another draw)."""
+    if not hasattr(path, "write"):
+        path = Path(path)
+    fig.savefig(path, dpi=dpi, bbox_inches="tight" if tight else None, format="png")
     return path
 
 
@@ -81,11 +84,13 @@ def plot_residual_histograms(result: Result, path) -> Path:
         sigma = float(sigma) if sigma and np.isfinite(sigma) and sigma > 0 else float(np.std(x))
         lim = max(4 * sigma, np.percentile(np.abs(x), 99.5))
         bins = np.linspace(-lim, lim, 61)
-        ax.hist(np.clip(x, -lim, lim), bins=bins, density=True, color="C0", alpha=0.7, label=f"residuals (N={x.size})")
+        # one stepfilled patch per histogram, not a patch per bar (drawing 60 bars costs more than the data)
+        ax.hist(np.clip(x, -lim, lim), bins=bins, density=True, color="C0", alpha=0.7, histtype="stepfilled",
+                label=f"residuals (N={x.size})")
         if xo.size:
             # outliers on the same density scale as the inliers, clipped into the edge bins
             ax.hist(np.clip(xo, -lim, lim), bins=bins, weights=np.full(xo.size, 1.0 / (x.size * (bins[1] - bins[0]))),
-                    color="r", alpha=0.6, label=f"outliers, rejected (N={xo.size})")
+                    color="r", alpha=0.6, histtype="stepfilled", label=f"outliers, rejected (N={xo.size})")
         g = np.linspace(-lim, lim, 400)
         # each sensor has its own sigma: the expected density is their mixture, by residual count
         sens = np.asarray(result.residuals.get(key.split("_")[0] + "_sensor", []), int).ravel()
@@ -142,15 +147,15 @@ def plot_residuals_per_snapshot(result: Result, path) -> Path:
     labels = _labels(result)
     fig, axes = subplots(2, 1, figsize=(11, 6), sharex=True)
     for ax, kind, unit, nk in ((axes[0], "lidar", "m", "lidar_m"), (axes[1], "camera", "px", "camera_px")):
-        plotted = set()
-        for o in obs:
-            if o["kind"] != kind:
-                continue
-            i = o["sensor"]
-            ax.plot(o["snapshot"], o["rms"], "o", color=colors[i], ms=5, label=None if i in plotted else labels[i])
-            if o["n_outliers"]:
-                ax.plot(o["snapshot"], o["rms"], "o", mfc="none", mec="r", ms=10, mew=1.5)
-            plotted.add(i)
+        mine = [o for o in obs if o["kind"] == kind]
+        plotted = sorted({o["sensor"] for o in mine})
+        for i in plotted:  # one line artist per sensor (an artist per dot is slow to draw)
+            k = np.array([o["snapshot"] for o in mine if o["sensor"] == i])
+            v = np.array([o["rms"] for o in mine if o["sensor"] == i])
+            ax.plot(k, v, "o", color=colors[i], ms=5, label=labels[i])
+        bad = [(o["snapshot"], o["rms"]) for o in mine if o["n_outliers"]]
+        if bad:
+            ax.plot(*np.array(bad).T, "o", mfc="none", mec="r", ms=10, mew=1.5)
         per = result.noise.get("per_sensor") or {}
         for i in sorted(plotted):
             if i in per:  # each sensor's re-estimated noise, in its colour
@@ -159,13 +164,11 @@ def plot_residuals_per_snapshot(result: Result, path) -> Path:
         if not per and sigma and np.isfinite(sigma):
             ax.axhline(sigma, color="k", ls="--", lw=0.8, label=f"noise sigma {sigma:.3g} {unit}")
         # rejected observations of this kind's sensors, at the bottom of the axis
-        for r in result.rejected:
-            if r.snapshot is None:
-                continue
-            if r.sensor is not None and result.problem.sensors[r.sensor].kind != kind:
-                continue
-            c = "k" if r.sensor is None else colors[r.sensor]
-            ax.plot(r.snapshot, 0, "x", color=c, ms=8, mew=2, clip_on=False)
+        rej = [r for r in result.rejected if r.snapshot is not None
+               and (r.sensor is None or result.problem.sensors[r.sensor].kind == kind)]
+        for c in {r.sensor for r in rej}:
+            k = [r.snapshot for r in rej if r.sensor == c]
+            ax.plot(k, np.zeros(len(k)), "x", color="k" if c is None else colors[c], ms=8, mew=2, clip_on=False, ls="none")
         ax.plot([], [], "kx", ms=8, mew=2, label="rejected (see report table)")
         ax.plot([], [], "o", mfc="none", mec="r", ms=10, mew=1.5, label="has outlier residuals")
         ax.set_ylabel(f"{kind} RMS ({unit})")
@@ -270,26 +273,15 @@ def plot_sectors(result: Result, path) -> Path:
 
 
 def plot_coverage(result: Result, path) -> Path:
-    """Per sensor: board centres in the sensor frame (top view); cameras: detected corners in the image."""
+    """Per LIDAR: board centres in its frame (top view)."""
     problem = result.problem
-    n = len(problem.sensors)
+    lidars = [i for i, s in enumerate(problem.sensors) if s.is_lidar]  # the cameras': plot_camera_residuals_and_coverage
+    n = len(lidars)
     fig, axes = subplots(1, n, figsize=(4.2 * n, 4.2), squeeze=False)
     centre_b = np.mean(_board_outline(problem.board)[:4], axis=0)
     rtb = np.asarray(result.rt_lidar0_board, float).reshape(-1, 6)
-    for i, (ax, s) in enumerate(zip(axes[0], problem.sensors)):
-        if s.is_camera and s.imagersize is not None:
-            obs = [o for o in problem.camera_observations if o.sensor == i]
-            for o in obs:
-                q = np.asarray(o.corners_px, float)
-                ax.plot(q[:, 0], q[:, 1], ".", ms=1.5)
-            w, h = s.imagersize
-            ax.set_xlim(0, w)
-            ax.set_ylim(h, 0)
-            ax.set_aspect("equal")
-            ax.set_xlabel("x (px)")
-            ax.set_ylabel("y (px)")
-            ax.set_title(f"{i}: {s.topic}\ncorners in the image ({len(obs)} boards)", fontsize=9)
-            continue
+    for ax, i in zip(axes[0], lidars):
+        s = problem.sensors[i]
         # board centres in this sensor's frame: lidar0 -> sensor
         T_s_l0 = np.linalg.inv(T_from_rt(result.rt_lidar0_sensor[i]))
         seen = {o.snapshot for o in problem.lidar_observations if o.sensor == i}
@@ -354,9 +346,21 @@ def align_clouds(clouds: dict, rt_lidar0_sensor: dict, *, max_points: int | None
     return moved
 
 
+def crop_box(clouds, *, percent: float = 1.0, margin_m: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """(lo (3,), hi (3,)): the box holding all but ``percent`` % of the points at either end of each axis,
+    grown by ``margin_m``: a few far returns (100 m) must not set the scale of 5 m of data."""
+    p = np.concatenate([np.asarray(c, float).reshape(-1, 3) for c in clouds] + [np.zeros((0, 3))])
+    p = p[np.all(np.isfinite(p), axis=1)]
+    if not len(p):
+        return -np.ones(3), np.ones(3)
+    return np.percentile(p, percent, axis=0) - margin_m, np.percentile(p, 100 - percent, axis=0) + margin_m
+
+
 def render_aligned_clouds(clouds: dict, rt_lidar0_sensor: dict, path_png, *, views=("top", "side"),
-                          max_points: int = 60000, point_size: float = 0.5, seed: int = 0) -> Path:
-    """LIDAR clouds (topic -> (N,3) in their own frame) moved into lidar0 and drawn, one colour per sensor.
+                          max_points: int = 60000, point_size: float = 1.0, seed: int = 0) -> Path:
+    """LIDAR clouds (topic -> (N,3) in their own frame) moved into lidar0 and drawn, one colour per sensor
+    (with transparency, the sparser cloud on top), cropped to where the data is (``crop_box``), each view
+    with equal axes and its panel sized to its extent (a side view of 30 x 3 m is a strip, not a square).
 
     ``rt_lidar0_sensor``: topic -> (6,). Each cloud is subsampled to ``max_points``.
     """
@@ -364,19 +368,30 @@ def render_aligned_clouds(clouds: dict, rt_lidar0_sensor: dict, path_png, *, vie
         if v not in _VIEWS:
             raise ValueError(f"unknown view {v!r}; one of {sorted(_VIEWS)}")
     moved = align_clouds(clouds, rt_lidar0_sensor, max_points=max_points, seed=seed)
-    fig, axes = subplots(1, len(views), figsize=(7 * len(views), 6.5), squeeze=False)
-    colors = _colors(len(clouds))
-    for ax, v in zip(axes[0], views):
+    lo, hi = crop_box(moved.values())
+    colors = dict(zip(moved, ("tab:blue", "tab:red", "tab:green", "tab:purple", "tab:orange", "tab:brown")))
+    span = hi - lo
+    heights = [max(span[_VIEWS[v][1]], 0.15 * span[_VIEWS[v][0]]) / span[_VIEWS[v][0]] for v in views]
+    width = 12.0
+    fig, axes = subplots(len(views), 1, figsize=(width, min(width * sum(heights) + 1.0 * len(views), 16)),
+                         squeeze=False, gridspec_kw={"height_ratios": heights}, layout="constrained")
+    order = sorted(moved, key=lambda t: -len(moved[t]))  # densest first, so the sparser stays visible
+    for ax, v in zip(axes[:, 0], views):
         a, b, la, lb = _VIEWS[v]
-        for (topic, p), c in zip(moved.items(), colors):
-            ax.scatter(p[:, a], p[:, b], s=point_size, color=c, label=topic, linewidths=0, rasterized=True)
-        ax.set_aspect("equal", adjustable="datalim")
+        for topic in order:
+            p = moved[topic]
+            p = p[np.all((p >= lo) & (p <= hi), axis=1)]
+            ax.scatter(p[:, a], p[:, b], s=point_size, color=colors[topic], alpha=0.4, label=f"{topic} ({len(p)} points)",
+                       linewidths=0, rasterized=True)
+        ax.set_xlim(lo[a], hi[a])
+        ax.set_ylim(lo[b], hi[b])
+        ax.set_aspect("equal", adjustable="box")
         ax.set_xlabel(la)
         ax.set_ylabel(lb)
         ax.grid(alpha=0.3)
-        ax.set_title(f"{v} view, lidar0 frame")
-        ax.legend(markerscale=12, fontsize=8, loc="upper right")
-    return _save(fig, path_png)
+        ax.set_title(f"{v} view, lidar0 frame, {span[a]:.1f} x {span[b]:.1f} m (1-99 % of the points)", fontsize=10)
+        ax.legend(markerscale=8, fontsize=8, loc="upper right")
+    return _save(fig, path_png, tight=False)
 
 
 PLOTS = {
@@ -476,3 +491,303 @@ def plot_segmentation(scan, debug, result, path) -> Path:
     fig.suptitle(reason if reason else f"board: {len(result.indices)} points, RMS {result.rms_m * 1e3:.1f} mm",
                  fontsize=9)
     return _save(fig, path)
+
+
+# ---------------------------------------------------------------- report figures from plain arrays
+# Each takes plain arrays (no Result), so the target-based and the targetless reports share them.
+
+
+def plot_lidar_on_image(panels: list, imagersize, path, *, image=None, norm: tuple | None = None, dot_px: int = 2):
+    """LIDAR points projected into one camera image, panels side by side (solved, nominal, ...), drawn
+    straight into the image's pixels (no resampling: the picture is the camera's, full size; and fast).
+
+    ``panels``: [{"q": (N,2) px, "range": (N,) m, "outline": (M,2) px or None}]; the outline (the board's
+    edge fitted to the camera's own detected corners) is drawn dashed black and white. ``image``: (H,W)
+    or (H,W,3) BGR (None: a grey canvas). Points are coloured by LIDAR range, turbo colour map from
+    ``norm`` = (near, far) m (default: the 1-99 % range of all panels' points); a colour bar runs along
+    the bottom. Titles belong in the caption. Returns what ``_save`` does.
+    """
+    w, h = imagersize
+    if norm is None:
+        v = np.concatenate([np.ravel(p["range"]) for p in panels] + [np.zeros(0)])
+        norm = (float(np.percentile(v, 1)), float(np.percentile(v, 99))) if len(v) else (0.0, 1.0)
+    lo, hi = norm[0], max(norm[1], norm[0] + 1e-3)
+    lut = (matplotlib.colormaps["turbo"](np.linspace(0, 1, 256))[:, :3] * 255).astype(np.uint8)
+    if image is None:
+        base = np.full((h, w, 3), 200, np.uint8)
+    else:
+        px = np.asarray(image)
+        if px.dtype != np.uint8:  # mono16: scale to 8 bits for display
+            px = (255.0 * px / max(float(np.percentile(px, 99.5)), 1.0)).clip(0, 255).astype(np.uint8)
+        gray = px[..., ::-1].mean(axis=2) if px.ndim == 3 else px
+        base = np.repeat((0.35 + 0.65 * gray[..., None] / 255.0) * 255, 3, axis=2).astype(np.uint8)  # dimmed
+    tiles = []
+    for p in panels:
+        img = base.copy()
+        q, r = np.asarray(p["q"], float).reshape(-1, 2), np.asarray(p["range"], float).ravel()
+        order = np.argsort(-r)  # far first: near points stay on top
+        c = lut[np.clip(((r[order] - lo) / (hi - lo) * 255).astype(int), 0, 255)]
+        x0, y0 = np.round(q[order, 0]).astype(int), np.round(q[order, 1]).astype(int)
+        for dx in range(dot_px):
+            for dy in range(dot_px):
+                x, y = x0 + dx, y0 + dy
+                ok = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+                img[y[ok], x[ok]] = c[ok]
+        if p.get("outline") is not None:
+            o = np.asarray(p["outline"], float)
+            seg = np.concatenate([o[k] + np.linspace(0, 1, 60, endpoint=False)[:, None] * (o[k + 1] - o[k])
+                                  for k in range(len(o) - 1)])
+            dash = (np.arange(len(seg)) // 12) % 2 == 0
+            for d in (-1, 0, 1):
+                x, y = np.round(seg[:, 0]).astype(int) + d, np.round(seg[:, 1]).astype(int)
+                ok = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+                img[y[ok], x[ok]] = np.where(dash[ok, None], 0, 255)
+        tiles.append(img)
+        tiles.append(np.full((h, 8, 3), 255, np.uint8))
+    pic = np.concatenate(tiles[:-1], axis=1)
+    bar = np.repeat(lut[np.linspace(0, 255, pic.shape[1]).astype(int)][None], 14, axis=0)  # near ... far
+    pic = np.concatenate([pic, np.full((4, pic.shape[1], 3), 255, np.uint8), bar], axis=0)
+    from matplotlib.image import imsave
+
+    imsave(path if hasattr(path, "write") else Path(path), pic, format="png")
+    return path
+
+
+def plot_cloud_overlap(states: dict, path, *, box=None, board: dict | None = None, max_points: int = 8000):
+    """Overlapping LIDAR clouds (lidar0 frame) under different extrinsics, cropped to ``box``.
+
+    ``states``: {"before (nominal /tf_static)": {label: (N,3)}, "after (solved)": {...}} (one row each);
+    ``box``: ((3,) lo, (3,) hi) or None (the data's 1-99 % extent); ``board``: {"centre": (3,),
+    "normal", "along", "up": (3,) unit axes, "half_size": (2,) m} adds an edge-on view of the board: the
+    distance from that plane (mm) of each point near it against its position along the board (m):
+    calibrated clouds lie on one line. Sparser clouds are drawn last (on top).
+    Columns: top view, side view (equal axes), board edge-on.
+    """
+    rows = list(states)
+    labels = list(dict.fromkeys(lab for st in states.values() for lab in st))
+    colors = {lab: c for lab, c in zip(labels, ("tab:blue", "tab:red", "tab:green", "tab:purple", "tab:orange"))}
+    rng = np.random.default_rng(0)
+
+    def crop(p):
+        p = np.asarray(p, float).reshape(-1, 3)
+        p = p[np.all(np.isfinite(p), axis=1)]
+        if box is not None:
+            p = p[np.all((p >= box[0]) & (p <= box[1]), axis=1)]
+        return p[rng.choice(len(p), max_points, replace=False)] if len(p) > max_points else p
+
+    data = {st: dict(sorted(((lab, crop(p)) for lab, p in states[st].items()), key=lambda x: -len(x[1])))
+            for st in rows}
+    every = np.concatenate([p for st in data.values() for p in st.values()] + [np.zeros((0, 3))])
+    if box is None and len(every):
+        box = (np.percentile(every, 1, axis=0) - 0.2, np.percentile(every, 99, axis=0) + 0.2)
+    lo, hi = (np.asarray(box[0], float), np.asarray(box[1], float)) if box is not None else (-np.ones(3), np.ones(3))
+    ncol = 3 if board is not None else 2
+    if board is not None:  # the board edge-on: (position along it (m), distance from its plane (mm)) per cloud
+        n, u, v = (np.asarray(board[k], float) for k in ("normal", "along", "up"))
+        c0, half = np.asarray(board["centre"], float), np.asarray(board["half_size"], float) + 0.2
+        edge_on = {}
+        for st in rows:
+            edge_on[st] = {}
+            for lab, p in data[st].items():
+                d = p - c0
+                on = (np.abs(d @ n) < 0.15) & (np.abs(d @ u) < half[0]) & (np.abs(d @ v) < half[1])
+                edge_on[st][lab] = (d[on] @ u, 1e3 * (d[on] @ n))
+        off = np.concatenate([np.abs(y) for st in edge_on.values() for _, y in st.values()] + [np.zeros(1)])
+        edge_lim = float(np.clip(1.3 * np.percentile(off, 99.5), 20, 150))
+    span = hi - lo
+    fig, axes = subplots(len(rows), ncol, figsize=(5.2 * ncol, 4.2 * len(rows)), squeeze=False, layout="constrained",
+                         gridspec_kw={"width_ratios": [1, 1, 1.2][:ncol]})
+    for r, st in enumerate(rows):
+        for c, (a, b, la, lb, view) in enumerate(((0, 1, "x (m)", "y (m)", "top view"), (0, 2, "x (m)", "z (m)", "side view"))):
+            ax = axes[r, c]
+            for lab, p in data[st].items():  # plot() markers: one cached marker stamped, far faster than scatter()
+                ax.plot(p[:, a], p[:, b], ".", ms=1.5, mew=0, color=colors[lab], alpha=0.4, label=lab)
+            ax.set_xlim(lo[a], hi[a])
+            ax.set_ylim(lo[b], hi[b])
+            ax.set_aspect("equal", adjustable="box")
+            ax.set_xlabel(la, fontsize=8)
+            ax.set_ylabel(lb, fontsize=8)
+            ax.tick_params(labelsize=7)
+            ax.grid(alpha=0.3)
+            ax.set_title(f"{st}: {view}, {span[a]:.1f} x {span[b]:.1f} m", fontsize=9)
+        if board is not None:
+            ax = axes[r, 2]
+            for lab, (x_m, off_mm) in edge_on[st].items():
+                ax.plot(x_m, off_mm, ".", ms=3, mew=0, color=colors[lab], alpha=0.6, label=lab)
+            ax.axhline(0, color="k", lw=0.6)
+            ax.set_ylim(-edge_lim, edge_lim)  # one scale for every row: before and after compare
+            ax.set_xlabel("along the board (m)", fontsize=8)
+            ax.set_ylabel("from the solved board plane (mm)", fontsize=8)
+            ax.tick_params(labelsize=7)
+            ax.grid(alpha=0.3)
+            ax.set_title(f"{st}: the board edge-on", fontsize=9)
+        axes[r, 0].legend(markerscale=8, fontsize=7, loc="upper left")
+    return _save(fig, path, dpi=80, tight=False)
+
+
+def plot_camera_residuals_and_coverage(cams: list, path):
+    """Per camera, over the whole image: its reprojection errors as arrows (observed - predicted, scaled
+    up), the convex hull of every corner it detected (shaded) and the image's thirds (dotted).
+
+    ``cams``: [{"title", "imagersize": (w, h), "corners": (M,2) px, "residuals": (M,2) px or None,
+    "outlier": (M,) bool, "coverage": evidence.image_coverage(...)}]. A camera whose coverage has a
+    warning gets a red frame and title. The arrow scale is in the title.
+    """
+    from scipy.spatial import ConvexHull, QhullError
+
+    n = max(1, len(cams))
+    fig, axes = subplots(1, n, figsize=(5.4 * n, 4.6), squeeze=False, layout="constrained")
+    for ax, c in zip(axes[0], cams):
+        w, h = c["imagersize"]
+        q = np.asarray(c["corners"], float).reshape(-1, 2)
+        fin = np.all(np.isfinite(q), axis=1)
+        if fin.sum() >= 3:
+            try:
+                hv = ConvexHull(q[fin]).vertices
+                ax.fill(q[fin][hv, 0], q[fin][hv, 1], color="C0", alpha=0.10, lw=1, ec="C0")
+            except QhullError:
+                pass
+        for k in (1, 2):
+            ax.axhline(k * h / 3, color="0.6", lw=0.6, ls=":")
+            ax.axvline(k * w / 3, color="0.6", lw=0.6, ls=":")
+        head = c["title"]
+        if c.get("residuals") is not None:
+            e = np.asarray(c["residuals"], float).reshape(-1, 2)
+            bad = np.asarray(c.get("outlier", np.zeros(len(q), bool)), bool)
+            mag = np.linalg.norm(e, axis=1)
+            good = ~bad
+            ref = float(np.percentile(mag[good], 90)) if good.any() else 1.0
+            scale = 0.04 * max(w, h) / max(ref, 1e-6)  # the 90th-percentile arrow is 4 % of the image
+            qv = ax.quiver(q[good, 0], q[good, 1], e[good, 0] * scale, e[good, 1] * scale, mag[good], cmap="viridis",
+                           angles="xy", scale_units="xy", scale=1, width=0.003)
+            if bad.any():
+                ax.quiver(q[bad, 0], q[bad, 1], e[bad, 0] * scale, e[bad, 1] * scale, color="r", angles="xy",
+                          scale_units="xy", scale=1, width=0.003, label="outliers (rejected)")
+                ax.legend(fontsize=7, loc="lower right")
+            fig.colorbar(qv, ax=ax, shrink=0.7, label="|error| (px)")
+            rms = float(np.sqrt(np.mean(mag[good] ** 2))) if good.any() else float("nan")
+            head += f"\n{good.sum()} corners, RMS {rms:.3f} px, arrows x{scale:.0f}"
+        else:
+            ax.plot(q[:, 0], q[:, 1], ".", ms=1.5)
+        cov = c.get("coverage") or {}
+        head += f"; hull {100 * cov.get('hull_fraction', 0):.0f} % of the image"
+        if cov.get("warning"):
+            for sp in ax.spines.values():
+                sp.set_color("r")
+                sp.set_linewidth(2.5)
+            head += "\nTOO LITTLE OF THE IMAGE COVERED"
+        ax.set_title(head, fontsize=9, color="r" if cov.get("warning") else "k")
+        ax.set_xlim(0, w)
+        ax.set_ylim(h, 0)
+        ax.set_aspect("equal")
+        ax.tick_params(labelsize=7)
+    if not cams:
+        axes[0, 0].text(0.5, 0.5, "no cameras", ha="center", va="center")
+        axes[0, 0].set_axis_off()
+    return _save(fig, path, dpi=80, tight=False)
+
+
+def plot_lidar_residuals(lidars: list, path, *, max_points: int = 5000):
+    """Per LIDAR, residuals against range and against ring (elevation angle), with binned mean and RMS.
+
+    ``lidars``: [{"title", "residual": (N,) m, "range": (N,) m, "elevation_deg": (N,), "outlier": (N,)
+    bool}]. A trend with range means a range-scale or timing error; one ring off the others, a
+    miscalibrated ring elevation (the LIDAR's own intrinsics).
+    """
+    n = max(1, len(lidars))
+    fig, axes = subplots(n, 2, figsize=(11, 3.0 * n), squeeze=False, layout="constrained")
+    rng = np.random.default_rng(0)
+    for row, L in zip(axes, lidars):
+        x = np.asarray(L["residual"], float) * 1e3
+        good = ~np.asarray(L.get("outlier", np.zeros(len(x), bool)), bool) & np.isfinite(x)
+        for ax, key, lab in ((row[0], "range", "range (m)"), (row[1], "elevation_deg", "ring: elevation angle (deg)")):
+            v = np.asarray(L[key], float)
+            k = np.flatnonzero(good)
+            if len(k) > max_points:
+                k = rng.choice(k, max_points, replace=False)
+            ax.plot(v[k], x[k], ".", ms=1.5, mew=0, color="0.55", alpha=0.4)
+            if key == "range":
+                edges = np.linspace(np.nanmin(v[good]), np.nanmax(v[good]) + 1e-9, 13) if good.any() else np.zeros(2)
+            else:  # one bin per ring: rings sit at distinct elevations
+                e = np.unique(np.round(v[good], 1))
+                edges = np.r_[e[0] - 0.05, 0.5 * (e[1:] + e[:-1]), e[-1] + 0.05] if len(e) else np.zeros(2)
+                if len(e) > 128:
+                    edges = np.linspace(e[0], e[-1] + 1e-9, 33)
+            b = np.clip(np.searchsorted(edges, v[good]) - 1, 0, len(edges) - 2)
+            cnt = np.bincount(b, minlength=len(edges) - 1)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                mean = np.bincount(b, x[good], len(edges) - 1) / cnt
+                rms = np.sqrt(np.bincount(b, x[good] ** 2, len(edges) - 1) / cnt)
+            mid = 0.5 * (edges[1:] + edges[:-1])
+            ok = cnt >= 5
+            ax.plot(mid[ok], mean[ok], "o-", color="C3", ms=3, lw=1, label="mean per bin")
+            ax.plot(mid[ok], rms[ok], "s--", color="C0", ms=3, lw=1, label="RMS per bin")
+            ax.axhline(0, color="k", lw=0.6)
+            lim = max(3 * np.std(x[good]), 1.0) if good.any() else 10.0
+            ax.set_ylim(-lim, lim)
+            ax.set_xlabel(lab, fontsize=8)
+            ax.set_ylabel("residual (mm)", fontsize=8)
+            ax.tick_params(labelsize=7)
+            ax.grid(alpha=0.3)
+            ax.set_title(f"{L['title']}: residual against {lab.split(' (')[0]}", fontsize=9)
+        row[0].legend(fontsize=7, loc="upper right")
+    if not lidars:
+        axes[0, 0].text(0.5, 0.5, "no LIDAR residuals", ha="center", va="center")
+    return _save(fig, path, dpi=80, tight=False)
+
+
+def plot_map_trajectory(points: np.ndarray, trajectory: np.ndarray, path, *, keyframes: np.ndarray | None = None,
+                        max_points: int = 60000):
+    """Targetless: the map (N,3) from above coloured by height, with the trajectory (T,3) and keyframes (K,3)."""
+    p = np.asarray(points, float).reshape(-1, 3)
+    if len(p) > max_points:
+        p = p[np.random.default_rng(0).choice(len(p), max_points, replace=False)]
+    fig, ax = subplots(figsize=(8, 6), layout="constrained")
+    if len(p):
+        lo, hi = np.percentile(p[:, 2], [2, 98])
+        s = ax.scatter(p[:, 0], p[:, 1], s=0.3, c=p[:, 2], cmap="viridis", vmin=lo, vmax=hi, linewidths=0, rasterized=True)
+        fig.colorbar(s, ax=ax, shrink=0.8, label="z (m)")
+    t = np.asarray(trajectory, float).reshape(-1, 3)
+    ax.plot(t[:, 0], t[:, 1], "r-", lw=1.2, label="trajectory")
+    if keyframes is not None and len(keyframes):
+        k = np.asarray(keyframes, float).reshape(-1, 3)
+        ax.plot(k[:, 0], k[:, 1], "k.", ms=4, label="keyframes")
+    lo, hi = crop_box([p, t], margin_m=1.0)  # a stray far point must not set the scale
+    lo, hi = np.minimum(lo, t.min(0) - 1.0), np.maximum(hi, t.max(0) + 1.0)
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title("map (top view, 1-99 % of the points) and trajectory")
+    ax.legend(fontsize=8, loc="upper left")
+    return _save(fig, path, dpi=80, tight=False)
+
+
+def plot_frame_scores(before: np.ndarray, after: np.ndarray, path, *, title: str = "",
+                      ylabel: str = "truncated mean sq. distance (m^2)"):
+    """Targetless: a score per calibration frame under the initial guess and the result (lower is better)."""
+    b, a = np.asarray(before, float), np.asarray(after, float)
+    fig, ax = subplots(figsize=(7, 3.2), layout="constrained")
+    x = np.arange(len(b))
+    ax.bar(x - 0.2, b, 0.4, label="initial guess")
+    ax.bar(x + 0.2, a, 0.4, label="final")
+    ax.set_xlabel("calibration frame")
+    ax.set_ylabel(ylabel, fontsize=8)
+    ax.set_title(title or "per-frame scores", fontsize=9)
+    ax.legend(fontsize=8)
+    return _save(fig, path, dpi=80, tight=False)
+
+
+def plot_distance_histograms(distances: dict, path, *, max_m: float, title: str = ""):
+    """Targetless: histograms of each point's distance to the map ({label: (N,) m}), last bin = farther."""
+    fig, ax = subplots(figsize=(7, 3.2), layout="constrained")
+    bins = np.linspace(0, max_m, 61)
+    for (lab, d), col in zip(distances.items(), ("C0", "C3", "C2", "C4")):
+        d = np.asarray(d, float)
+        ax.hist(np.minimum(d, bins[-1]), bins, histtype="step", color=col, label=f"{lab}: median {1e3 * np.median(d):.1f} mm")
+    ax.set_xlabel("distance of each point to the nearest map point (m) (last bin: farther)", fontsize=8)
+    ax.set_ylabel("points")
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=8)
+    return _save(fig, path, dpi=80, tight=False)

@@ -1,22 +1,59 @@
-"""report.html: a self-contained page with the pose table, RMS, noise, rejections and the plots.
+"""report.html: one self-contained page (figures embedded as PNG data URIs, nothing else needed)
+that lets a person see whether the calibration is right, not only self-consistent.
+
+At the top, the verdicts: self-consistency, convergence, the LIDAR board points against each
+camera's own board, image coverage, how far each sensor moved from its nominal pose. Then the
+run's record (bags with sizes, camera models, the call, the settings, the version), the tables,
+and the figures, each after a paragraph saying how to read it: LIDAR points on every camera's
+image (solved beside nominal /tf_static), overlapping clouds before / after, per-sensor residuals,
+image coverage, and the solve's diagnostics.
 
 SYNOPSIS
-    path = write_report(result, "out/", title="rig 17")   # also writes the PNGs
+    path = write_report(result, "out/", title="rig 17", inputs=report_inputs)   # out/report.html
 """
 
 from __future__ import annotations
 
+import base64
 import html
+import io
+import logging
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
-from .. import __version__
-from ..geometry import pose_stdevs
+from .. import __version__, cameras
+from ..geometry import R_from_r, compose_rt, invert_rt, pose_stdevs, transform
 from ..types import Result
+from . import evidence as ev
+
+log = logging.getLogger(__name__)
 
 HOWTO = {
+    "lidar-on-camera": "Every LIDAR's points (the whole scan, coloured by range) moved into the camera with the "
+    "extrinsics and projected through its lens model, on the camera's own image. The dashed outline is the board's "
+    "edge fitted to the corners the camera detected (no extrinsics involved). Right extrinsics put the board's "
+    "points inside it, reaching its edges, and the walls' and the ground's points on the walls and the ground; "
+    "a shift or rotation shows as a row of points spilling past one edge of the board. The caption gives the "
+    "spill (how far past the outline the third-farthest point lies: one or two edge returns hit the board's rim), "
+    "in px and in sigmas of the calibration's own uncertainty (about 3 or less is right).",
+    "clouds-before-after.png": "The LIDARs' clouds of one snapshot in the lidar0 frame, cropped to the board and "
+    "what is around it, with the nominal /tf_static extrinsics (top row, when the bag has them) and the solved "
+    "ones. Each LIDAR has its colour; where they overlap, the colours must coincide: one wall, one board. The "
+    "right column shows the board edge-on (distance from the solved board plane, in mm): calibrated clouds form "
+    "one line a few mm thick (the range noise).",
+    "camera-residuals-and-coverage.png": "Each camera's reprojection errors (observed minus predicted corner) as "
+    "arrows over the image, scaled up (the factor is in the title), over the convex hull of every corner it detected "
+    "(shaded) and the image's thirds (dotted). The arrows should point every which way with no pattern; arrows "
+    "growing toward the edges or swirling mean the lens model does not fit (re-calibrate the intrinsics); all "
+    "arrows of one board pointing one way mean that board moved or was seen at another time. Coverage rule: a "
+    "camera whose corners' hull covers less than 30 % of the image, or leaves a third of it (rows or columns) "
+    "empty, is flagged red and warned about at the top: only one band of its image constrains its pose.",
+    "lidar-residuals.png": "Each LIDAR's range residuals against the point's range and against its ring (elevation "
+    "angle). Mean and RMS per bin should be flat: the mean at zero, the RMS at the LIDAR's noise. A trend with "
+    "range is a range scale error; a ring whose mean is off the others has a wrong elevation angle in the LIDAR's "
+    "own calibration.",
     "residuals-histogram.png": "The histogram should match the red Gaussian (the re-estimated noise sigma). "
     "Heavy tails or a shifted peak mean outliers or a systematic error (bad intrinsics, a warped board, "
     "time skew).",
@@ -29,8 +66,9 @@ HOWTO = {
     "uncertainty of a ground point at the quantification range; sectors with large stdev need more "
     "board poses there. Right: how many board observations fell in each sector. The red outline is the "
     "sector of the last snapshot.",
-    "coverage.png": "Where each sensor saw the board. Boards spread over the field of view (and, for "
-    "cameras, corners reaching the image edges) constrain the pose; clustered boards leave it weak.",
+    "coverage.png": "Where each LIDAR saw the board (board centres from above, in its own frame; the cameras' "
+    "coverage is drawn with their residuals above). Boards spread over the field of view constrain the pose; "
+    "clustered boards leave it weak.",
 }
 
 
@@ -108,7 +146,23 @@ def _rejections(result: Result) -> str:
 _CSS = """body{font-family:sans-serif;max-width:1200px;margin:2em auto;color:#222}
 table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #bbb;padding:3px 8px;font-size:90%;text-align:left}
 th{background:#eee}img{max-width:100%;border:1px solid #ddd}.howto{background:#f4f8ff;padding:.5em 1em;border-left:4px solid #58f}
-code{background:#f3f3f3}.warn{background:#fff3f0;padding:.5em 1em;border-left:4px solid #e43}"""
+code{background:#f3f3f3}.warn{background:#fff3f0;padding:.5em 1em;border-left:4px solid #e43}
+.ok{background:#f0fff3;padding:.5em 1em;border-left:4px solid #2a4}
+.verdict{font-size:130%;padding:.6em 1em;margin:.5em 0}
+pre{background:#f6f6f6;padding:.5em;white-space:pre-wrap;word-break:break-all;font-size:85%}"""
+
+# section headings of the figures (file-like names stay the figures' alt texts)
+_HEADINGS = {
+    "lidar-on-camera": "LIDAR points on the camera images",
+    "clouds-before-after.png": "Overlapping LIDAR clouds, before and after",
+    "camera-residuals-and-coverage.png": "Camera reprojection errors and image coverage",
+    "lidar-residuals.png": "LIDAR residuals against range and ring",
+    "residuals-histogram.png": "Residual histograms",
+    "residuals-per-snapshot.png": "Residuals per snapshot",
+    "geometry.png": "Sensor and board geometry",
+    "sectors.png": "Uncertainty and observations per sector",
+    "coverage.png": "Board coverage per LIDAR",
+}
 
 
 def _consistency(result: Result) -> str:
@@ -142,19 +196,317 @@ def _consistency(result: Result) -> str:
     parts.append("<p class='howto'>Each check splits the data in two independent parts (one snapshot against the "
                  "others; the boards two sensors saw together against the rest) and asks whether both give the same "
                  "poses within their uncertainty. A disagreement of many sigma means a wrong board association, a "
-                 "sensor that moved, or a model error; clcgraph then refuses to write a result. 'Unverified' names "
+                 "sensor that moved, or a model error; the result is then written with this verdict (or refused, with <code>solve.refuse_inconsistent: true</code>). 'Unverified' names "
                  "directions that a single snapshot determines, so no check could see an error there.</p>")
     return "\n".join(parts)
 
 
-def report_html(result: Result, plots: dict[str, Path], *, title: str = "clcgraph calibration") -> str:
-    """The HTML text; ``plots`` maps PNG file names (relative to the report) to paths."""
+
+# ---------------------------------------------------------------- figures
+
+
+def _png(fig_fn, *args, **kwargs) -> bytes:
+    buf = io.BytesIO()
+    fig_fn(*args, buf, **kwargs)
+    return buf.getvalue()
+
+
+def embed_png(name: str, png: bytes) -> str:
+    """An <img> holding the PNG itself (a data URI): the page needs no other file."""
+    return (f"<img src='data:image/png;base64,{base64.b64encode(png).decode('ascii')}' alt='{html.escape(name)}' "
+            f"title='{html.escape(name)}'>")
+
+
+def _snapshot_name(k, inputs) -> str:
+    """'snapshot 7 (pose007.bag)' (the bag's name, and its period for a continuous bag) when known."""
+    src = inputs.sources.get(k) if inputs is not None else None
+    if not src:
+        return f"snapshot {k}"
+    bag, _, period = src.partition(" period ")
+    return f"snapshot {k} ({Path(bag).name}{' period ' + period if period else ''})"
+
+
+def _max_ray_angle(cam) -> float:
+    """The widest angle from the optical axis the image shows (its border, unprojected)."""
+    w, h = cam.imagersize
+    t = np.linspace(0, 1, 9)
+    border = np.r_[np.c_[t * (w - 1), 0 * t], np.c_[t * (w - 1), 0 * t + h - 1], np.c_[0 * t, t * (h - 1)],
+                   np.c_[0 * t + w - 1, t * (h - 1)]]
+    v = cameras.unproject(border, cam.lensmodel, cam.intrinsics)
+    return float(np.max(np.arccos(np.clip(v[:, 2] / np.linalg.norm(v, axis=1), -1, 1))))
+
+
+def _into_camera(result, i_cam, rts, clouds: dict) -> tuple[np.ndarray, np.ndarray]:
+    """LIDAR clouds {sensor: (N,3) own frame} -> (q (M,2) px inside the image, LIDAR range (M,))."""
+    cam = result.problem.sensors[i_cam]
+    w, h = cam.imagersize
+    limit = _max_ray_angle(cam) * 1.02  # beyond it, a lens polynomial can fold points back into the image
+    qs, rs = [np.zeros((0, 2))], [np.zeros(0)]
+    for i, pts in clouds.items():
+        if i not in rts:
+            continue
+        P = transform(compose_rt(invert_rt(np.asarray(rts[i_cam], float)), np.asarray(rts[i], float)), pts)
+        ang = np.arccos(np.clip(P[:, 2] / np.maximum(np.linalg.norm(P, axis=1), 1e-9), -1, 1))
+        keep = (P[:, 2] > 0.2) & (ang < limit)
+        q = cameras.project(P[keep], cam.lensmodel, cam.intrinsics)
+        inside = np.all((q >= -0.5) & (q <= [w - 0.5, h - 0.5]), axis=1)
+        qs.append(q[inside])
+        rs.append(np.linalg.norm(pts[keep][inside], axis=1))
+    return np.concatenate(qs), np.concatenate(rs)
+
+
+def _all_rts(result, inputs) -> dict:
+    """{"solved": {sensor: rt}, "nominal": {...}} (nominal only with /tf_static poses; lidar0 is its own)."""
+    solved = {i: np.asarray(rt, float) for i, rt in enumerate(result.rt_lidar0_sensor)}
+    out = {"solved": solved}
+    if inputs is not None and inputs.rt_nominal:
+        out["nominal /tf_static"] = {result.problem.reference: np.zeros(6),
+                                     **{i: np.asarray(rt, float) for i, rt in inputs.rt_nominal.items()}}
+    return out
+
+
+def _scan_clouds(result, inputs, k, *, max_points: int = 15000) -> dict:
+    """{LIDAR sensor: (N,3) own frame} at snapshot k: the whole scans when the report has them, else the
+    board points the LIDARs found."""
+    p = result.problem
+    snap = inputs.snapshots.get(k) if inputs is not None else None
+    out = {}
+    for i, s in enumerate(p.sensors):
+        if not s.is_lidar:
+            continue
+        if snap is not None and s.topic in snap.scans:
+            sc = snap.scans[s.topic]
+            pts = np.asarray(sc.points, float)[np.asarray(sc.valid, bool)]
+            pts = pts[np.all(np.isfinite(pts), axis=1)]
+            out[i] = pts[:: max(1, len(pts) // max_points)]
+        else:
+            obs = [o for o in p.lidar_observations if o.sensor == i and o.snapshot == k]
+            if obs:
+                out[i] = np.asarray(obs[0].points, float)
+    return out
+
+
+def _lidar_on_camera_figures(result, inputs, checks: dict) -> list[tuple[str, str, bytes]]:
+    """Per camera: (name, caption, png) of the LIDAR points on its image, solved beside nominal."""
+    from . import plots  # matplotlib only when drawing
+
+    p = result.problem
+    rts = _all_rts(result, inputs)
+    out = []
+    for i_cam, cam in enumerate(p.sensors):
+        if not cam.is_camera or cam.imagersize is None:
+            continue
+        obs = {o.snapshot: o for o in p.camera_observations if o.sensor == i_cam}
+        if not obs:
+            continue
+        with_image = [k for k in obs if inputs is not None and k in inputs.snapshots
+                      and cam.topic in inputs.snapshots[k].images]
+        lidars_at = Counter(o.snapshot for o in p.lidar_observations)
+        k = max(with_image or list(obs), key=lambda k: (lidars_at.get(k, 0), k in with_image))
+        image = inputs.snapshots[k].images[cam.topic].pixels if k in with_image else None
+        outline = ev.board_outline_px(ev.board_homography(obs[k].corners_px, p.board, cam), p.board, cam)
+        clouds = _scan_clouds(result, inputs, k)
+        panels, says = [], []
+        for side, (label, rt) in zip(("left", "right"), rts.items()):
+            q, r = _into_camera(result, i_cam, rt, clouds)
+            rows = [x for x in checks.get(label, ()) if x["camera"] == i_cam and x["snapshot"] == k]
+            spill = "" if not rows else (f": board points spill {max(x['spill_px'] for x in rows):.1f} px past the outline"
+                                         + (f" ({max(x['spill_sigma'] for x in rows):.1f} sigma)" if label == "solved" else ""))
+            panels.append({"q": q, "range": r, "outline": outline})
+            says.append(f"{side if len(rts) > 1 else 'the'} picture: {label} extrinsics{spill}")
+        v = np.concatenate([x["range"] for x in panels])
+        norm = (float(np.percentile(v, 1)), float(np.percentile(v, 99))) if len(v) else (0.0, 1.0)
+        what = "whole scans" if image is not None else "board points only (the report has no image of it)"
+        caption = (f"{i_cam}: {cam.topic}, {_snapshot_name(k, inputs)}, {what}. " + "; ".join(says)
+                   + f". Colour: LIDAR range, {norm[0]:.1f} m (blue) to {norm[1]:.1f} m (red), the bar at the bottom.")
+        out.append((f"lidar-on-camera-{i_cam}.png", caption,
+                    _png(plots.plot_lidar_on_image, panels, cam.imagersize, image=image, norm=norm)))
+    return out
+
+
+def _clouds_figure(result, inputs) -> tuple[str, bytes] | None:
+    """The overlapping LIDAR clouds of the snapshot most LIDARs saw the board in, before and after."""
+    from . import plots
+
+    p = result.problem
+    lidars = [i for i, s in enumerate(p.sensors) if s.is_lidar]
+    if len(lidars) < 2:
+        return None
+    rtb = np.asarray(result.rt_lidar0_board, float).reshape(-1, 6)
+    n_at = Counter(o.snapshot for o in p.lidar_observations)
+    cands = [k for k in n_at if n_at[k] >= 2 and np.all(np.isfinite(rtb[k]))]
+    if not cands:
+        return None
+    k = max(cands, key=lambda k: (inputs is not None and k in inputs.snapshots, n_at[k]))
+    clouds = _scan_clouds(result, inputs, k)
+    R = R_from_r(rtb[k][:3])
+    centre = transform(rtb[k], p.board.centre()[None])[0]
+    states = {}
+    for label, rt in _all_rts(result, inputs).items():
+        states[f"{'before' if label != 'solved' else 'after'} ({label})"] = {
+            f"{i}: {p.sensors[i].topic}": transform(rt[i], pts) for i, pts in clouds.items() if i in rt}
+    states = dict(sorted(states.items(), key=lambda x: not x[0].startswith("before")))  # before first
+    half = max(p.board.width_m, p.board.height_m) + 1.5
+    box = (centre - [half, half, half * 0.6], centre + [half, half, half * 0.6])
+    caption = f"{_snapshot_name(k, inputs)}, {2 * half:.1f} m around the board"
+    return caption, _png(plots.plot_cloud_overlap, states, box=box,
+                         board={"centre": centre, "normal": R[:, 2], "along": R[:, 0], "up": R[:, 1],
+                                "half_size": (p.board.width_m / 2, p.board.height_m / 2)})
+
+
+def _figures(result: Result, inputs, checks: dict) -> list[tuple[str, str, bytes]]:
+    """[(name, caption, png)] of every figure, in report order; a failing one is logged and left out."""
+    from . import plots
+
+    p = result.problem
+    out = []
+
+    def add(name, caption, fn):
+        try:
+            out.append((name, caption, fn()))
+        except Exception:  # a diagnostic figure must never lose the calibration
+            log.exception("could not draw %s", name)
+
+    try:
+        out += _lidar_on_camera_figures(result, inputs, checks)
+    except Exception:
+        log.exception("could not draw the LIDAR points on the camera images")
+    try:
+        clouds = _clouds_figure(result, inputs)
+        if clouds:
+            out.append(("clouds-before-after.png", clouds[0], clouds[1]))
+    except Exception:
+        log.exception("could not draw the clouds before / after")
+    vec = ev.camera_residual_vectors(result)
+    cams = [{**c, **vec.get(c["sensor"], {"corners": np.concatenate([np.reshape(x, (-1, 2)) for x in c["corners"]]),
+                                          "residuals": None})} for c in _coverage(result)]
+    if cams:
+        add("camera-residuals-and-coverage.png", "", lambda: _png(plots.plot_camera_residuals_and_coverage, cams))
+    geo = ev.lidar_residual_geometry(result)
+    if geo:
+        add("lidar-residuals.png", "", lambda: _png(plots.plot_lidar_residuals, [
+            {"title": f"{i}: {p.sensors[i].topic}", **v} for i, v in sorted(geo.items())]))
+    for name, fn in plots.PLOTS.items():
+        add(name, "", lambda fn=fn: _png(fn, result))
+    return out
+
+
+def _coverage(result) -> list[dict]:
+    p = result.problem
+    cams = []
+    for i, s in enumerate(p.sensors):
+        if s.is_camera and s.imagersize is not None:
+            corners = [o.corners_px for o in p.camera_observations if o.sensor == i]
+            cams.append({"title": f"{i}: {s.topic}", "imagersize": s.imagersize, "corners": corners,
+                         "coverage": ev.image_coverage(corners, s.imagersize), "sensor": i})
+    return cams
+
+
+# ---------------------------------------------------------------- verdicts and record
+
+
+def _verdicts(result: Result, inputs, checks: dict, coverage: list) -> str:
+    """The banner at the top: what says the calibration is right (or not), worst first."""
+    v = result.stats.get("consistency") or {}
+    parts = []
+    if not v:
+        parts.append("<div class='verdict warn'>Self-consistency: <b>not checked</b>.</div>")
+    elif v.get("passed"):
+        parts.append(f"<div class='verdict ok'>Self-consistency: <b>passed</b> ({v.get('n_checks', 0)} checks: every "
+                     "snapshot and every sensor pair agrees with the rest within its uncertainty).</div>")
+    else:
+        why = (v.get("failures") or v.get("unverifiable") or ["?"])[0]
+        parts.append(f"<div class='verdict warn'>Self-consistency: <b>FAILED</b>: {html.escape(why)}</div>")
+    conv = result.stats.get("convergence") or {}
+    if conv and not conv.get("converged"):
+        parts.append("<div class='verdict warn'>Solve: <b>NOT CONVERGED</b>: "
+                     + html.escape("; ".join(conv.get("warnings", ()))) + "</div>")
+    rows = checks.get("solved", [])
+    if rows:
+        worst = max(rows, key=lambda x: x["spill_sigma"])
+        p = result.problem
+        nominal = checks.get("nominal /tf_static", [])
+        nom = (f" With the nominal /tf_static extrinsics the spill is up to {max(x['spill_px'] for x in nominal):.1f} px."
+               if nominal else "")
+        ok = worst["spill_sigma"] <= 4.0
+        parts.append(
+            f"<div class='verdict {'ok' if ok else 'warn'}'>LIDAR board points on the cameras' boards: "
+            f"<b>{'on the board' if ok else 'OFF THE BOARD'}</b>: over {len(rows)} (camera, LIDAR, snapshot) views, the "
+            f"largest spill past the board's outline (a view's third-farthest point: one or two rim returns do not count) is "
+            f"{worst['spill_px']:.2f} px = {worst['spill_sigma']:.1f} sigma ({html.escape(p.sensors[worst['lidar']].topic)} "
+            f"in {html.escape(p.sensors[worst['camera']].topic)}, {html.escape(_snapshot_name(worst['snapshot'], inputs))}; "
+            f"more than 4 sigma is flagged).{nom}</div>")
+    for c in coverage:
+        if c["coverage"].get("warning"):
+            parts.append(f"<div class='verdict warn'>Image coverage of {html.escape(c['title'])}: "
+                         f"<b>too little</b>: {html.escape(c['coverage']['warning'])}</div>")
+    if inputs is not None and inputs.rt_nominal:
+        moved = ev.moved_from_nominal(result, inputs.rt_nominal)
+        if moved:
+            far = max(moved, key=lambda m: m["rotation_deg"])
+            parts.append(f"<div class='verdict'>Moved from the nominal pose ({html.escape(inputs.nominal_source)}): up to "
+                         f"{max(m['rotation_deg'] for m in moved):.2f} deg ({html.escape(far['topic'])}) and "
+                         f"{max(m['translation_mm'] for m in moved):.0f} mm; see the table below.</div>")
+    return "\n".join(parts)
+
+
+def _moved_table(result, inputs) -> str:
+    if inputs is None or not inputs.rt_nominal:
+        return "<p>No nominal poses (the bags have no /tf_static linking the sensors' frames to lidar0's).</p>"
+    rows = "".join(f"<tr><td>{m['sensor']}</td><td>{html.escape(m['topic'])}</td><td>{m['rotation_deg']:.3f}</td>"
+                   f"<td>{m['sigma_deg']:.3f}</td><td>{m['translation_mm']:.1f}</td><td>{m['sigma_mm']:.1f}</td></tr>"
+                   for m in ev.moved_from_nominal(result, inputs.rt_nominal))
+    return (f"<p>Nominal poses from {html.escape(inputs.nominal_source)}. Rotation: the angle of R_nominal^T R_solved; "
+            "translation: the distance between the two origins; 1-sigma: the root-sum-square of the solved pose's "
+            "per-axis sigmas. A difference of many sigma is the CAD / tf_static being off (or the sensor moved), "
+            "not the calibration.</p><table><tr><th>#</th><th>sensor</th><th>rotation (deg)</th><th>1-sigma (deg)</th>"
+            f"<th>translation (mm)</th><th>1-sigma (mm)</th></tr>{rows}</table>")
+
+
+def _inputs_html(result, inputs) -> str:
+    p = result.problem
+    cams = "".join(f"<tr><td>{i}</td><td>{html.escape(s.topic)}</td><td>{html.escape(str(s.lensmodel))}</td>"
+                   f"<td>{s.imagersize[0]}x{s.imagersize[1]}</td><td>{html.escape(dict(inputs.models).get(s.topic, '–') if inputs else '–')}</td></tr>"
+                   for i, s in enumerate(p.sensors) if s.is_camera and s.imagersize is not None)
+    parts = [f"<p>clcgraph {__version__}. Sensors: "
+             + ", ".join(f"{i}: <code>{html.escape(s.topic)}</code> ({s.kind})" for i, s in enumerate(p.sensors)) + ".</p>"]
+    if cams:
+        parts.append("<table><tr><th>#</th><th>camera</th><th>lens model</th><th>image</th><th>.cameramodel</th></tr>"
+                     f"{cams}</table>")
+    if inputs is None:
+        parts.append("<p>No record of the bags and the call (this report was written from a Result alone).</p>")
+        return "\n".join(parts)
+    if inputs.command:
+        parts.append(f"<p>Call:</p><pre>{html.escape(inputs.command)}</pre>")
+    total = sum(n for _, n in inputs.bags)
+    bags = "".join(f"<tr><td>{html.escape(b)}</td><td>{n / 1e6:.1f}</td></tr>" for b, n in inputs.bags)
+    parts.append(f"<details><summary>{len(inputs.bags)} bag(s), {total / 1e6:.1f} MB</summary><table>"
+                 f"<tr><th>bag</th><th>MB</th></tr>{bags}</table></details>")
+    if inputs.config_yaml:
+        parts.append(f"<details><summary>effective settings (config.resolved.yaml)</summary>"
+                     f"<pre>{html.escape(inputs.config_yaml)}</pre></details>")
+    return "\n".join(parts)
+
+
+def report_html(result: Result, *, title: str = "clcgraph calibration", inputs: "ev.ReportInputs | None" = None) -> str:
+    """The whole self-contained HTML text (figures embedded)."""
     rms, noise = result.rms, result.noise
     used = int(np.sum(np.all(np.isfinite(np.asarray(result.rt_lidar0_board, float).reshape(-1, 6)), axis=1)))
+    checks = {"solved": ev.lidar_board_in_images(result)}
+    rts = _all_rts(result, inputs)
+    if "nominal /tf_static" in rts:
+        nom = np.array([rts["nominal /tf_static"].get(i, rt) for i, rt in enumerate(result.rt_lidar0_sensor)])
+        checks["nominal /tf_static"] = ev.lidar_board_in_images(result, rt_lidar0_sensor=nom)
+    coverage = _coverage(result)
+    for c in coverage:
+        if c["coverage"].get("warning"):
+            log.warning("camera %s: %s", c["title"], c["coverage"]["warning"])
+    figures = _figures(result, inputs, checks)
     parts = [
         f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title><style>{_CSS}</style></head><body>",
         f"<h1>{html.escape(title)}</h1>",
-        f"<p>clcgraph {__version__}. Reference frame: lidar0 = <code>{html.escape(result.problem.sensors[result.problem.reference].topic)}</code>. "
+        _verdicts(result, inputs, checks, coverage),
+        f"<p>Reference frame: lidar0 = <code>{html.escape(result.problem.sensors[result.problem.reference].topic)}</code>. "
         f"Snapshots used: {used} of {result.problem.n_snapshots}.</p>",
         f"<p>{html.escape(_board_line(result.problem.board))}</p>",
         "<h2>Poses</h2>", _pose_table(result),
@@ -162,38 +514,41 @@ def report_html(result: Result, plots: dict[str, Path], *, title: str = "clcgrap
         "vector, in degrees) in the lidar0 frame. The stdevs are 1-sigma marginals computed with the re-estimated "
         "noise; a stdev of several mm or a tenth of a degree or more means the capture did not constrain that sensor "
         "well (see the sector and coverage plots).</p>",
+        "<h2>Moved from the nominal pose</h2>", _moved_table(result, inputs),
+        "<h2>Inputs and settings</h2>", _inputs_html(result, inputs),
         "<h2>Fit</h2><table><tr><th>RMS normalized</th><th>RMS LIDAR (m)</th><th>RMS camera (px)</th>"
         "<th>noise sigma LIDAR (m)</th><th>noise sigma camera (px)</th></tr>"
         f"<tr><td>{_fmt(rms.get('normalized'))}</td><td>{_fmt(rms.get('lidar_m'))}</td><td>{_fmt(rms.get('camera_px'))}</td>"
         f"<td>{_fmt(noise.get('lidar_m'))}</td><td>{_fmt(noise.get('camera_px'))}</td></tr></table>",
         "<p class='howto'>The normalized RMS should be near 1 once the noise is re-estimated. A LIDAR RMS well above "
         "the LIDAR's range noise (typically 1–3 cm) or a camera RMS above ~1 px points at bad data.</p>",
-        "<h2>Convergence</h2>", convergence_html(result.stats.get("convergence") or {}),
-        "<h2>Consistency</h2>", _consistency(result),
-        "<h2>Rejections</h2>", _rejections(result),
     ]
-    for name, how in HOWTO.items():
-        if name not in plots:
-            continue
-        parts.append(f"<h2>{html.escape(name[:-4].replace('-', ' '))}</h2>")
-        parts.append(f"<p class='howto'>{html.escape(how)}</p>")
-        parts.append(f"<img src='{html.escape(name)}' alt='{html.escape(name)}'>")
-    parts.append("</body></html>")
+    shown = set()
+    for name, caption, png in figures:
+        key = "lidar-on-camera" if name.startswith("lidar-on-camera") else name
+        if key not in shown:
+            parts.append(f"<h2>{html.escape(_HEADINGS.get(key, key))}</h2>")
+            parts.append(f"<p class='howto'>{html.escape(HOWTO.get(key, ''))}</p>")
+            shown.add(key)
+        if caption:
+            parts.append(f"<p>{html.escape(caption)}</p>")
+        parts.append(embed_png(name, png))
+    parts += ["<h2>Convergence</h2>", convergence_html(result.stats.get("convergence") or {}),
+              "<h2>Consistency</h2>", _consistency(result),
+              "<h2>Rejections</h2>", _rejections(result), "</body></html>"]
     return "\n".join(parts)
 
 
-def write_report(result: Result, out_dir, *, title: str = "clcgraph calibration") -> Path:
-    """Draw every plot into ``out_dir`` and write ``out_dir/report.html`` referencing them; the one
-    report entry point of both methods (a targetless result: report_targetless.py)."""
+def write_report(result: Result, out_dir, *, title: str = "clcgraph calibration",
+                 inputs: "ev.ReportInputs | None" = None) -> Path:
+    """Write ``out_dir/report.html``: one file, figures embedded, nothing else needed to open it;
+    the one report entry point of both methods (a targetless result: report_targetless.py)."""
     if result.method == "targetless":
         from .report_targetless import write_targetless_report
 
         return write_targetless_report(result, out_dir, title=title.replace("calibration", "targetless calibration"))
-    from .plots import plot_all
-
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    plots = plot_all(result, out_dir)
     path = out_dir / "report.html"
-    path.write_text(report_html(result, plots, title=title))
+    path.write_text(report_html(result, title=title, inputs=inputs))
     return path

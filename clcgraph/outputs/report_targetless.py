@@ -5,12 +5,13 @@ the pictures (map and trajectory, per-frame scores, before / after alignment, di
 the pictures were computed by the calibration (``Result.targetless.pictures``): this only draws.
 
 SYNOPSIS
-    path = write_targetless_report(result, "out/")   # also writes the PNGs
+    path = write_targetless_report(result, "out/")   # one self-contained file
 """
 
 from __future__ import annotations
 
 import html
+import io
 from pathlib import Path
 
 import numpy as np
@@ -18,92 +19,43 @@ import numpy as np
 from .. import __version__
 from ..geometry import pose_stdevs
 from ..types import Result
-from .plots import subplots  # Figure objects: the user's matplotlib backend is left alone
-from .report import convergence_html
-
-_DPI = 90
-
+from . import plots
+from .report import convergence_html, embed_png
 
 def _name(topic: str) -> str:
     return topic.strip("/").replace("/", "_")
 
 
-def _finish(fig, ax, title: str, path, **legend) -> Path:
-    ax.set_title(title)
-    ax.legend(**legend)
-    fig.savefig(path, dpi=_DPI, bbox_inches="tight")
-    return Path(path)
+def _png(draw) -> bytes:
+    buf = io.BytesIO()
+    draw(buf)
+    return buf.getvalue()
 
 
-def plot_map(pictures: dict, path) -> Path:
-    """Top view of the map, the trajectory and the keyframes."""
-    pts, traj, kf = pictures["map_points"], pictures["trajectory"], pictures["keyframes"]
-    fig, ax = subplots(figsize=(8, 6))
-    ax.scatter(pts[:, 0], pts[:, 1], s=0.2, c=pts[:, 2], cmap="viridis")
-    ax.plot(traj[:, 0], traj[:, 1], "r-", lw=1, label="trajectory")
-    ax.plot(traj[kf, 0], traj[kf, 1], "k.", label="keyframes")
-    ax.set_aspect("equal")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    return _finish(fig, ax, "map (top view) and trajectory", path, loc="upper left", bbox_to_anchor=(1, 1))
-
-
-def plot_scores(topic: str, rows: list, path) -> Path:
-    """Per calibration frame: the score of the initial guess and of the result."""
-    fig, ax = subplots(figsize=(7, 3.5))
-    x = np.arange(len(rows))
-    ax.bar(x - 0.2, [r["score_guess"] for r in rows], 0.4, label="initial guess")
-    ax.bar(x + 0.2, [r["score_final"] for r in rows], 0.4, label="final")
-    ax.set_xlabel("calibration frame")
-    ax.set_ylabel("truncated mean sq. distance [m^2]")
-    return _finish(fig, ax, f"{topic}: per-frame scores", path)
-
-
-def plot_alignment(topic: str, pic: dict, path) -> Path:
-    """One frame near the sensor, before (tf_static) and after, top and side views."""
-    tg, box = pic["target"], pic["box_m"]
-    fig, axs = subplots(2, 2, figsize=(13, 8), height_ratios=[2, 1], layout="constrained")
-    for col, (s, title) in enumerate(((pic["source_guess"], "before (tf_static)"), (pic["source_final"], "after"))):
-        for row, (i, j, lab) in enumerate(((0, 1, "y"), (0, 2, "z"))):
-            a = axs[row, col]
-            a.scatter(tg[:, i], tg[:, j], s=0.2, c="0.6", label="mapping (dense)")
-            a.scatter(s[:, i], s[:, j], s=0.5, c="r", label=topic)
-            a.set_aspect("equal")
-            a.set_xlabel("x [m]")
-            a.set_ylabel(f"{lab} [m]")
-            a.set_title(f"{title}: {'top' if row == 0 else 'side'} view, {box:.0f} m around the sensor")
-    axs[0, 1].legend(loc="upper left", bbox_to_anchor=(1, 1))
-    fig.savefig(path, dpi=_DPI, bbox_inches="tight")
-    return Path(path)
-
-
-def plot_distances(topic: str, pic: dict, path) -> Path:
-    """Histogram of every frame's point-to-map distances, before and after."""
-    fig, ax = subplots(figsize=(7, 3.5))
-    bins = np.linspace(0, pic["max_corr_m"] * 3, 61)
-    for key, lab, col in (("distances_guess", "before", "C0"), ("distances_final", "after", "C3")):
-        dist = pic[key]
-        ax.hist(np.minimum(dist, bins[-1]), bins, histtype="step", color=col,
-                label=f"{lab}: median {1e3 * np.median(dist):.1f} mm")
-    ax.set_xlabel("distance of each point to the nearest dense-map point [m] (last bin: farther)")
-    ax.set_ylabel("points")
-    return _finish(fig, ax, f"{topic}: all {pic['frames']} calibration frames", path)
-
-
-def plot_all_targetless(result: Result, out_dir) -> list[str]:
-    """Every picture of the report into ``out_dir``; their file names, in report order."""
-    out_dir, run = Path(out_dir), result.targetless
-    out = [plot_map(run.pictures["map"], out_dir / "map_top.png").name]
+def figures(result: Result) -> dict[str, bytes]:
+    """Every picture of the report as PNG bytes, in report order (name -> PNG), drawn by
+    outputs/plots.py from the arrays the calibration kept."""
+    run = result.targetless
+    m = run.pictures["map"]
+    kf = np.asarray(m["keyframes"])
+    out = {"map_top.png": _png(lambda f: plots.plot_map_trajectory(m["map_points"], m["trajectory"], f,
+                                                                  keyframes=m["trajectory"][kf]))}
     for topic, rows in run.per_frame.items():
-        out.append(plot_scores(topic, rows, out_dir / f"scores_{_name(topic)}.png").name)
+        out[f"scores_{_name(topic)}.png"] = _png(lambda f: plots.plot_frame_scores(
+            [r["score_guess"] for r in rows], [r["score_final"] for r in rows], f, title=f"{topic}: per-frame scores"))
         pic = run.pictures["alignment"].get(topic)
         if pic:
-            out.append(plot_alignment(topic, pic, out_dir / f"aligned_{_name(topic)}.png").name)
-            out.append(plot_distances(topic, pic, out_dir / f"distances_{_name(topic)}.png").name)
+            states = {"before (tf_static)": {"mapping (dense)": pic["target"], topic: pic["source_guess"]},
+                      "after (solved)": {"mapping (dense)": pic["target"], topic: pic["source_final"]}}
+            box = plots.crop_box([pic["target"], pic["source_final"]], margin_m=0.2)
+            out[f"aligned_{_name(topic)}.png"] = _png(lambda f: plots.plot_cloud_overlap(states, f, box=box))
+            dist = {"before": pic["distances_guess"], "after": pic["distances_final"]}
+            out[f"distances_{_name(topic)}.png"] = _png(lambda f: plots.plot_distance_histograms(
+                dist, f, max_m=pic["max_corr_m"] * 3, title=f"{topic}: all {pic['frames']} calibration frames"))
     return out
 
 
-def targetless_report_html(result: Result, pngs: list[str], *, title: str = "clcgraph targetless calibration") -> str:
+def targetless_report_html(result: Result, pngs: dict[str, bytes], *, title: str = "clcgraph targetless calibration") -> str:
     run, p = result.targetless, result.problem
     rows = []
     for i, s in enumerate(p.sensors):
@@ -128,14 +80,14 @@ def targetless_report_html(result: Result, pngs: list[str], *, title: str = "clc
             f"<th>scale frames</th><th>scale edges</th><th>common mode</th></tr>{graph}</table>"
             + "".join(f"<h2>convergence: {html.escape(t)}</h2>" + convergence_html(c) for t, c in run.convergence.items())
             + f"<h2>timings [s]</h2><table border=1>{timings}</table>"
-            + "".join(f"<h2>{html.escape(n)}</h2><img src='{html.escape(n)}'>" for n in pngs)
+            + "".join(f"<h2>{html.escape(n)}</h2>" + embed_png(n, png) for n, png in pngs.items())
             + "".join(f"<p>{html.escape(n)}</p>" for n in run.notes) + "</body></html>")
 
 
 def write_targetless_report(result: Result, out_dir, *, title: str = "clcgraph targetless calibration") -> Path:
-    """Draw every picture into ``out_dir`` and write ``out_dir/report.html`` referencing them."""
+    """Write ``out_dir/report.html``: one file, the pictures embedded."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "report.html"
-    path.write_text(targetless_report_html(result, plot_all_targetless(result, out_dir), title=title))
+    path.write_text(targetless_report_html(result, figures(result), title=title))
     return path

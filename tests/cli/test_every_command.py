@@ -86,6 +86,25 @@ def session(tmp_path_factory):
     return d / "bags", model, d / "calib"
 
 
+def test_solve_report_shows_the_data(session):
+    """`clcgraph solve`'s report.html: one file, the LIDAR scans drawn on the camera's image with the solved
+    and the nominal (/tf_static) extrinsics, the run's record, the check's verdict at the top."""
+    import re
+
+    bags, model, calib = session
+    text = (calib / "report.html").read_text()
+    assert all(src.startswith("data:image/png;base64,") for src in re.findall(r"src='([^']+)'", text))
+    assert not [p.name for p in calib.glob("*.png")]
+    assert "/cam/front, snapshot" in text and "whole scans" in text  # the camera's own picture
+    assert "right picture: nominal /tf_static extrinsics" in text
+    verdict = re.search(r"LIDAR board points on the cameras' boards: [^\n]*", text)
+    assert verdict and "<b>on the board</b>" in verdict.group(0), verdict and verdict.group(0)
+    assert verdict.start() < text.index("<h2>Poses</h2>")
+    assert "pose000.bag" in text and "8 bag(s)" in text and str(model) in text
+    assert "process: " in text and " solve --bag " in text  # the command line as run
+    assert "effective settings (config.resolved.yaml)" in text
+
+
 def test_every_command_is_covered():
     sub = next(a for a in build_parser()._actions if a.dest == "command")
     assert set(sub.choices) == set(COVERED)
