@@ -24,6 +24,7 @@ _API = {
     "load_result",
     "write_outputs",
     "summary_table",
+    "compare",
 }
 
 

@@ -512,6 +512,14 @@ def run_demo(out=None, *, config=None, seed: int = 0, force: bool = False) -> tu
     return result, compare_to_truth(result, truth)
 
 
+def compare(a, b, *, config=None):
+    """Has the calibration changed? Per sensor pose difference, chi-square test, verdict
+    (clcgraph.comparison.compare: a, b results, output directories, calibration.yaml or a bag)."""
+    from .comparison import compare as _compare
+
+    return _compare(a, b, config=config)
+
+
 def load_result(out_dir) -> dict:
     """Read a calibration written by `clcgraph solve` (calibration.yaml), schema-checked."""
     from .outputs.results import load_result as _load

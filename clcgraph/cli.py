@@ -741,6 +741,27 @@ def _add_show_uncertainty(sub):
     p.set_defaults(func=run)
 
 
+@_command
+def _add_compare(sub):
+    p = sub.add_parser("compare", help="has the calibration changed? per sensor: pose difference, chi-square test, verdict")
+    p.add_argument("a", metavar="A", help="output directory or calibration.yaml of solve / targetless, or a bag (/tf_static)")
+    p.add_argument("b", metavar="B", help="the same for the other calibration (B is compared with A)")
+    p.add_argument("--yaml", default=None, metavar="FILE", help="also write the comparison as YAML, for scripts")
+    p.add_argument("--fail-on-change", action="store_true", help="exit 3 if any sensor moved significantly")
+    _config_args(p, "settings (section 'compare'; see `clcgraph config dump`)")
+
+    def run(args):
+        from .comparison import compare, write_yaml
+
+        c = compare(args.a, args.b, config=_load_config(args))
+        print(c.table())
+        if args.yaml:
+            write_yaml(c.to_dict(), args.yaml)
+        return 3 if args.fail_on_change and c.changed else 0
+
+    p.set_defaults(func=run)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="clcgraph",
