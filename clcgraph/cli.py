@@ -762,6 +762,36 @@ def _add_compare(sub):
     p.set_defaults(func=run)
 
 
+@_command
+def _add_fleet(sub):
+    p = sub.add_parser("fleet", help="calibrate many vehicles (a manifest) in parallel, compare each with its last calibration")
+    p.add_argument("manifest", metavar="MANIFEST.yaml", help="defaults + vehicles (id, bags, previous); see docs/fleet.md")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="DIR/<id>/ per vehicle, DIR/fleet.yaml, .csv, .html: new, empty or an earlier fleet output")
+    p.add_argument("--cluster", default=None, metavar="ADDRESS",
+                   help="run on a Dask cluster: tcp://scheduler:8786, or local:N for N local worker processes")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="local process pool size (default: the CPUs available); 0: one vehicle after another in this process")
+    p.add_argument("--resume", action="store_true", help="keep vehicles whose DIR/<id>/ is complete")
+
+    def run(args):
+        import contextlib
+
+        from .fleet import SerialExecutor, calibrate_fleet, dask_executor, summary_table
+
+        if args.workers is not None:
+            _in_range(args.workers, "--workers", 0, 1024)
+        with dask_executor(args.cluster) if args.cluster else contextlib.nullcontext() as ex:
+            if ex is None and args.workers == 0:
+                ex = SerialExecutor()
+            summary = calibrate_fleet(args.manifest, args.out, ex, resume=args.resume, workers=args.workers or None)
+        print(summary_table(summary))
+        print(f"wrote {args.out}/fleet.yaml, fleet.csv and fleet.html")
+        return 0
+
+    p.set_defaults(func=run)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="clcgraph",

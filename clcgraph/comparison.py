@@ -301,22 +301,9 @@ def _is_bag_like(x) -> bool:
 
 
 def write_yaml(d: dict, path) -> Path:
-    """Write ``d`` as YAML to ``path`` whole or not at all (a temporary file beside it, renamed)."""
-    import os
-    import tempfile
-
+    """Write ``d`` as YAML to ``path``, whole or not at all."""
     import yaml
 
-    path = Path(path)
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent if str(path.parent) else ".")
-    except OSError as e:
-        raise InputError(f"{path}: cannot write ({e.strerror})") from None
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(yaml.safe_dump(d, sort_keys=False, width=200))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    from .outputs.atomic import atomic_file
+
+    return atomic_file(path, yaml.safe_dump(d, sort_keys=False, width=200))
