@@ -175,11 +175,11 @@ class SensorChange:
     test: str = ""  # "chi-square, 6 DoF" or "thresholds"
 
     def to_dict(self) -> dict:
-        def f(v):
-            return None if v is None else float(v)
+        def f(v):  # 9 significant digits: BLAS thread counts change the last ones (same inputs, same bytes)
+            return None if v is None else float(f"{float(v):.9g}")
         return {"topic": self.topic, "status": self.status, "verdict": self.verdict, "rotation_deg": f(self.rotation_deg),
-                "axis_ref": None if self.axis_ref is None else [float(x) for x in self.axis_ref],
-                "translation_mm": None if self.translation_mm is None else [float(x) for x in self.translation_mm],
+                "axis_ref": None if self.axis_ref is None else [f(x) for x in self.axis_ref],
+                "translation_mm": None if self.translation_mm is None else [f(x) for x in self.translation_mm],
                 "mahalanobis": f(self.mahalanobis), "chi2": f(self.chi2), "p_value": f(self.p_value), "test": self.test}
 
 

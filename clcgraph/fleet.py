@@ -42,6 +42,8 @@ import time
 import types
 from pathlib import Path
 
+import numpy as np
+
 from .errors import ClcgraphError, DependencyError, InputError
 
 log = logging.getLogger(__name__)
@@ -273,11 +275,11 @@ def vehicle_row(job: VehicleJob) -> dict:
     sensors = []
     for topic, (T, C) in mine.poses.items():
         rt = rt_from_T(T)
-        s = {"topic": topic, "rt_lidar0_sensor": [float(x) for x in rt]}
+        s = {"topic": topic, "rt_lidar0_sensor": _digits(rt)}
         if C is not None:
             rot, pos = pose_stdevs(rt, C)
-            s["stdev_orientation_deg"] = [float(x) for x in (180 / 3.141592653589793) * rot]
-            s["stdev_position_mm"] = [float(x) for x in 1e3 * pos]
+            s["stdev_orientation_deg"] = _digits(np.degrees(rot))
+            s["stdev_position_mm"] = _digits(1e3 * pos)
         sensors.append(s)
     row = {"id": job.id, "method": job.method, "status": "ok", "error": None, "out": job.id, "sensors": sensors}
 
@@ -298,6 +300,11 @@ def vehicle_row(job: VehicleJob) -> dict:
     else:
         row["nominal"] = against(first_bag)
     return row
+
+
+def _digits(a) -> list:
+    """9 significant digits: BLAS thread counts (a Dask worker runs single-threaded) change the last ones."""
+    return [float(f"{float(x):.9g}") for x in np.asarray(a, float).ravel()]
 
 
 def output_complete(job: VehicleJob) -> bool:

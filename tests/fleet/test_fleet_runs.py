@@ -103,10 +103,16 @@ def test_fleet_is_bit_identical_on_a_process_pool_with_a_killed_worker_and_on_da
 
 
 @pytest.mark.slow
-def test_resume_keeps_complete_vehicles_and_reruns_the_failed_one(serial, tmp_path):
+def test_resume_keeps_complete_vehicles_and_reruns_the_failed_one(serial, capsys):
+    """Through the command, in this process (--workers 0): the table, then the same summary."""
     manifest, out, summary = serial
     before = {v: (out / v / "calibration.yaml").stat().st_mtime_ns for v in ("same", "knocked", "first")}
-    again = calibrate_fleet(manifest, out, SerialExecutor(), resume=True)
+    assert main(["fleet", str(manifest), "--out", str(out), "--resume", "--workers", "0"]) == 0  # failures: in the summary
+    printed = capsys.readouterr().out
+    assert "3 of 4 vehicles calibrated, 1 failed; moved since previous: knocked" in printed
+    lines = {line.split()[0]: line for line in printed.splitlines()[1:5]}
+    assert "ok (kept)" in lines["same"] and "failed" in lines["truncated"] and "pose003.bag" in lines["truncated"]
+    again = yaml.safe_load((out / "fleet.yaml").read_text())
     assert _found(again) == _found(summary)
     rows = _by_id(again)
     assert all(rows[v].get("resumed") for v in before) and not rows["truncated"].get("resumed")
