@@ -777,14 +777,17 @@ def _add_fleet(sub):
     def run(args):
         import contextlib
 
-        from .fleet import SerialExecutor, calibrate_fleet, dask_executor, summary_table
+        from .api import check_out_dir
+        from .fleet import Manifest, SerialExecutor, calibrate_fleet, dask_executor, summary_table
 
         if args.workers is not None:
             _in_range(args.workers, "--workers", 0, 1024)
+        manifest = Manifest.load(args.manifest)  # bad input fails before a cluster is reached
+        check_out_dir(args.out, kind="fleet")
         with dask_executor(args.cluster) if args.cluster else contextlib.nullcontext() as ex:
             if ex is None and args.workers == 0:
                 ex = SerialExecutor()
-            summary = calibrate_fleet(args.manifest, args.out, ex, resume=args.resume, workers=args.workers or None)
+            summary = calibrate_fleet(manifest, args.out, ex, resume=args.resume, workers=args.workers or None)
         print(summary_table(summary))
         print(f"wrote {args.out}/fleet.yaml, fleet.csv and fleet.html")
         return 0

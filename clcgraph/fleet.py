@@ -481,13 +481,14 @@ def _run(jobs, executor, *, total: int, done: int):
                                          unit="vehicle")):
             _log_row(row, done + k + 1, total)
             yield row
-    except BaseException:
+    except BaseException:  # interrupted: what is queued never starts; what runs is not waited for
         for f in futures:
             f.cancel()
-        raise
-    finally:
         if owned:
-            ex.shutdown(wait=True, cancel_futures=True)
+            ex.shutdown(wait=False, cancel_futures=True)
+        raise
+    if owned:
+        ex.shutdown(wait=True)
 
 
 def _log_row(row: dict, k: int, n: int) -> None:
