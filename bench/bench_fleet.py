@@ -59,7 +59,7 @@ def _engines(workers: int):
         import distributed
 
         cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                           dashboard_address=None)
+                                           dashboard_address=":0")
         client = distributed.Client(cluster)
         return client.get_executor(), lambda: (client.close(), cluster.close())
 

@@ -31,6 +31,7 @@ sigmas, the comparison with ``previous`` and with the first bag's /tf_static.
 
 from __future__ import annotations
 
+import collections
 import concurrent.futures as cf
 import contextlib
 import dataclasses
@@ -318,13 +319,16 @@ def output_complete(job: VehicleJob) -> bool:
 
 
 class SerialExecutor(cf.Executor):
-    """Runs each call at once in the calling process (the reference for the other engines)."""
+    """Runs each call at once in the calling process (the reference for the other engines).
+    An interruption (KeyboardInterrupt, SystemExit) is raised at once, not kept in the future."""
+
+    _max_workers = 1
 
     def submit(self, fn, /, *args, **kwargs):
         f = cf.Future()
         try:
             f.set_result(fn(*args, **kwargs))
-        except BaseException as e:  # noqa: BLE001 - handed to the caller through the future
+        except Exception as e:  # noqa: BLE001 - handed to the caller through the future
             f.set_exception(e)
         return f
 
@@ -376,7 +380,7 @@ def dask_executor(address: str):
             n = int(m.group(1))
             if not 1 <= n <= 1024:
                 raise InputError(f"--cluster {address}: N must be 1..1024 worker processes")
-            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None)
+            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0")
             client = Client(cluster)
         else:
             client = Client(address, timeout="20s")
@@ -441,30 +445,39 @@ def _run(jobs, executor, *, total: int, done: int):
 
     def submit(job):
         nonlocal ex
+        attempts[job.id] += 1
         try:
             futures[ex.submit(run_vehicle, job)] = job
             return None
         except cf.BrokenExecutor as e:
             if not owned:
-                return _failed(job, f"the executor is broken (a worker died): {e or type(e).__name__}")
+                return {**_failed(job, f"the executor is broken (a worker died): {e or type(e).__name__}"),
+                        "attempts": attempts[job.id]}
             ex.shutdown(wait=False, cancel_futures=True)
             ex = executor()  # a fresh pool for the rest
             futures[ex.submit(run_vehicle, job)] = job
             return None
 
+    # no more vehicles in flight than the executor runs at once (all of them for Dask, which
+    # schedules them itself): the bar moves as vehicles finish, and a pool that loses a worker
+    # costs an attempt only to the vehicles that were running
+    window = getattr(ex, "_max_workers", None) or len(jobs)
+    queue = collections.deque(jobs)
+
     def completions():
-        for job in jobs:
-            row = submit(job)
-            if row is not None:
-                yield row
-        while futures:
+        while queue or futures:
+            while queue and len(futures) < window:
+                row = submit(queue.popleft())
+                if row is not None:
+                    yield row
+            if not futures:
+                continue
             finished, _ = cf.wait(list(futures), return_when=cf.FIRST_COMPLETED)
             for f in sorted(finished, key=lambda f: order[futures[f].id]):  # the same log order every run
                 job = futures.pop(f)
                 try:
                     row = f.result()
                 except Exception as e:  # noqa: BLE001 - the worker, not the vehicle, failed
-                    attempts[job.id] += 1
                     why = f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else 'worker lost'}"
                     if attempts[job.id] <= _RETRIES:
                         log.warning("%s: the worker failed (%s); running it again", job.id, why)
@@ -473,7 +486,7 @@ def _run(jobs, executor, *, total: int, done: int):
                             continue
                     else:
                         row = _failed(job, f"the worker failed {attempts[job.id]} times: {why}")
-                row["attempts"] = attempts[job.id] + 1
+                row["attempts"] = attempts[job.id]
                 yield row
 
     try:

@@ -93,7 +93,7 @@ def test_fleet_is_bit_identical_on_a_process_pool_with_a_killed_worker_and_on_da
     assert max(r["attempts"] for r in pool["vehicles"]) == 2
     assert _found(pool) == want
 
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
             distributed.Client(cluster) as client:
         dask = calibrate_fleet(tmp_path / "fleet.yaml", tmp_path / "dask", client.get_executor())
     assert _found(dask) == want
@@ -166,3 +166,42 @@ def test_manifest_paths_are_relative_to_its_folder_and_vehicles_override_default
     assert b.method == "targetless" and b.bags == ("/abs/b.bag",) and b.topics == ("/l", "/m")
     assert b.config.solve.outlier_sigma == 5 and b.config.solve.max_iterations == 7  # sections merge
     assert np.isclose(b.config.compare.false_alarm_rate, 0.01)
+
+
+class _LosingExecutor:
+    """Every call's worker is lost (as a killed process pool reports it); counts the calls."""
+
+    def __init__(self):
+        self.calls = 0
+
+    def __call__(self):  # as a factory: a fresh one each time, sharing the count
+        return self
+
+    def submit(self, fn, /, *args, **kwargs):
+        import concurrent.futures as cf
+        from concurrent.futures.process import BrokenProcessPool
+
+        self.calls += 1
+        f = cf.Future()
+        f.set_exception(BrokenProcessPool("A process in the process pool was terminated abruptly"))
+        return f
+
+    def shutdown(self, wait=True, *, cancel_futures=False):
+        pass
+
+
+def test_a_vehicle_whose_worker_is_lost_twice_is_retried_once_then_reported(tmp_path):
+    import concurrent.futures as cf
+
+    class Losing(_LosingExecutor, cf.Executor):
+        pass
+
+    (tmp_path / "m.yaml").write_text("defaults: {topics: [/l, /c]}\nvehicles:\n  - {id: a, bags: a.bag}\n")
+    ex = Losing()
+    s = calibrate_fleet(tmp_path / "m.yaml", tmp_path / "out", ex)
+    (row,) = s["vehicles"]
+    assert ex.calls == 2 and row["attempts"] == 2 and row["status"] == "failed"
+    assert row["error"].startswith("the worker failed 2 times: BrokenProcessPool: A process in the process pool")
+    # a serial run of the same fleet: the vehicle's own error (no such bag), first attempt
+    (row,) = calibrate_fleet(tmp_path / "m.yaml", tmp_path / "out", SerialExecutor())["vehicles"]
+    assert row["attempts"] == 1 and "a.bag: no such bag" in row["error"]
