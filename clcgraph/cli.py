@@ -784,6 +784,8 @@ def _add_fleet(sub):
             _in_range(args.workers, "--workers", 0, 1024)
         manifest = Manifest.load(args.manifest)  # bad input fails before a cluster is reached
         check_out_dir(args.out, kind="fleet")
+        # Dask logs every connection at INFO (here and in its worker processes, which inherit this)
+        os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "info" if args.verbose else "error")
         with dask_executor(args.cluster) if args.cluster else contextlib.nullcontext() as ex:
             if ex is None and args.workers == 0:
                 ex = SerialExecutor()

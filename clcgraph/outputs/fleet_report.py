@@ -88,12 +88,12 @@ def drift_png(summary: dict) -> bytes | None:
     colors = ["C3" if b[3] else ("C0" if b[4] == "previous" else "0.6") for b in bars]
     axs[0].bar(x, [b[1] for b in bars], color=colors)
     axs[0].set_ylabel("rotation [deg]")
-    axs[0].set_title("drift per vehicle and sensor: red moved; blue since previous, grey vs /tf_static")
+    axs[0].set_title("drift per vehicle and sensor\nred: moved; blue: since previous; grey: vs /tf_static", fontsize=9)
     axs[1].bar(x, [b[2] for b in bars], color=colors)
     axs[1].set_ylabel("translation [mm]")
     axs[1].set_xticks(x, [b[0] for b in bars], rotation=60, ha="right", fontsize=7)
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90)
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
     return buf.getvalue()
 
 
