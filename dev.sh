@@ -29,7 +29,7 @@ setup() {
     if [ ! -x "$VENV/bin/python" ] || [ "$(cat "$STAMP" 2>/dev/null)" != "$want" ]; then
         echo "dev.sh: creating $VENV (system site packages, for Debian's mrcal)" >&2
         [ -x "$VENV/bin/python" ] || /usr/bin/python3 -m venv --system-site-packages "$VENV"
-        "$VENV/bin/python" -m pip install -q --disable-pip-version-check -e ".[test]"
+        "$VENV/bin/python" -m pip install -q --disable-pip-version-check -e ".[test,fleet]"
         echo "$want" > "$STAMP"
     fi
 }

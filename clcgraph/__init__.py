@@ -25,6 +25,7 @@ _API = {
     "write_outputs",
     "summary_table",
     "replay",
+    "compare",
 }
 
 

@@ -546,6 +546,38 @@ def run_demo(out=None, *, config=None, seed: int = 0, force: bool = False) -> tu
     return result, compare_to_truth(result, truth)
 
 
+def compare(a, b, *, config=None):
+    """Has the calibration changed? Per sensor pose difference, chi-square test, verdict
+    (clcgraph.comparison.compare: a, b results, output directories, calibration.yaml or a bag)."""
+    from .comparison import compare as _compare
+
+    return _compare(a, b, config=config)
+
+
+def write_comparison_yaml(comparison, path) -> Path:
+    """``comparison.to_dict()`` as YAML (what `clcgraph compare --yaml` writes), whole or not at all."""
+    from .comparison import write_yaml
+
+    return write_yaml(comparison.to_dict(), path)
+
+
+def calibrate_fleet(manifest, out, *, cluster: str | None = None, workers: int | None = None,
+                    resume: bool = False) -> dict:
+    """`clcgraph fleet`: the manifest and ``out`` are checked before a cluster is reached; then
+    clcgraph.fleet.calibrate_fleet on the Dask cluster ``cluster`` (tcp://host:port or local:N),
+    else in this process (``workers=0``) or on a local pool of ``workers`` processes."""
+    import contextlib
+
+    from .fleet import Manifest, SerialExecutor, calibrate_fleet as _fleet, dask_executor
+
+    manifest = Manifest.load(manifest)
+    check_out_dir(out, kind="fleet")
+    with dask_executor(cluster) if cluster else contextlib.nullcontext() as ex:
+        if ex is None and workers == 0:
+            ex = SerialExecutor()
+        return _fleet(manifest, out, ex, resume=resume, workers=workers or None)
+
+
 def load_result(out_dir):
     """Read a calibration written by `clcgraph solve` or `clcgraph targetless` (calibration.yaml),
     schema-checked: an outputs.results.Calibration, the same type whichever method made it."""

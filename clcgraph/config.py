@@ -342,6 +342,18 @@ class TargetlessOptions:
 
 
 @dataclass(frozen=True)
+class CompareOptions:
+    # `clcgraph compare` / fleet: a sensor "moved" when the chi-square test of its pose difference
+    # against both calibrations' covariances gives p below this: the share of unchanged sensors
+    # flagged anyway (false alarms), if the covariances are honest.
+    false_alarm_rate: float = 0.01
+    # Against a pose set without covariance (CAD, /tf_static) there is no test: "moved" beyond
+    # these (a mounting tolerance; set your fleet's).
+    max_rotation_deg: float = 1.0
+    max_translation_mm: float = 20.0
+
+
+@dataclass(frozen=True)
 class Config:
     snapshots: SnapshotOptions = field(default_factory=SnapshotOptions)
     lidar: LidarOptions = field(default_factory=LidarOptions)
@@ -351,6 +363,7 @@ class Config:
     solve: SolveOptions = field(default_factory=SolveOptions)
     sectors: SectorOptions = field(default_factory=SectorOptions)
     targetless: TargetlessOptions = field(default_factory=TargetlessOptions)
+    compare: CompareOptions = field(default_factory=CompareOptions)
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "Config":
@@ -631,6 +644,9 @@ _RANGES = {
     "targetless.base_lidar_min_plane_points": "[3, inf)",
     "targetless.base_lidar_min_plane_points_percentage": "[0, 100]",
     "targetless.base_lidar_max_cos_distance": "[0, 2]",
+    "compare.false_alarm_rate": "(0, 0.5]",
+    "compare.max_rotation_deg": "(0, 180]",
+    "compare.max_translation_mm": "(0, inf)",
 }
 # Pairs that must be ordered: the first strictly below the second.
 _ORDERED = (

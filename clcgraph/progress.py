@@ -19,6 +19,10 @@ def set_enabled(enabled: bool) -> None:
     _enabled = enabled
 
 
+def is_enabled() -> bool:
+    return _enabled
+
+
 def progress(items: Iterable[T], *, desc: str, total: int | None = None, unit: str = "it") -> Iterator[T]:
     """Iterate over ``items`` with a progress bar labelled ``desc``."""
     if not _enabled or not sys.stderr.isatty():

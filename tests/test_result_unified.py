@@ -137,3 +137,27 @@ def test_rpy_helpers_are_one_convention():
         np.testing.assert_allclose(geo.invert_T(T) @ T, np.eye(4), atol=1e-12)
         xi = rng.normal(size=6) * 0.3
         np.testing.assert_allclose(geo.xi_log(geo.T_exp(xi)), xi, atol=1e-12)
+
+
+def test_compare_reads_a_result_of_either_method_like_its_files(outputs):
+    """comparison.poses_of takes the Result itself, its Calibration or its output directory and
+    gets the same poses and covariances from each; a calibration compared with its own files has
+    not moved (chi-square ~ 0)."""
+    from clcgraph.comparison import compare, poses_of
+
+    d, target, targetless = outputs
+    for res, out in ((target, d / "target"), (targetless, d / "targetless")):
+        a, b, c = poses_of(res), poses_of(load_result(out)), poses_of(out)
+        assert a.reference == b.reference == c.reference == res.problem.sensors[res.problem.reference].topic
+        assert list(a.poses) == list(b.poses) == list(c.poses) == [s.topic for s in res.problem.sensors]
+        assert a.has_covariance and b.has_covariance
+        for topic, (T, C) in a.poses.items():
+            for other in (b, c):
+                np.testing.assert_allclose(other.poses[topic][0], T, atol=1e-9)
+                if C is None:
+                    assert topic == a.reference and other.poses[topic][1] is None
+                else:
+                    np.testing.assert_allclose(other.poses[topic][1], C, rtol=1e-9, atol=1e-18)
+        same = compare(res, out)
+        assert not same.changed and same.reference == a.reference
+        assert all(s.chi2 < 1e-6 for s in same.sensors if s.status != "reference"), same.sensors

@@ -10,13 +10,13 @@ import sys
 import threading
 from contextlib import contextmanager
 
-from . import bags, calibrate, results, simulate
+from . import bags, calibrate, fleet, results, simulate
 from .common import verbosity_args
 
 log = logging.getLogger("clcgraph")
 
 # command groups, in --help order; each module's COMMANDS register one parser per command
-GROUPS = (calibrate, bags, results, simulate)
+GROUPS = (calibrate, bags, results, simulate, fleet)
 
 
 def build_parser() -> argparse.ArgumentParser:

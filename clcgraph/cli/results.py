@@ -1,9 +1,8 @@
-"""Commands that use a calibration: format-for-ros, show-aligned, show-uncertainty."""
+"""Commands that use a calibration: format-for-ros, show-aligned, show-uncertainty, compare."""
 
 from __future__ import annotations
 
-from .common import add_command, add_force, in_range, topics_list
-
+from .common import add_command, add_force, config_args, in_range, load_config, topics_list
 
 
 def _bag_and_calibration(p, bag_help: str) -> None:
@@ -88,4 +87,25 @@ def add_show_uncertainty(sub):
     p.add_argument("--png", default="uncertainty.png", help="output picture")
 
 
-COMMANDS = (add_format_for_ros, add_show_aligned, add_show_uncertainty)
+def _compare(args) -> int:
+    from .. import api
+    from ..outputs.tables import comparison_table
+
+    c = api.compare(args.a, args.b, config=load_config(args))
+    print(comparison_table(c))
+    if args.yaml:
+        api.write_comparison_yaml(c, args.yaml)
+    return 3 if args.fail_on_change and c.changed else 0
+
+
+def add_compare(sub):
+    p = add_command(sub, "compare", run=_compare,
+                    help="has the calibration changed? per sensor: pose difference, chi-square test, verdict")
+    p.add_argument("a", metavar="A", help="output directory or calibration.yaml of solve / targetless, or a bag (/tf_static)")
+    p.add_argument("b", metavar="B", help="the same for the other calibration (B is compared with A)")
+    p.add_argument("--yaml", default=None, metavar="FILE", help="also write the comparison as YAML, for scripts")
+    p.add_argument("--fail-on-change", action="store_true", help="exit 3 if any sensor moved significantly")
+    config_args(p, "settings (section 'compare'; see `clcgraph config dump`)")
+
+
+COMMANDS = (add_format_for_ros, add_show_aligned, add_show_uncertainty, add_compare)

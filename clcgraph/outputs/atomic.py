@@ -9,7 +9,8 @@ SYNOPSIS
 The rules (DESIGN.md, "Promises to users"):
 - ``out_dir`` may be new, empty, or a previous clcgraph output of the same kind: every
   directory clcgraph writes holds a marker file, ``.clcgraph-output``, naming its kind
-  ("results" of solve / targetless, "session" of simulated bags, "ros" of format-for-ros):
+  ("results" of solve / targetless, "session" of simulated bags, "ros" of format-for-ros,
+  "fleet" of `clcgraph fleet`, whose per-vehicle folders are "results" each):
   so a calibration never replaces the bags it was computed from, nor ROS files a calibration.
   Anything else is an InputError naming the directory, unless ``force=True``.
 - ``out_dir`` a symlink: the link stays, its target is written (under the same rules).
@@ -37,7 +38,8 @@ from typing import Iterator
 from ..errors import InputError
 
 MARKER = ".clcgraph-output"
-_WHAT = {"results": "calibration results", "session": "simulated bags", "ros": "ROS files"}
+_WHAT = {"results": "calibration results", "session": "simulated bags", "ros": "ROS files",
+         "fleet": "a fleet calibration"}
 KINDS = tuple(_WHAT)
 _MARKER_TEXT = ("clcgraph-output: {kind}\n"
                 "# written by clcgraph; a later clcgraph run with this --out may replace this directory whole\n")
@@ -221,3 +223,44 @@ def _signals_deferred() -> Iterator[None]:
                 h(pending[0], None)
             elif h == signal.SIG_DFL:
                 os.kill(os.getpid(), pending[0])
+
+
+@contextmanager
+def open_out_dir(out_dir, *, kind: str) -> Iterator[Path]:
+    """Hold ``out_dir`` (new, empty or a previous ``kind`` output) for a run that fills it piece by
+    piece, as `clcgraph fleet` does: created with its marker, locked against a second writer for
+    the duration. Its pieces are written with ``atomic_dir`` / ``atomic_file``; nothing is removed."""
+    shown = out_dir
+    target = check_out_dir(out_dir, kind=kind)
+    try:
+        target.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise _cannot(shown, e) from None
+    with _lock(target, shown):
+        target = check_out_dir(out_dir, kind=kind)
+        if marker_kind(target) is None:
+            try:
+                (target / MARKER).write_text(_MARKER_TEXT.format(kind=kind))
+            except OSError as e:
+                raise _cannot(shown, e) from None
+        yield target
+
+
+def atomic_file(path, content: str | bytes) -> Path:
+    """Write one file whole or not at all: a temporary file beside it, renamed over it."""
+    path = Path(path)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.clcgraph-tmp-{os.getpid()}-", dir=path.parent)
+    except OSError as e:
+        raise InputError(f"{path}: cannot write ({e.strerror})") from None
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(content.encode() if isinstance(content, str) else content)
+        with _signals_deferred():
+            os.chmod(tmp, 0o644)
+            os.replace(tmp, path)
+    except BaseException:
+        with _signals_deferred():
+            Path(tmp).unlink(missing_ok=True)
+        raise
+    return path

@@ -5,6 +5,7 @@ SYNOPSIS
     print(replay_lines(result))             # `clcgraph replay`: one line a sensor, the noise
     print(bag_table(info, clouds))          # `clcgraph show-bag`; segmentation_line, detection_line, ...
     print(truth_table(errors, "truth.yaml"))  # `clcgraph demo`: errors against the simulator's truth
+    print(comparison_table(c))              # `clcgraph compare`; fleet_table(summary): `clcgraph fleet`
 """
 
 from __future__ import annotations
@@ -135,3 +136,43 @@ def detection_line(image, r) -> str:
 def found_count(found: list, what: str) -> str:
     """'3/5 scans with a board': how many of (item, result) pairs found something."""
     return f"{sum(not isinstance(r, Rejected) for _, r in found)}/{len(found)} {what}"
+
+
+def comparison_table(c) -> str:
+    """`clcgraph compare`: A, B, the reference, then per sensor rotation, axis, translation, Mahalanobis, p, verdict."""
+    rows = [("sensor", "rotation [deg]", "axis (ref)", "translation [mm] (ref)", "Mahalanobis", "p", "verdict")]
+    for s in c.sensors:
+        rows.append((s.topic, "-" if s.rotation_deg is None else f"{s.rotation_deg:.3f}",
+                     "-" if s.axis_ref is None else " ".join(f"{x:+.2f}" for x in s.axis_ref),
+                     "-" if s.translation_mm is None else " ".join(f"{x:+.1f}" for x in s.translation_mm),
+                     "-" if s.mahalanobis is None else f"{s.mahalanobis:.2f}",
+                     "-" if s.p_value is None else f"{s.p_value:.2g}", s.verdict))
+    widths = [max(len(r[k]) for r in rows) for k in range(len(rows[0]))]
+    lines = [f"A: {c.a}", f"B: {c.b}", f"reference: {c.reference}"]
+    lines += ["  ".join(cell.ljust(w) for cell, w in zip(r, widths)).rstrip() for r in rows]
+    return "\n".join(lines)
+
+
+def fleet_table(summary: dict) -> str:
+    """`clcgraph fleet`: one line per vehicle (status, time, changes since previous and against /tf_static), then the counts."""
+    rows = [("vehicle", "status", "time [s]", "since previous", "vs /tf_static")]
+
+    def words(c):
+        if not c:
+            return "-"
+        if "error" in c:
+            return "not compared: " + c["error"][:60]
+        moved = [s for s in c["sensors"] if s["status"] == "moved"]
+        return "; ".join(f"{s['topic']} {s['verdict']}" for s in moved) if moved else "same"
+
+    for r in summary["vehicles"]:
+        t = r.get("time_s")
+        rows.append((r["id"], r["status"] + (" (kept)" if r.get("resumed") else ""), "-" if t is None else f"{t:.1f}",
+                     words(r.get("previous")) if r["status"] == "ok" else r["error"],
+                     words(r.get("nominal")) if r["status"] == "ok" else ""))
+    widths = [max(len(r[k]) for r in rows) for k in range(len(rows[0]) - 1)] + [0]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
+    c = summary["counts"]
+    lines.append(f"{c['ok']} of {c['vehicles']} vehicles calibrated, {c['failed']} failed; "
+                 f"moved since previous: {', '.join(summary['changed_since_previous']) or 'none'}")
+    return "\n".join(lines)

@@ -13,7 +13,7 @@ from clcgraph.cli import build_parser, main
 
 CLI = Path(__file__).resolve().parents[2] / "clcgraph" / "cli"
 _ALL = ["solve", "targetless", "replay", "demo", "config", "show-bag", "segment", "detect", "infer-lidar-spacing",
-        "format-for-ros", "show-aligned", "show-uncertainty", "simulate", "simulate-drive"]
+        "format-for-ros", "show-aligned", "show-uncertainty", "compare", "simulate", "simulate-drive", "fleet"]
 
 
 def _subparsers():

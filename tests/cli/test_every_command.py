@@ -4,7 +4,7 @@ writes, and nothing on stderr that looks like a traceback or an error.
 
 `simulate`, `solve`, `replay` and `show-bag` run as real subprocesses (the installed console
 script); the rest through ``clcgraph.cli.main`` (same parser and error handling, no interpreter
-start-up). `simulate-drive`, `targetless` and `demo` are run in the tests named in COVERED.
+start-up). `simulate-drive`, `targetless`, `demo`, `compare` and `fleet` are run in the tests named in COVERED.
 """
 
 from __future__ import annotations
@@ -45,6 +45,8 @@ COVERED = {
     "simulate-drive": "tests/test_targetless_units.py::test_cli_simulate_drive_writes_a_bag_to_try_targetless_on",
     "targetless": "tests/test_targetless_pipeline.py::test_cli_targetless_prints_the_table_and_writes_outputs",
     "demo": "tests/cli/test_demo.py::test_demo",
+    "compare": "tests/fleet/test_compare.py::test_compare_command_table_yaml_and_exit_codes",
+    "fleet": "tests/fleet/test_fleet_runs.py::test_resume_keeps_complete_vehicles_and_reruns_the_failed_one",
 }
 
 
