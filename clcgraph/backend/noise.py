@@ -134,11 +134,13 @@ class Linearization:
         normal equations split by group, so reweighting is a weighted sum (computed once)."""
         if getattr(self, "_groups_cache", None) is None:
             out: dict = {}
-            for snapshot, cols, group, AtA, Atb, _, _ in self.terms:
+            for snapshot, cols, group, AtA, Atb, btb, rows in self.terms:
                 n = self.ns + (6 * len(self.local[snapshot]) if snapshot is not None else 0)
-                M, v = out.setdefault(snapshot, {}).setdefault(group, (np.zeros((n, n)), np.zeros(n)))
-                M[np.ix_(cols, cols)] += AtA
-                v[cols] += Atb
+                acc = out.setdefault(snapshot, {}).setdefault(group, [np.zeros((n, n)), np.zeros(n), 0.0, 0])
+                acc[0][np.ix_(cols, cols)] += AtA
+                acc[1][cols] += Atb
+                acc[2] += btb
+                acc[3] += rows
             self._groups_cache = out
         return self._groups_cache
 
@@ -146,8 +148,8 @@ class Linearization:
         """Per snapshot (M, v) over [sensors, its locals]; and the sensor-only (M0, v0)."""
         blocks = {}
         for snapshot, parts in self._by_group().items():
-            blocks[snapshot] = (sum(weights.get(g, 1.0) * M for g, (M, _) in parts.items()),
-                                sum(weights.get(g, 1.0) * v for g, (_, v) in parts.items()))
+            blocks[snapshot] = (sum(weights.get(g, 1.0) * p[0] for g, p in parts.items()),
+                                sum(weights.get(g, 1.0) * p[1] for g, p in parts.items()))
         M0, v0 = blocks.pop(None, (np.zeros((self.ns, self.ns)), np.zeros(self.ns)))
         return M0, v0, blocks
 
@@ -189,16 +191,16 @@ class Linearization:
             step[k] = np.r_[dx_s, dx_l]
             cov[k] = np.block([[Css, C_ls.T], [C_ls, C_ll]])
         out: dict = {}
-        for snapshot, cols, group, AtA, Atb, btb, n in self.terms:
-            if group is None:
-                continue
-            w = weights.get(group, 1.0)
-            x = step[snapshot][cols]
-            C = cov[snapshot][np.ix_(cols, cols)]
-            acc = out.setdefault(group, [0, 0.0, 0.0])
-            acc[0] += n
-            acc[1] += w * float(x @ AtA @ x - 2 * x @ Atb + btb)
-            acc[2] += w * float(np.sum(AtA * C))
+        for snapshot, parts in self._by_group().items():
+            x, C = step[snapshot], cov[snapshot]
+            for group, (M, v, btb, n) in parts.items():
+                if group is None:
+                    continue
+                w = weights.get(group, 1.0)
+                acc = out.setdefault(group, [0, 0.0, 0.0])
+                acc[0] += n
+                acc[1] += w * float(x @ M @ x - 2 * x @ v + btb)
+                acc[2] += w * float(np.sum(M * C))
         return out
 
 
