@@ -206,3 +206,35 @@ def test_monte_carlo_with_correlated_errors_fast_version():
     z = np.concatenate([trial(shape, "per-observation", True, seed=2000 + 10 * r + k)["z"]
                         for r, shape in enumerate(RIGS) for k in range(2)])
     assert np.mean(np.abs(z) <= 3) >= 0.93 and 0.5 < np.mean(z**2) < 1.8, (np.mean(np.abs(z) <= 3), np.mean(z**2))
+
+
+def test_ray_casting_lidar_ring_errors():
+    # The full simulator's LIDAR (sim/lidar.py): a fixed range bias and elevation error per ring,
+    # the same in every scan of one unit; points reported along the nominal rays.
+    from clcgraph.sim.lidar import LidarModel, simulate_scan
+
+    class Ground:  # the plane z = -2 under the sensor
+        board_id = -2
+
+        def cast(self, rays):
+            dz = rays[:, 5]
+            t = np.where(dz < -1e-3, (-2.0 - rays[:, 2]) / np.where(dz < -1e-3, dz, -1.0), np.inf)
+            return t, np.zeros(len(t), np.int64)
+
+    base = LidarModel.preset("vlp16", range_noise_m=0.0, dropout=0.0, layout="ouster", npoints_per_rotation=64)
+    exact, _ = simulate_scan(base, np.eye(4), Ground(), np.random.default_rng(0))
+    down = exact.valid & (exact.ring < 8)
+    assert np.abs(exact.points[down, 2] + 2).max() < 1e-6
+    biased = dataclasses.replace(base, ring_range_bias_m=0.02, errors_seed=4)
+    scan, _ = simulate_scan(biased, np.eye(4), Ground(), np.random.default_rng(0))
+    dr = np.linalg.norm(scan.points, axis=1) - np.linalg.norm(exact.points, axis=1)
+    bias = biased.ring_errors()[0]
+    np.testing.assert_allclose(dr[down], bias[scan.ring[down]], atol=1e-5)  # float32 ray casting
+    again, _ = simulate_scan(biased, np.eye(4), Ground(), np.random.default_rng(9))
+    np.testing.assert_allclose(again.points, scan.points)  # the unit's errors, not the scan's
+    tilted = dataclasses.replace(base, ring_elevation_error_deg=0.1, errors_seed=4)
+    scan, _ = simulate_scan(tilted, np.eye(4), Ground(), np.random.default_rng(0))
+    el_err = tilted.ring_errors()[1]
+    z = scan.points[down, 2]
+    # a beam that leaves higher than reported meets the ground farther: the point lands below it
+    assert np.all(np.sign(z + 2) == -np.sign(el_err[scan.ring[down]])) and 1e-3 < np.abs(z + 2).max() < 0.2
