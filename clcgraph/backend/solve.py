@@ -250,11 +250,14 @@ def _solve_with_effects(problem, active, rt_sensor, rt_board, sig, options, nomi
         change = max([float(np.max(np.abs(new_sig / sig - 1)))]
                      + [abs(new_effects[i][c] / effects[i][c] - 1) for i in effects for c in effects[i]])
         sig, effects = new_sig, new_effects
+        if change < 0.03 and values is not None:  # weights within 3 %: the estimate stands; the graph
+            g, values = G.build(problem, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig,  # gets them
+                                sigma_camera_px=sig, options=options, board_nominal=nominal,
+                                effects=N.effect_sigmas(problem, effects), effect_values=values)
+            break
         rt_sensor, rt_board, it, (g, values) = _lm(problem, active, rt_sensor, rt_board, "range", sig, options, nominal,
                                                   N.effect_sigmas(problem, effects), values, _EFFECT_TOL)
         iters.append(it)
-        if change < 0.03:
-            break
     log.debug("observation effects: %s", effects)
     return rt_sensor, rt_board, sig, effects, (g, values), iters
 
