@@ -46,7 +46,7 @@ _UNSEEN = 1.0
 _START = {"tilt_rad": 1e-3, "offset_m": 3e-3, "rotation_rad": 1e-3, "translation_m": 3e-3}
 _FLOOR = {"tilt_rad": 1e-4, "offset_m": 1e-4, "rotation_rad": 1e-4, "translation_m": 1e-4}
 _MIN_REDUNDANCY = 0.5  # a component the data hardly see keeps its value
-_SIGNIFICANCE = 2.0  # standard deviations of F above 1 (estimate_components)
+_SIGNIFICANCE = 3.0  # standard deviations of F above 1 (estimate_components); 2 inflated independent-noise sigmas 1.4x
 _MAX_VCE_ITERATIONS = 40
 _VCE_TOL = 0.003  # relative change of every sigma
 
@@ -213,8 +213,8 @@ def estimate_components(problem, lin: Linearization, sig: np.ndarray, effects: d
         base[group] = sig[group[1]] if group[0] == "white" else effects[group[1]][group[2]]
     floor = {g: (_white_floor(problem, g) if g[0] == "white" else _FLOOR[g[2]]) for g in base}
     # A component is estimated only if the data show it: with every D held near zero (at the
-    # floor), the D residuals' chi^2 per D DOF, F, is ~1 +- sqrt(2/n) without it. Chance
-    # values of a component that is not there would only inflate the sigmas.
+    # floor), the D residuals' chi^2 per D DOF, F, is ~1 +- sqrt(2/n) without it (test: F >
+    # 1 + 3 sqrt(2/n)). Chance values of a component that is not there only inflate the sigmas.
     at_floor = {g: (1.0 if g[0] == "white" else (base[g] / floor[g]) ** 2) for g in base}
     stats = lin.solve_and_trace(at_floor)
     shown = {g for g, (n, q, tr) in stats.items()
