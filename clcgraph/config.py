@@ -195,9 +195,11 @@ class SolveOptions:
     # Outliers: points and whole observations beyond this many sigmas are rejected.
     outlier_sigma: float = 4.0
     reject_outliers: bool = True
-    # Regularization of LIDAR-only board poses: rad and m sigmas.
-    board_prior_sigma_rad: float = 100.0
-    board_prior_sigma_m: float = 10000.0
+    # Regularization of LIDAR-only board poses: rad and m sigmas. It holds only the in-plane
+    # DOFs, which no LIDAR residual touches, so its strength changes no answer; far weaker
+    # than 1 it only makes the information matrix too ill-conditioned to factor.
+    board_prior_sigma_rad: float = 1.0
+    board_prior_sigma_m: float = 1.0
     max_iterations: int = 100
     # Seed: links with fewer shared snapshots are dropped.
     min_shared_snapshots: int = 3
@@ -216,6 +218,10 @@ class SolveOptions:
     # Self-consistency checks (backend/consistency.py): the chance that a consistent
     # calibration is refused; 0 turns the checks off (not recommended: results unchecked).
     consistency_alpha: float = 1e-3
+    # Each observation's own board-pose error (a LIDAR's plane tilt and offset, a camera's
+    # board-pose jitter), its sigmas estimated from the data: real errors are correlated
+    # within one observation (docs/uncertainty.md). False: independent noise only.
+    observation_effects: bool = True
 
 
 @dataclass(frozen=True)

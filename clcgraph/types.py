@@ -253,6 +253,8 @@ class Result:
     sectors: SectorReport | None = None
     stats: Mapping[str, object] = field(default_factory=dict)  # iterations, timings, ...
     residuals: Mapping[str, object] = field(default_factory=dict)  # for plots
+    # leave-one-snapshot-out check of the covariance (backend/jackknife.py); {} if not computed
+    jackknife: Mapping[str, object] = field(default_factory=dict)
 
     def variable_sensors(self) -> list[int]:
         """Sensor indices that have a block in covariance_rt, in block order."""

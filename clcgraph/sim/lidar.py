@@ -36,6 +36,17 @@ class LidarModel:
     min_range_m: float = 0.3
     layout: str = "velodyne"
     rotation_period_s: float = 0.1
+    # Errors real LIDARs make the same way in every scan (sim/observations.CorrelatedErrors):
+    # sd of each ring's range bias and of its elevation error, drawn once from errors_seed.
+    ring_range_bias_m: float = 0.0
+    ring_elevation_error_deg: float = 0.0
+    errors_seed: int = 0
+
+    def ring_errors(self) -> tuple[np.ndarray, np.ndarray]:
+        """(range bias (rings,) m, elevation error (rings,) deg): this unit's fixed errors."""
+        rng = np.random.default_rng(self.errors_seed)
+        bias, elev = rng.normal(0, 1, self.n_rings), rng.normal(0, 1, self.n_rings)
+        return self.ring_range_bias_m * bias, self.ring_elevation_error_deg * elev
 
     @staticmethod
     def preset(name: str, **overrides) -> "LidarModel":
@@ -55,9 +66,11 @@ class LidarModel:
     def n_rings(self) -> int:
         return len(self.elevations_deg)
 
-    def directions(self) -> np.ndarray:
-        """(rings, columns, 3) unit ray directions in the LIDAR frame (front-left-up)."""
-        el = np.radians(np.asarray(self.elevations_deg))[:, None]
+    def directions(self, true: bool = False) -> np.ndarray:
+        """(rings, columns, 3) unit ray directions in the LIDAR frame (front-left-up): as the
+        driver reports them, or (``true``) as the beams really leave (ring elevation errors)."""
+        el = np.asarray(self.elevations_deg, float) + (self.ring_errors()[1] if true else 0.0)
+        el = np.radians(el)[:, None]
         az = np.pi - 2 * np.pi * np.arange(self.npoints_per_rotation) / self.npoints_per_rotation
         az = az[None, :]
         return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) * np.ones_like(az)], -1)
@@ -71,21 +84,23 @@ def simulate_scan(model: LidarModel, T_world_lidar: np.ndarray, scene, rng, *, s
     firing time, for a moving one (the scan is then motion-distorted like a real driver's).
     """
     d = model.directions()
+    d_true = model.directions(true=True) if model.ring_elevation_error_deg else d
     T = np.asarray(T_world_lidar, float)
     if T.ndim == 2:
-        dw = d.reshape(-1, 3) @ T[:3, :3].T
+        dw = d_true.reshape(-1, 3) @ T[:3, :3].T
         ow = np.broadcast_to(T[:3, 3], dw.shape)
     else:
-        dw = np.einsum("cij,rcj->rci", T[:, :3, :3], d).reshape(-1, 3)
+        dw = np.einsum("cij,rcj->rci", T[:, :3, :3], d_true).reshape(-1, 3)
         ow = np.broadcast_to(T[None, :, :3, 3], d.shape).reshape(-1, 3)
     rays = np.concatenate([ow, dw], axis=1)
     r, gid = scene.cast(rays)
     valid = np.isfinite(r) & (r > model.min_range_m) & (r < model.max_range_m)
     valid &= rng.uniform(size=r.shape) >= model.dropout
-    r = np.where(valid, r + rng.normal(0.0, model.range_noise_m, r.shape), 0.0)
-    pts = d.reshape(-1, 3) * r[:, None]
     rings, cols = model.n_rings, model.npoints_per_rotation
     ring = np.repeat(np.arange(rings), cols)
+    bias = model.ring_errors()[0][ring] if model.ring_range_bias_m else 0.0
+    r = np.where(valid, r + bias + rng.normal(0.0, model.range_noise_m, r.shape), 0.0)
+    pts = d.reshape(-1, 3) * r[:, None]
     time_s = np.tile(np.arange(cols) / cols * model.rotation_period_s, rings)
     intensity = np.where(gid == getattr(scene, "board_id", -2), 180.0, 60.0).astype(np.float32)
     hit_board = valid & (gid == getattr(scene, "board_id", -2))

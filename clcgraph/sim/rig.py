@@ -10,6 +10,9 @@
         xyz: [1.2, 0.0, 1.8]         # pose in base_link: position (m) ...
         rpy_deg: [0, 0, 0]           # ... and roll, pitch, yaw (deg) of the front-left-up frame
         range_noise_m: 0.01
+        ring_range_bias_m: 0.02          # optional: sd of each ring's fixed range bias (0 = off)
+        ring_elevation_error_deg: 0.1    # optional: sd of each ring's fixed elevation error (0 = off)
+        errors_seed: 3                   # optional: which unit (draws the per-ring errors)
         dropout: 0.005
     cameras:
       - topic: /cam/left/image
@@ -108,7 +111,8 @@ def _pose(d, where, path) -> np.ndarray:
 
 
 _LIDAR_KEYS = {"topic", "model", "elevations_deg", "npoints_per_rotation", "layout", "frame_id", "xyz", "rpy_deg",
-               "range_noise_m", "dropout", "max_range_m"}
+               "range_noise_m", "dropout", "max_range_m", "ring_range_bias_m", "ring_elevation_error_deg",
+               "errors_seed"}
 _CAMERA_KEYS = {"topic", "model", "encoding", "compressed", "frame_id", "xyz", "rpy_deg"}
 
 
@@ -143,8 +147,8 @@ def load_rig(path) -> Rig:
                 model = LidarModel.preset(str(_need(L, "model", where, path)))
         except KeyError as e:
             raise InputError(f"{path}: {where}.model: {e.args[0]}") from None
-        over = {k2: L[k2] for k2 in ("layout", "range_noise_m", "dropout", "max_range_m", "npoints_per_rotation")
-                if k2 in L}
+        over = {k2: L[k2] for k2 in ("layout", "range_noise_m", "dropout", "max_range_m", "npoints_per_rotation",
+                                     "ring_range_bias_m", "ring_elevation_error_deg", "errors_seed") if k2 in L}
         if over.get("layout", model.layout) not in ("velodyne", "ouster"):
             raise InputError(f"{path}: {where}.layout must be velodyne or ouster")
         model = replace(model, **over)
