@@ -426,6 +426,10 @@ def summary_table(result: Result) -> str:
     conv = result.stats.get("convergence") or {}
     if conv and not conv.get("converged"):
         lines.append("NOT CONVERGED: " + "; ".join(conv.get("warnings", ())))
+    verdict = result.stats.get("consistency") or {}
+    if verdict.get("passed") is False:  # written anyway (solve.refuse_inconsistent is off)
+        why = (verdict.get("failures") or verdict.get("unverifiable") or ["?"])[0]
+        lines.append(f"NOT SELF-CONSISTENT (see calibration.yaml consistency:): {why}")
     return "\n".join(lines)
 
 

@@ -148,8 +148,8 @@ def _add_replay(sub):
         res = replay(args.dump, inject_noise=args.inject_noise, fit_seed=args.fit_seed, exclude=exclude, seed=args.seed)
         for i, s in enumerate(res.problem.sensors):
             sd = res.stdev_rt(i) if np.all(np.isfinite(res.covariance_rt)) else np.full(6, np.nan)
-            print(f"{s.topic}: rt_lidar0_sensor {np.array2string(res.rt_lidar0_sensor[i], precision=6)}"
-                  f"  stdev {np.array2string(sd, precision=6)}")
+            print(f"{s.topic}: rt_lidar0_sensor {np.array2string(res.rt_lidar0_sensor[i], precision=6, max_line_width=10**4)}"
+                  f"  stdev {np.array2string(sd, precision=6, max_line_width=10**4)}")  # one line a sensor
         for k, v in res.noise.items():
             if isinstance(v, dict):  # per sensor: {sensor index: sigma}
                 v = ", ".join(f"{res.problem.sensor_name(int(i))} {s:.4g}" for i, s in v.items())

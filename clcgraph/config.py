@@ -216,8 +216,14 @@ class SolveOptions:
     max_stdev_m: float = 0.1
     max_stdev_deg: float = 3.0
     # Self-consistency checks (backend/consistency.py): the chance that a consistent
-    # calibration is refused; 0 turns the checks off (not recommended: results unchecked).
+    # calibration fails them; 0 turns the checks off.
     consistency_alpha: float = 1e-3
+    # A result that fails them is refused (exit 2, one line naming the sensor and direction).
+    # False: written with its verdict in calibration.yaml, the report and the summary table --
+    # the default until the noise model covers errors correlated within one observation: with
+    # independent noise only, real captures (whose boards disagree by more than that model
+    # allows) would be refused.
+    refuse_inconsistent: bool = False
     # Each observation's own board-pose error (a LIDAR's plane tilt and offset, a camera's
     # board-pose jitter), its sigmas estimated from the data: real errors are correlated
     # within one observation (docs/uncertainty.md). False: independent noise only.

@@ -102,15 +102,16 @@ class _Unsupported(Exception):
     """A factor the board-by-board split cannot place (an extension factor on two boards)."""
 
 
-def verify(problem: Problem, graph, values, *, alpha: float = FAMILY_ALPHA) -> dict:
+def verify(problem: Problem, graph, values, *, alpha: float = FAMILY_ALPHA, refuse: bool = True) -> dict:
     """linearize + check: the solve's hook. A graph the checks cannot split (an extension
-    factor linking boards) is reported as unchecked, with a warning, not refused."""
+    factor linking boards) is reported as unchecked, with a warning, not refused. ``refuse``
+    False: a failed verdict is returned (and logged), not raised."""
     try:
         lin = linearize(problem, graph, values)
     except _Unsupported as e:
         log.warning("consistency checks skipped: %s", e)
         return {"passed": None, "skipped": str(e)}
-    return check(problem, lin, alpha=alpha)
+    return check(problem, lin, alpha=alpha, refuse=refuse)
 
 
 def linearize(problem: Problem, graph, values) -> Linearized:
@@ -375,7 +376,7 @@ def unobservable_error(problem: Problem, lin: Linearized) -> DegenerateError:
 # ---------------------------------------------------------------- the checks
 
 
-def check(problem: Problem, lin: Linearized, *, alpha: float = FAMILY_ALPHA) -> dict:
+def check(problem: Problem, lin: Linearized, *, alpha: float = FAMILY_ALPHA, refuse: bool = True) -> dict:
     """Run every check (module docstring); the verdict as a plain dict, or SolveError
     (``alpha`` <= 0: the verdict only, with a warning, never an error).
 
@@ -479,8 +480,8 @@ def check(problem: Problem, lin: Linearized, *, alpha: float = FAMILY_ALPHA) -> 
     if verdict["passed"]:
         return verdict
     first = failures[0][1] if failures else unverified[0][3]
-    if alpha <= 0:
-        log.warning("not self-consistent (checks disabled, result written anyway): %s", first)
+    if alpha <= 0 or not refuse:
+        log.info("not self-consistent (result written with this verdict): %s", first)
         return verdict
     more = len(failures) + len(unverified) - 1
     more = f" (and {more} more)" if more else ""

@@ -415,7 +415,8 @@ def calibrate(problem: Problem, options) -> Result:
     convergence = {"converged": not warnings, "final_step_sigma": step, "rounds": rounds,
                    "stages": [public(r) for r in stages], "warnings": warnings}
     t = time.perf_counter()
-    verdict = consistency.verify(problem, g, values, alpha=options.consistency_alpha)
+    verdict = consistency.verify(problem, g, values, alpha=options.consistency_alpha,
+                                 refuse=options.refuse_inconsistent)
     times["consistency"] = time.perf_counter() - t
 
     lid, cam = G.residuals(problem, rt_sensor, rt_board)

@@ -115,25 +115,29 @@ def calibration_dict(result: Result) -> dict:
         "convergence": dict(result.stats.get("convergence") or {}),
         "coordinates": COORDINATES,
         # the self-consistency verdict (backend/consistency.py): the checks and their numbers
-        "consistency": _plain(result.stats.get("consistency")),
+        # (6 significant digits: the checks' eigen-decompositions differ in the last digits
+        # between BLAS thread counts, and the same inputs must give the same bytes)
+        "consistency": _plain(result.stats.get("consistency"), digits=6),
         "uncertainty_check": uncertainty_check_dict(result),
     }
 
 
-def _plain(v):
-    """numpy scalars/arrays inside dicts and lists -> python types (YAML-safe)."""
+def _plain(v, digits: int | None = None):
+    """numpy scalars/arrays inside dicts and lists -> python types (YAML-safe); floats rounded
+    to ``digits`` significant digits if given."""
     if isinstance(v, dict):
-        return {str(k): _plain(x) for k, x in v.items()}
+        return {str(k): _plain(x, digits) for k, x in v.items()}
     if isinstance(v, (list, tuple)):
-        return [_plain(x) for x in v]
+        return [_plain(x, digits) for x in v]
     if isinstance(v, np.ndarray):
-        return _plain(v.tolist())
+        return _plain(v.tolist(), digits)
     if isinstance(v, (bool, np.bool_)):
         return bool(v)
     if isinstance(v, (int, np.integer)):
         return int(v)
     if isinstance(v, (float, np.floating)):
-        return _scalar(v)
+        x = _scalar(v)
+        return x if x is None or digits is None else float(f"{x:.{digits}g}")
     return v
 
 

@@ -115,8 +115,7 @@ def test_set_on_targetless_and_detect(capsys, tmp_path, good):
     assert not (tmp_path / "tl").exists()
     det = ["detect", str(good), "--topic", "/cam0"]
     _run(capsys, det + ["--set", "detection.corners_z=3"], "detection.corners_z")
-    # the value reaches the detector
-    _run(capsys, det + ["--set", "detection.detector=bogus"], "unknown detector 'bogus'")
+    _run(capsys, det + ["--set", "detection.detector=bogus"], "'detection.detector' must be one of auto, mrgingham, opencv")
     assert main(det + ["--set", "detection.detector=opencv"]) == 0
     assert "0/1 images with a chessboard" in capsys.readouterr().out
 

@@ -38,7 +38,7 @@ def test_small_board_in_a_binned_colour_camera(distance, yaw_deg, lateral):
     img, truth = render(SMALL, T_WORLD_CAM, scene, BOARD, T_board, rng, topic="/cam/small", colour=True)
     step = np.median(np.linalg.norm(np.diff(truth.reshape(10, 10, 2), axis=1), axis=-1))
     assert 2.5 < step < 5.0  # the case: squares of a few px
-    found = detect_corners([img], DetectionOptions())[0]
+    found = detect_corners([img], DetectionOptions(), BOARD)[0]
     assert isinstance(found, np.ndarray), found.reason
     err = found - truth
     # measured: 0.20-0.30 px RMS, mean offset <= 0.1 px, scale within 0.55 % (squares of 3-5 px with
