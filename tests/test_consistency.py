@@ -247,7 +247,7 @@ def test_verdict_is_written_to_calibration_yaml_and_report():
     r = calibrate(problem, SolveOptions())
     d = yaml.safe_load(yaml.safe_dump(calibration_dict(r)))["consistency"]
     assert d["passed"] is True and d["n_checks"] >= 20
-    assert 0 <= d["snapshots"]["worst_sigma"] < 4.5 and d["p_limit"] == pytest.approx(1e-3 / d["n_checks"])
+    assert 0 <= d["snapshots"]["worst_sigma"] < 4.5 and d["p_limit"] == pytest.approx(1e-3 / d["n_checks"], rel=1e-5)  # written to 6 digits
     assert set(d["weakest"]) == {"/lidar1", "/lidar2"}
     w = d["weakest"]["/lidar1"]
     assert w["weakest_translation_stdev_mm"] == pytest.approx(1e3 * np.sqrt(np.linalg.eigvalsh(
