@@ -483,19 +483,31 @@ def compare_to_truth(result: Result, truth: dict) -> list[dict]:
 def run_demo(out=None, *, config=None, seed: int = 0, force: bool = False) -> tuple[Result, list[dict]]:
     """`clcgraph demo`: simulate data/synthetic/demo if missing (or of another board), calibrate it,
     compare to truth."""
+    import fcntl
+
     import yaml
 
     from .sim.capture import DEMO_DIR, DEMO_RIG, simulate_demo
     from .sim.rig import load_rig
 
+    out = out or DEMO_DIR.parent / "demo-out"
+    check_out_dir(out, kind="results", force=force)  # before a minute of simulating
     truth_path = DEMO_DIR / "truth.yaml"
-    # simulated once; again when the rig's board changed (a session simulated by an older clcgraph)
-    if not truth_path.exists() or yaml.safe_load(truth_path.read_text()).get("board") != load_rig(DEMO_RIG).board.spec():
-        simulate_demo(seed=seed)
+
+    def stale() -> bool:  # simulated once; again when the rig's board changed (an older clcgraph's)
+        return not truth_path.exists() or \
+            yaml.safe_load(truth_path.read_text()).get("board") != load_rig(DEMO_RIG).board.spec()
+
+    if stale():
+        # demos started at once (a test run's workers) wait for one simulation, not fail on its lock
+        with open(DEMO_DIR.parent / ".demo.clcgraph-lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if stale():
+                simulate_demo(seed=seed)
     truth = yaml.safe_load(truth_path.read_text())
     topics = [s["topic"] for s in truth["sensors"]]
     models = [DEMO_RIG.parent / s["model"] for s in truth["sensors"] if s["kind"] == "camera"]
-    result = calibrate_bags([DEMO_DIR / "*.bag"], topics, models, out=out or DEMO_DIR.parent / "demo-out",
+    result = calibrate_bags([DEMO_DIR / "*.bag"], topics, models, out=out,
                             config=config, force=force)
     return result, compare_to_truth(result, truth)
 
