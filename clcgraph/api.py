@@ -500,7 +500,7 @@ def run_demo(out=None, *, config=None, seed: int = 0, force: bool = False) -> tu
 
     if stale():
         # demos started at once (a test run's workers) wait for one simulation, not fail on its lock
-        with open(DEMO_DIR.parent / ".demo.clcgraph-lock", "w") as lock:
+        with open(DEMO_DIR.parent / ".demo-simulation.lock", "w") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
             if stale():
                 simulate_demo(seed=seed)
