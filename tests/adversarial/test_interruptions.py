@@ -40,8 +40,11 @@ TIMEOUT_S = 120
 
 
 def _clcgraph() -> list[str]:
-    exe = shutil.which("clcgraph")
-    return [exe] if exe else [sys.executable, "-m", "clcgraph.cli"]
+    # the `clcgraph` command itself (beside this Python in a venv, else on PATH): under
+    # `python -m` an interrupted run exits by SIGINT (-2) instead of 130 (known, not understood)
+    beside = Path(sys.executable).with_name("clcgraph")
+    exe = str(beside) if beside.exists() else shutil.which("clcgraph")
+    return [exe] if exe else [sys.executable, "-m", "clcgraph"]
 
 
 def _env() -> dict:
