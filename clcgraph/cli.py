@@ -804,11 +804,6 @@ def main(argv: list[str] | None = None) -> int:
         with _signals_raise(received):
             return int(args.func(args) or 0)
     except (KeyboardInterrupt, _Terminated, Exception) as e:
-        if argv is None and (received or isinstance(e, KeyboardInterrupt)):
-            # the process is about to exit, reported and cleaned up: a signal now (or one held
-            # back by a cleanup and re-sent) must not turn exit 130 into death by signal
-            for s in _EXIT_ON_SIGNAL:
-                signal.signal(s, signal.SIG_IGN)
         return _failure(args, e, received)
 
 
