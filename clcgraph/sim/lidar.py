@@ -41,6 +41,15 @@ class LidarModel:
     ring_range_bias_m: float = 0.0
     ring_elevation_error_deg: float = 0.0
     errors_seed: int = 0
+    # Errors that vary per return (the factors assume none of them; 0 = off):
+    # this share of returns has range noise heavy_tail_scale times range_noise_m (a heavy tail),
+    heavy_tail_fraction: float = 0.0
+    heavy_tail_scale: float = 10.0
+    # returns from the board's dark squares are this much long (low reflectivity),
+    dark_range_bias_m: float = 0.0
+    # a ring's board return next to a miss of the board is up to this much long (part of the
+    # beam's footprint hit the background: a mixed pixel).
+    mixed_pixel_m: float = 0.0
 
     def ring_errors(self) -> tuple[np.ndarray, np.ndarray]:
         """(range bias (rings,) m, elevation error (rings,) deg): this unit's fixed errors."""
@@ -99,11 +108,13 @@ def simulate_scan(model: LidarModel, T_world_lidar: np.ndarray, scene, rng, *, s
     rings, cols = model.n_rings, model.npoints_per_rotation
     ring = np.repeat(np.arange(rings), cols)
     bias = model.ring_errors()[0][ring] if model.ring_range_bias_m else 0.0
-    r = np.where(valid, r + bias + rng.normal(0.0, model.range_noise_m, r.shape), 0.0)
+    on_board = gid == getattr(scene, "board_id", -2)
+    extra = _per_return_errors(model, scene, rays, r, on_board, rng)
+    r = np.where(valid, r + bias + extra + rng.normal(0.0, model.range_noise_m, r.shape), 0.0)
     pts = d.reshape(-1, 3) * r[:, None]
     time_s = np.tile(np.arange(cols) / cols * model.rotation_period_s, rings)
-    intensity = np.where(gid == getattr(scene, "board_id", -2), 180.0, 60.0).astype(np.float32)
-    hit_board = valid & (gid == getattr(scene, "board_id", -2))
+    intensity = np.where(on_board, 180.0, 60.0).astype(np.float32)
+    hit_board = valid & on_board
     if model.layout == "ouster":
         return LidarScan(topic, stamp_ns, pts, valid, intensity, ring, time_s, (rings, cols)), hit_board
     order = np.arange(rings * cols).reshape(rings, cols).T.ravel()  # firing order: column by column
@@ -111,3 +122,27 @@ def simulate_scan(model: LidarModel, T_world_lidar: np.ndarray, scene, rng, *, s
     scan = LidarScan(topic, stamp_ns, pts[order], np.ones(len(order), bool), intensity[order], ring[order],
                      time_s[order], None)
     return scan, hit_board[order]
+
+
+def _per_return_errors(model: LidarModel, scene, rays: np.ndarray, r: np.ndarray, on_board: np.ndarray,
+                       rng) -> np.ndarray | float:
+    """(rings*columns,) range errors of ``model``'s per-return options (0.0 when all are off):
+    heavy-tailed noise, dark squares returning long, mixed pixels at the board's edge."""
+    if not (model.heavy_tail_fraction or model.dark_range_bias_m or model.mixed_pixel_m):
+        return 0.0
+    e = np.zeros(r.shape)
+    if model.heavy_tail_fraction:
+        wild = rng.uniform(size=r.shape) < model.heavy_tail_fraction
+        e[wild] += rng.normal(0.0, model.heavy_tail_scale * model.range_noise_m, int(wild.sum()))
+    if model.dark_range_bias_m and on_board.any() and getattr(scene, "T_world_board", None) is not None:
+        from .camera import BLACK, board_shade
+
+        p_world = rays[on_board, :3] + rays[on_board, 3:] * r[on_board, None]
+        T = scene.T_world_board
+        xy = ((p_world - T[:3, 3]) @ T[:3, :3])[:, :2]
+        e[on_board] += np.where(board_shade(scene.board, xy) == BLACK, model.dark_range_bias_m, 0.0)
+    if model.mixed_pixel_m:
+        grid = on_board.reshape(model.n_rings, model.npoints_per_rotation)
+        edge = (grid & ~(np.roll(grid, 1, axis=1) & np.roll(grid, -1, axis=1))).ravel()
+        e[edge] += rng.uniform(0.0, model.mixed_pixel_m, int(edge.sum()))
+    return e
