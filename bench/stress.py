@@ -8,6 +8,7 @@ a result off by more than 5 sigma or 5 cm is a *silent wrong answer*, the worst 
 
     python -m bench.stress                 # every capture, table on stdout
     python -m bench.stress lidar-only-3    # the named ones
+    python -m bench.stress --set solve.refuse_inconsistent=true   # extra settings for every solve
     python -m bench stress                 # the same, as one of the benchmarks
 
 Captures are simulated once into build/stress/<name>/ (kept while the recipe is unchanged).
@@ -110,6 +111,28 @@ CAPTURES = [
                  "cameras": [_camera("/cam/wide/image", "wide800", (1.4, 0.0, 1.5), (0, 6, 0))]},
             simulate={"n_poses": 16}),
     Capture("drive-short", "targetless: a 10 s drive", drive={"duration": 10.0}),
+    Capture("person-behind-arm", "a non-square bordered board (7x5 corners of 95 mm on 850 x 610 mm) held by a "
+            "person standing behind it, an arm across its edge",
+            rig={"lidars": [TOP], "cameras": [CAM_FRONT], "scene": {"person": "behind", "arm": True}},
+            board={"corners": [7, 5], "square_m": 0.095, "size_m": [0.85, 0.61]}, simulate={"n_poses": 14}),
+    Capture("person-beside-arm", "a square bordered board held by a person beside it, an arm across its edge",
+            rig={"lidars": [TOP, BUMPER], "scene": {"person": "beside", "arm": True}},
+            board={"corners": [8, 8], "square_m": 0.1, "size_m": [1.1, 1.1]}, simulate={"n_poses": 14}),
+    Capture("bag-per-pose-5hz", "cameras at 5 Hz, a bag per pose (~0.2-0.4 s long), drivers' log delays",
+            rig={"lidars": [TOP, BUMPER], "cameras": [CAM_COLOUR]}, simulate={"n_poses": 14, "camera_hz": 5.0}),
+    Capture("vertical-boards", "every board exactly vertical: the LIDARs' relative height is unobservable "
+            "(must be refused, naming the direction)",
+            rig={"lidars": [TOP, BUMPER]}, simulate={"n_poses": 12, "vertical_boards": True}, must_refuse=True),
+    Capture("ring-bias-elevation", "per-ring range bias (sd 2 cm) and ring elevation errors (sd 0.1 deg)",
+            rig={"lidars": [dict(TOP, ring_range_bias_m=0.02, ring_elevation_error_deg=0.1, errors_seed=3),
+                            dict(BUMPER, ring_range_bias_m=0.015, ring_elevation_error_deg=0.1, errors_seed=4)],
+                 "cameras": [CAM_FRONT]}, simulate={"n_poses": 16}),
+    Capture("tails-dark-mixed", "heavy-tailed returns (2 % at 10x the noise), dark squares returning 1.5 cm "
+            "long, mixed pixels (up to 10 cm) at the board's edge",
+            rig={"lidars": [dict(TOP, heavy_tail_fraction=0.02, dark_range_bias_m=0.015, mixed_pixel_m=0.1),
+                            dict(BUMPER, heavy_tail_fraction=0.02, dark_range_bias_m=0.02, mixed_pixel_m=0.1)],
+                 "cameras": [CAM_FRONT]}, simulate={"n_poses": 16}),
+    Capture("drive-long", "targetless: a 30 s drive", drive={"duration": 30.0}),
 ]
 
 
@@ -230,7 +253,8 @@ def _judge(c: Capture, out: Path, truth: dict, bar_deg: float, bar_mm: float) ->
     return worst
 
 
-def run_capture(c: Capture) -> Outcome:
+def run_capture(c: Capture, settings: tuple[str, ...] = ()) -> Outcome:
+    """``settings``: extra ``section.key=value`` settings passed to the command as ``--set``."""
     t0 = time.perf_counter()
     try:
         d = _prepare(c)
@@ -245,7 +269,8 @@ def run_capture(c: Capture) -> Outcome:
         topics = [s["topic"] for s in truth["sensors"]]
         bag = next(p for p in data.iterdir() if p.name.startswith("drive"))
         r = _clcgraph("targetless", "--bag", bag, "--mapping-topic", topics[0],
-                      "--calibration-topics", ",".join(topics[1:]), "--out", out)
+                      "--calibration-topics", ",".join(topics[1:]), "--out", out,
+                      *[a for kv in settings if not kv.startswith("solve.") for a in ("--set", kv)])
         bar = (0.02, 3.0)
     else:
         topics = truth["topics"]
@@ -255,7 +280,7 @@ def run_capture(c: Capture) -> Outcome:
             (d / "board.yaml").write_text(yaml.safe_dump({"board": c.board}))
             config = ["--config", d / "board.yaml"]
         r = _clcgraph("solve", "--bag", data, "--topics", ",".join(topics),  # a directory of bags, as users give it
-                      *models, "--out", out, *config)
+                      *models, "--out", out, *config, *[a for kv in settings for a in ("--set", kv)])
         bar = (0.1, 5.0)
     seconds = time.perf_counter() - t0
     err = r.stderr.strip().splitlines()
@@ -286,11 +311,20 @@ def table(outcomes: list[Outcome]) -> str:
 
 
 def main(argv: list[str] | None = None) -> str:
-    names = sys.argv[1:] if argv is None else argv
-    chosen = [c for c in CAPTURES if not names or c.name in names]
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m bench.stress", description=__doc__.splitlines()[0])
+    ap.add_argument("names", nargs="*", help="captures to run (default: all)")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="an extra setting for every solve (targetless: all but solve.*)")
+    args = ap.parse_args(sys.argv[1:] if argv is None else argv)
+    unknown = sorted(set(args.names) - {c.name for c in CAPTURES})
+    if unknown:
+        ap.error(f"unknown capture {unknown[0]!r}; known: {', '.join(c.name for c in CAPTURES)}")
+    chosen = [c for c in CAPTURES if not args.names or c.name in args.names]
     outcomes = []
     for c in chosen:
-        o = run_capture(c)
+        o = run_capture(c, tuple(args.set))
         print(f"  {o.name}: {o.verdict} ({o.seconds:.0f} s) {o.detail}", file=sys.stderr, flush=True)
         outcomes.append(o)
     return table(outcomes)
