@@ -111,15 +111,17 @@ CAPTURES = [
                  "cameras": [_camera("/cam/wide/image", "wide800", (1.4, 0.0, 1.5), (0, 6, 0))]},
             simulate={"n_poses": 16}),
     Capture("drive-short", "targetless: a 10 s drive", drive={"duration": 10.0}),
-    Capture("person-behind-arm", "a non-square bordered board (7x5 corners of 95 mm on 850 x 610 mm) held by a "
-            "person standing behind it, an arm across its edge",
-            rig={"lidars": [TOP], "cameras": [CAM_FRONT], "scene": {"person": "behind", "arm": True}},
-            board={"corners": [7, 5], "square_m": 0.095, "size_m": [0.85, 0.61]}, simulate={"n_poses": 14}),
+    Capture("person-behind-arm", "a non-square board, pattern off-centre on it (9x6 corners of 0.1 m on "
+            "1.2 x 0.9 m) held by a person standing behind it, an arm across its edge",
+            rig={"lidars": [_lidar("/os/points", "os1-64", (1.2, 0.0, 2.0), layout="ouster")], "cameras": [CAM_FRONT],
+                 "scene": {"person": "behind", "arm": True}},
+            board={"corners": [9, 6], "square_m": 0.1, "size_m": [1.2, 0.9], "pattern_offset_m": [0.03, -0.02]},
+            simulate={"n_poses": 16}),
     Capture("person-beside-arm", "a square bordered board held by a person beside it, an arm across its edge",
             rig={"lidars": [TOP, BUMPER], "scene": {"person": "beside", "arm": True}},
             board={"corners": [8, 8], "square_m": 0.1, "size_m": [1.1, 1.1]}, simulate={"n_poses": 14}),
     Capture("bag-per-pose-5hz", "cameras at 5 Hz, a bag per pose (~0.2-0.4 s long), drivers' log delays",
-            rig={"lidars": [TOP, BUMPER], "cameras": [CAM_COLOUR]}, simulate={"n_poses": 14, "camera_hz": 5.0}),
+            rig={"lidars": [TOP, BUMPER], "cameras": [CAM_COLOUR]}, simulate={"n_poses": 20, "camera_hz": 5.0}),
     Capture("vertical-boards", "every board exactly vertical: the LIDARs' relative height is unobservable "
             "(must be refused, naming the direction)",
             rig={"lidars": [TOP, BUMPER]}, simulate={"n_poses": 12, "vertical_boards": True}, must_refuse=True),
@@ -135,6 +137,15 @@ CAPTURES = [
     Capture("drive-long", "targetless: a 30 s drive", drive={"duration": 30.0}),
 ]
 
+# Small captures for CI (tests/cli/test_stress_ci.py): seconds each, end to end through the CLI.
+CI_CAPTURES = [
+    Capture("ci-continuous-lidars", "two LIDARs, one continuous ROS1 bag, no setting: cut into still "
+            "intervals by motion",
+            rig={"lidars": [TOP, BUMPER]},
+            simulate={"n_poses": 10, "continuous": True, "hold_s": 1.2, "move_s": 0.6}),
+    Capture("ci-vertical-boards", "exactly vertical boards: the relative height must be refused",
+            rig={"lidars": [TOP, BUMPER]}, simulate={"n_poses": 8, "vertical_boards": True}, must_refuse=True),
+]
 
 # ----------------------------------------------------------------------------------- running
 
@@ -176,9 +187,9 @@ def _write_lenses(d: Path, rig: dict) -> None:
         mrcal.cameramodel(intrinsics=(model, np.asarray(intrinsics, float)), imagersize=size).write(str(d / cam["model"]))
 
 
-def _prepare(c: Capture) -> Path:
-    """The capture's bags (simulated once per recipe)."""
-    d = BUILD / c.name
+def _prepare(c: Capture, build: Path = BUILD) -> Path:
+    """The capture's bags (simulated once per recipe) in ``build``/name."""
+    d = Path(build) / c.name
     key = _recipe_key(c)
     if (d / "recipe").exists() and (d / "recipe").read_text() == key and (d / "data" / "truth.yaml").exists():
         return d
@@ -253,11 +264,12 @@ def _judge(c: Capture, out: Path, truth: dict, bar_deg: float, bar_mm: float) ->
     return worst
 
 
-def run_capture(c: Capture, settings: tuple[str, ...] = ()) -> Outcome:
-    """``settings``: extra ``section.key=value`` settings passed to the command as ``--set``."""
+def run_capture(c: Capture, settings: tuple[str, ...] = (), build: Path = BUILD) -> Outcome:
+    """``settings``: extra ``section.key=value`` settings passed to the command as ``--set``;
+    ``build``: where the capture is simulated and solved."""
     t0 = time.perf_counter()
     try:
-        d = _prepare(c)
+        d = _prepare(c, build)
     except Exception as e:  # noqa: BLE001 - a broken recipe is reported, the others run
         return Outcome(c.name, "FAILED", f"simulation: {e}")
     data = d / "data"
@@ -318,10 +330,11 @@ def main(argv: list[str] | None = None) -> str:
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="an extra setting for every solve (targetless: all but solve.*)")
     args = ap.parse_args(sys.argv[1:] if argv is None else argv)
-    unknown = sorted(set(args.names) - {c.name for c in CAPTURES})
+    every = CAPTURES + CI_CAPTURES
+    unknown = sorted(set(args.names) - {c.name for c in every})
     if unknown:
-        ap.error(f"unknown capture {unknown[0]!r}; known: {', '.join(c.name for c in CAPTURES)}")
-    chosen = [c for c in CAPTURES if not args.names or c.name in args.names]
+        ap.error(f"unknown capture {unknown[0]!r}; known: {', '.join(c.name for c in every)}")
+    chosen = [c for c in every if c.name in args.names] if args.names else CAPTURES
     outcomes = []
     for c in chosen:
         o = run_capture(c, tuple(args.set))
