@@ -334,7 +334,8 @@ def main(argv: list[str] | None = None) -> str:
     unknown = sorted(set(args.names) - {c.name for c in every})
     if unknown:
         ap.error(f"unknown capture {unknown[0]!r}; known: {', '.join(c.name for c in every)}")
-    chosen = [c for c in every if c.name in args.names] if args.names else CAPTURES
+    by_name = {c.name: c for c in every}
+    chosen = [by_name[n] for n in dict.fromkeys(args.names)] if args.names else CAPTURES  # in the order given
     outcomes = []
     for c in chosen:
         o = run_capture(c, tuple(args.set))

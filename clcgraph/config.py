@@ -111,9 +111,11 @@ class SegmentationOptions:
     # ...and some ring must cross at least this fraction of the board's short side (and 0.6 x the
     # height seen, up to the side: a tall narrow plane is a body or a post).
     min_chord_fraction: float = 0.45
-    # A board is flat: its plane-fit RMS is at most this,
+    # A board is flat: its plane-fit RMS (each laser's own range offset included) is at most this,
     max_plane_rms_m: float = 0.03
-    # ...and at most this many times the range noise seen along the scan's straight segments.
+    # ...and, about each ring's mean offset from the plane (real lasers range with offsets of
+    # 1-3 cm of their own), at most this many times the range noise seen along the scan's
+    # straight segments.
     max_plane_rms_sigmas: float = 1.5
     # A scan counts only if exactly one board plane is found.
     require_unique: bool = True
