@@ -95,8 +95,9 @@ CAPTURES = [
     Capture("small-colour-continuous", "a 320x240 2x2-binned colour camera in a continuous capture at 15 Hz",
             rig={"lidars": [TOP], "cameras": [_camera("/cam/small/image", "binned320", (1.5, 0.3, 1.5), (0, 3, 15),
                                                       encoding="bgr8")]},
+            # held within 4.5 m, as a person watching this camera's preview would: its squares stay >= 5 px
             simulate={"n_poses": 10, "continuous": True, "camera_hz": 15.0, "hold_s": 1.2, "move_s": 0.6,
-                      "format": "ros2-mcap"}),
+                      "format": "ros2-mcap", "max_distance_m": 4.5}),
     Capture("continuous-5hz", "one continuous ROS2 bag, cameras at 5 Hz",
             rig={"lidars": [TOP, BUMPER], "cameras": [CAM_FRONT]},
             simulate={"n_poses": 10, "continuous": True, "camera_hz": 5.0, "hold_s": 1.5, "move_s": 0.6,

@@ -358,9 +358,11 @@ def _rms_about_ring_offsets(pts: np.ndarray, ring: np.ndarray, n: np.ndarray, d:
     return float(np.sqrt(np.sum(within**2) / dof))
 
 
-def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: float, noise_m: float, o):
-    """Whether ``pts`` (with their ring ranks) are the board: (None or why not, the refit plane
-    (n, d, rms), the mask of the points kept)."""
+def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: float, noise_m: float, o,
+             intensity: np.ndarray | None = None):
+    """Whether ``pts`` (with their ring ranks and ``intensity``) are the board: (None or why not,
+    the refit plane (n, d, rms), the mask of the points kept). The plane and its flatness are
+    judged with the dark squares' range walk removed (``dark_square_correction``)."""
     keep = np.ones(len(pts), bool)
     n, d, rms = fit_plane(pts)
     c = pts.mean(axis=0)
@@ -382,6 +384,8 @@ def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: floa
         keep &= res <= max(3.0 * sigma, 0.01)
     keep[keep] = _main_piece_per_ring(pts[keep], ring[keep], step, o)
     pts, ring = pts[keep], ring[keep]
+    if intensity is not None:
+        pts, _ = dark_square_correction(pts, intensity[keep])
     n, d, rms = fit_plane(pts)
     if d > 0:
         n, d = -n, -d  # normal toward the sensor at the origin
@@ -477,8 +481,10 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
             if len(rows) >= len(members) // 2:
                 pieces.append((rows, n, d))
     found = []
+    intensity = None if scan.intensity is None else np.asarray(scan.intensity, float)[R.index]
     for rows in _merge(pieces, R.points, o.point_plane_tolerance_m, float(np.hypot(*board.size_m))):
-        why, plane, keep = _verdict(R.points[rows], rank[rows], board, step, noise, o)
+        why, plane, keep = _verdict(R.points[rows], rank[rows], board, step, noise, o,
+                                    None if intensity is None else intensity[rows])
         rows = rows[keep]
         if o.debug_region is not None:
             c = R.points[rows].mean(axis=0) if len(rows) else np.full(3, np.nan)
@@ -511,8 +517,55 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
     idx = np.sort(R.index[rows])
     if debug is not None:
         debug.accepted = idx
-    return LidarBoardObservation(sensor=sensor, snapshot=snapshot, points=np.asarray(scan.points, float)[idx],
-                                 plane=np.r_[n, d], rms_m=rms, indices=idx)
+    pts = np.asarray(scan.points, float)[idx]
+    if scan.intensity is not None:  # the plane is already the corrected points' (_verdict)
+        pts, offset = dark_square_correction(pts, np.asarray(scan.intensity, float)[idx])
+        if offset:
+            log.debug("%s: the board's weak returns range %.1f mm long; corrected", scan.topic, offset * 1e3)
+    return LidarBoardObservation(sensor=sensor, snapshot=snapshot, points=pts, plane=np.r_[n, d], rms_m=rms,
+                                 indices=idx)
+
+
+def dark_square_correction(pts: np.ndarray, intensity: np.ndarray) -> tuple[np.ndarray, float]:
+    """(points, range offset in m or 0.0): a chessboard's dark squares return weak and, in real
+    LIDARs, long (range walk: 1-2 cm). When the board's returns fall into two intensity groups
+    (the pattern) whose ranges to the bright group's plane differ significantly (> 4 standard
+    errors), the weak returns are moved back along their rays by that offset: the bright squares
+    and the white border return like the targets a LIDAR's ranges are calibrated on.
+
+    Groups: the two means of the intensities (1-D 2-means), each >= 10 % of the returns and
+    apart by more than 4x their pooled spread; otherwise nothing is changed."""
+    if len(pts) < 20 or not np.all(np.isfinite(intensity)):
+        return pts, 0.0
+    lo, hi = np.percentile(intensity, [5, 95])
+    if not hi > lo:
+        return pts, 0.0
+    thr = (lo + hi) / 2
+    for _ in range(10):  # 2-means in one dimension
+        weak = intensity < thr
+        if weak.all() or not weak.any():
+            return pts, 0.0
+        new = (intensity[weak].mean() + intensity[~weak].mean()) / 2
+        if new == thr:
+            break
+        thr = new
+    share = weak.mean()
+    spread = np.sqrt((intensity[weak].var() * weak.sum() + intensity[~weak].var() * (~weak).sum()) / len(pts))
+    if not (0.1 <= share <= 0.9) or intensity[~weak].mean() - intensity[weak].mean() <= 4 * spread:
+        return pts, 0.0
+    n, d, _ = fit_plane(pts[~weak])
+    r = np.linalg.norm(pts, axis=1)
+    u = pts / r[:, None]
+    along = d / (u @ n)  # where each ray meets the bright returns' plane
+    delta = r - along
+    a, b = delta[weak], delta[~weak]
+    offset = float(np.median(a) - np.median(b))
+    se = 1.2533 * np.sqrt(np.var(a) / len(a) + np.var(b) / len(b))  # of a median
+    if abs(offset) <= 4 * se:
+        return pts, 0.0
+    out = pts.copy()
+    out[weak] = u[weak] * (r[weak] - offset)[:, None]
+    return out, offset
 
 
 def _merge(pieces: list, points: np.ndarray, tol: float, reach: float) -> list:

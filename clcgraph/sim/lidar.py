@@ -45,7 +45,8 @@ class LidarModel:
     # this share of returns has range noise heavy_tail_scale times range_noise_m (a heavy tail),
     heavy_tail_fraction: float = 0.0
     heavy_tail_scale: float = 10.0
-    # returns from the board's dark squares are this much long (low reflectivity),
+    # returns from the board's dark squares are this much long (low reflectivity: their
+    # intensity is then low too, 20 against the board's 180),
     dark_range_bias_m: float = 0.0
     # a ring's board return next to a miss of the board is up to this much long (part of the
     # beam's footprint hit the background: a mixed pixel).
@@ -109,11 +110,12 @@ def simulate_scan(model: LidarModel, T_world_lidar: np.ndarray, scene, rng, *, s
     ring = np.repeat(np.arange(rings), cols)
     bias = model.ring_errors()[0][ring] if model.ring_range_bias_m else 0.0
     on_board = gid == getattr(scene, "board_id", -2)
-    extra = _per_return_errors(model, scene, rays, r, on_board, rng)
+    extra, dark = _per_return_errors(model, scene, rays, r, on_board, rng)
     r = np.where(valid, r + bias + extra + rng.normal(0.0, model.range_noise_m, r.shape), 0.0)
     pts = d.reshape(-1, 3) * r[:, None]
     time_s = np.tile(np.arange(cols) / cols * model.rotation_period_s, rings)
-    intensity = np.where(on_board, 180.0, 60.0).astype(np.float32)
+    # the board bright; with dark_range_bias_m its dark squares also return weak (what makes them long)
+    intensity = np.where(on_board, np.where(dark, 20.0, 180.0), 60.0).astype(np.float32)
     hit_board = valid & on_board
     if model.layout == "ouster":
         return LidarScan(topic, stamp_ns, pts, valid, intensity, ring, time_s, (rings, cols)), hit_board
@@ -125,11 +127,13 @@ def simulate_scan(model: LidarModel, T_world_lidar: np.ndarray, scene, rng, *, s
 
 
 def _per_return_errors(model: LidarModel, scene, rays: np.ndarray, r: np.ndarray, on_board: np.ndarray,
-                       rng) -> np.ndarray | float:
-    """(rings*columns,) range errors of ``model``'s per-return options (0.0 when all are off):
-    heavy-tailed noise, dark squares returning long, mixed pixels at the board's edge."""
+                       rng) -> tuple[np.ndarray | float, np.ndarray | bool]:
+    """((rings*columns,) range errors of ``model``'s per-return options (0.0 when all are off):
+    heavy-tailed noise, dark squares returning long, mixed pixels at the board's edge; the mask
+    of returns from the board's dark squares (False unless dark_range_bias_m))."""
+    dark = np.zeros(r.shape, bool)
     if not (model.heavy_tail_fraction or model.dark_range_bias_m or model.mixed_pixel_m):
-        return 0.0
+        return 0.0, dark
     e = np.zeros(r.shape)
     if model.heavy_tail_fraction:
         wild = rng.uniform(size=r.shape) < model.heavy_tail_fraction
@@ -140,9 +144,10 @@ def _per_return_errors(model: LidarModel, scene, rays: np.ndarray, r: np.ndarray
         p_world = rays[on_board, :3] + rays[on_board, 3:] * r[on_board, None]
         T = scene.T_world_board
         xy = ((p_world - T[:3, 3]) @ T[:3, :3])[:, :2]
-        e[on_board] += np.where(board_shade(scene.board, xy) == BLACK, model.dark_range_bias_m, 0.0)
+        dark[on_board] = board_shade(scene.board, xy) == BLACK
+        e[dark] += model.dark_range_bias_m
     if model.mixed_pixel_m:
         grid = on_board.reshape(model.n_rings, model.npoints_per_rotation)
         edge = (grid & ~(np.roll(grid, 1, axis=1) & np.roll(grid, -1, axis=1))).ravel()
         e[edge] += rng.uniform(0.0, model.mixed_pixel_m, int(edge.sum()))
-    return e
+    return e, dark
