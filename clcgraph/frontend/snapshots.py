@@ -189,8 +189,14 @@ def scene_motion(a: LidarScan, b: LidarScan, *, threshold_m: float, min_cells: i
     (isolated noise hits do not); motion if at least ``min_cells`` such cells.
     Returns (moved, median |change| of those cells in m, their count).
     """
-    ra, ia = range_image(a, azimuth_bins=azimuth_bins)
-    rb, ib = range_image(b, azimuth_bins=azimuth_bins)
+    return motion_between(range_image(a, azimuth_bins=azimuth_bins), range_image(b, azimuth_bins=azimuth_bins),
+                          threshold_m=threshold_m, min_cells=min_cells)
+
+
+def motion_between(image_a, image_b, *, threshold_m: float, min_cells: int) -> tuple[bool, float, int]:
+    """``scene_motion`` of two scans' ``range_image``s (each computed once when one scan is
+    compared with many)."""
+    (ra, ia), (rb, ib) = image_a, image_b
     common, ka, kb = np.intersect1d(ra, rb, return_indices=True)
     A, B = ia[ka], ib[kb]  # (R, A)
     # the change to the closest of the cell and its azimuth neighbours in the other scan:
@@ -407,12 +413,12 @@ def still_intervals(bag: Path, lidar_topics: Sequence[str], options,
     for m in read_messages([bag], lidar_topics, start_ns=tfilter.after_ns, stop_ns=tfilter.before_ns):
         if tfilter.why_not(m.stamp_ns) is not None:
             continue
-        scan = m.data
-        t = scan.time_s
+        t = m.data.time_s
         end = m.stamp_ns + (int(float(np.max(t)) * 1e9) if t is not None and len(t) else 0)
+        scan = range_image(m.data)  # all the comparison needs of the scan
         if cur is not None and m.topic in cur["anchor"]:
-            moved, _, _ = scene_motion(cur["anchor"][m.topic], scan, threshold_m=options.max_board_motion_m,
-                                       min_cells=options.min_moving_cells)
+            moved, _, _ = motion_between(cur["anchor"][m.topic], scan, threshold_m=options.max_board_motion_m,
+                                         min_cells=options.min_moving_cells)
             if moved:
                 moving_ns += max(0, m.stamp_ns - cur["end"])
                 cur = None
