@@ -13,6 +13,9 @@
         ring_range_bias_m: 0.02          # optional: sd of each ring's fixed range bias (0 = off)
         ring_elevation_error_deg: 0.1    # optional: sd of each ring's fixed elevation error (0 = off)
         errors_seed: 3                   # optional: which unit (draws the per-ring errors)
+        heavy_tail_fraction: 0.02        # optional: share of returns with heavy_tail_scale (10) x the noise
+        dark_range_bias_m: 0.015         # optional: the board's dark squares return weak and this long
+        mixed_pixel_m: 0.1               # optional: a ring's board-edge return up to this long
         dropout: 0.005
     cameras:
       - topic: /cam/left/image
