@@ -275,7 +275,8 @@ def run_capture(c: Capture, settings: tuple[str, ...] = (), build: Path = BUILD)
         return Outcome(c.name, "FAILED", f"simulation: {e}")
     data = d / "data"
     truth = yaml.safe_load((data / "truth.yaml").read_text())
-    out = d / "out"
+    # each set of extra settings solves into its own folder (two settings can run at once)
+    out = d / ("out-" + hashlib.sha256(repr(settings).encode()).hexdigest()[:8] if settings else "out")
     shutil.rmtree(out, ignore_errors=True)
     t0 = time.perf_counter()
     if c.drive is not None:
