@@ -6,9 +6,9 @@ SYNOPSIS
 
 Two capture schemes (the clc seed's):
 - one bag per board pose (``decimation_period_s`` None): the first message of every
-  topic in each bag. A bag in which the scene moves is a continuous one, cut at the motion
-  (``still_intervals``): one snapshot per still interval, from the messages nearest its
-  centre; so a single continuous bag needs no setting;
+  topic in each bag. A bag in which the scene moves and stops more than once is a continuous
+  one, cut at the motion (``still_intervals``): one snapshot per still interval, from the
+  messages nearest its centre; so a single continuous bag needs no setting;
 - one continuous bag: periods of ``decimation_period_s`` from the first kept message
   (messages in header-stamp order, never log order: see ``frontend.bag``); per period and
   topic the message nearest the period's centre. Whether a period is usable rests on
@@ -356,7 +356,9 @@ def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
     if options.decimation_period_s is None:
         for b in bag_iter:
             still, moving_s = still_intervals(b, lidar_topics, options, tfilter)
-            if moving_s > 0:  # the scene moved: a continuous bag, a snapshot per still interval
+            # the board stopped more than once: a continuous bag, a snapshot per still interval (a
+            # bag per pose in which something moved, e.g. a passer-by, keeps its first messages)
+            if moving_s > 0 and len(still) >= 2:
                 s_new, r_new = _still_snapshots(b, still, moving_s, lidar_topics, camera_topics, options,
                                                 tfilter, len(snaps))
                 snaps += s_new
