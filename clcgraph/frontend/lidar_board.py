@@ -570,14 +570,18 @@ def dark_square_correction(pts: np.ndarray, intensity: np.ndarray) -> tuple[np.n
 
 def _merge(pieces: list, points: np.ndarray, tol: float, reach: float) -> list:
     """Rows per physical plane: coplanar pieces within ``reach`` of each other (a board split by
-    the azimuth wrap, a dropout or RANSAC) join up."""
+    the azimuth wrap, a dropout or RANSAC) join up, and so do pieces that grew over the same
+    returns (most of the smaller one's: a return lies on one surface; with noisy returns the
+    pieces' own plane fits can differ by more than the coplanarity test allows)."""
     groups: list = []  # [rows, n, d]
     for rows, n, d in pieces:
         c = points[rows].mean(axis=0)
         for g in groups:
             c2 = points[g[0]].mean(axis=0)
+            shared = np.intersect1d(rows, g[0], assume_unique=True).size
             same = (abs(n @ g[1]) > np.cos(np.radians(10)) and abs(c @ g[1] - g[2]) < tol
-                    and abs(c2 @ n - d) < tol and np.linalg.norm(c - c2) < reach)
+                    and abs(c2 @ n - d) < tol and np.linalg.norm(c - c2) < reach) \
+                or 2 * shared > min(len(rows), len(g[0]))
             if same:
                 g[0] = np.union1d(g[0], rows)
                 break
