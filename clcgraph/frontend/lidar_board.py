@@ -609,10 +609,79 @@ def segment_many(scans, options, lidar_options, board: BoardGeometry, *, sensor:
     jobs = jobs or min(2, os.cpu_count() or 1)
     if jobs <= 1 or len(scans) < 4:
         it = map(one, range(len(scans)))
-        return list(progress(it, len(scans)) if progress else it)
-    # threads, not processes: numpy and scipy release the GIL in the heavy parts, and worker
-    # processes would either fork a threaded process (deadlocks) or re-import the caller's
-    # script (forkserver/spawn: a fleet script without a __main__ guard would run again)
-    with ThreadPoolExecutor(max_workers=jobs) as ex:
-        it = ex.map(one, range(len(scans)))
-        return list(progress(it, len(scans)) if progress else it)
+        found = list(progress(it, len(scans)) if progress else it)
+    else:
+        # threads, not processes: numpy and scipy release the GIL in the heavy parts, and worker
+        # processes would either fork a threaded process (deadlocks) or re-import the caller's
+        # script (forkserver/spawn: a fleet script without a __main__ guard would run again)
+        with ThreadPoolExecutor(max_workers=jobs) as ex:
+            it = ex.map(one, range(len(scans)))
+            found = list(progress(it, len(scans)) if progress else it)
+    return correct_ring_offsets(found, scans)
+
+
+def correct_ring_offsets(found: list, scans: list) -> list:
+    """``found`` (segment_board results per scan of one LIDAR) with each ring's own range offset,
+    measured on all the boards, taken out of the board points and planes.
+
+    Real lasers range with fixed offsets of their own (1-3 cm; the same in every scan): on one
+    board they tilt and shift the plane by degrees and millimetres, differently for each board
+    (which rings crossed it), errors the solver would take for independent noise. Each ring's
+    offset is its returns' mean range beyond their board's plane, over all boards, alternating
+    with the plane fits; what no board can tell apart from the planes (a common offset, one linear
+    in the rings' elevation) is left. Applied only where the offsets stand out of their own
+    standard errors (chi-square over the rings beyond 4 sigma of its dof), else ``found`` unchanged.
+    """
+    obs = [(k, o) for k, o in enumerate(found) if isinstance(o, LidarBoardObservation) and o.indices is not None
+           and scans[k].ring is not None]
+    if len(obs) < 3:
+        return found
+    pts = [np.asarray(o.points, float) for _, o in obs]
+    rings = [np.asarray(scans[k].ring)[o.indices].astype(np.int64) for k, o in obs]
+    all_rings = np.unique(np.concatenate(rings))
+    rid = [np.searchsorted(all_rings, r) for r in rings]
+    R = len(all_rings)
+    if R < 4:
+        return found
+    rng_m = [np.linalg.norm(p, axis=1) for p in pts]
+    u = [p / r[:, None] for p, r in zip(pts, rng_m)]
+    elev = np.zeros(R)
+    np.add.at(elev, np.concatenate(rid), np.concatenate([x[:, 2] for x in u]))
+    counts = np.bincount(np.concatenate(rid), minlength=R).astype(float)
+    elev = elev / np.maximum(counts, 1)
+    A = np.c_[np.ones(R), elev] * np.sqrt(counts)[:, None]  # the unidentifiable part, point-weighted
+    offset = np.zeros(R)
+    for _ in range(6):
+        num, sq = np.zeros(R), np.zeros(R)
+        for p_u, r, ri in zip(u, rng_m, rid):
+            q = p_u * (r - offset[ri])[:, None]
+            n, d, _ = fit_plane(q)
+            e = r - d / (p_u @ n)  # measured range beyond the corrected plane
+            np.add.at(num, ri, e)
+            np.add.at(sq, ri, e**2)
+        mean = num / np.maximum(counts, 1)
+        w = np.sqrt(counts)
+        coef, *_ = np.linalg.lstsq(A, mean * w, rcond=None)
+        new = mean - np.c_[np.ones(R), elev] @ coef
+        done = np.max(np.abs(new - offset)) < 1e-4
+        offset = new
+        if done:
+            break
+    var = np.maximum(sq / np.maximum(counts, 1) - mean**2, 0)
+    se2 = var / np.maximum(counts, 1)
+    dof = R - 2
+    ok = counts >= 2
+    chi2 = float(np.sum(offset[ok] ** 2 / np.maximum(se2[ok], 1e-12)))
+    if dof < 2 or chi2 <= dof + 4 * np.sqrt(2 * dof):
+        return found
+    log.info("ring range offsets of %s from %d boards: %s mm", scans[obs[0][0]].topic, len(obs),
+             np.array2string(offset * 1e3, precision=0))
+    out = list(found)
+    for (k, o), p_u, r, ri in zip(obs, u, rng_m, rid):
+        q = p_u * (r - offset[ri])[:, None]
+        n, d, rms = fit_plane(q)
+        if d > 0:
+            n, d = -n, -d
+        out[k] = LidarBoardObservation(sensor=o.sensor, snapshot=o.snapshot, points=q, plane=np.r_[n, d], rms_m=rms,
+                                       indices=o.indices)
+    return out
