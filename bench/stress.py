@@ -8,6 +8,7 @@ a result off by more than 5 sigma or 5 cm is a *silent wrong answer*, the worst 
 
     python -m bench.stress                 # every capture, table on stdout
     python -m bench.stress lidar-only-3    # the named ones
+    python -m bench.stress --set solve.refuse_inconsistent=true   # extra settings for every solve
     python -m bench stress                 # the same, as one of the benchmarks
 
 Captures are simulated once into build/stress/<name>/ (kept while the recipe is unchanged).
@@ -94,8 +95,9 @@ CAPTURES = [
     Capture("small-colour-continuous", "a 320x240 2x2-binned colour camera in a continuous capture at 15 Hz",
             rig={"lidars": [TOP], "cameras": [_camera("/cam/small/image", "binned320", (1.5, 0.3, 1.5), (0, 3, 15),
                                                       encoding="bgr8")]},
+            # held within 4.5 m, as a person watching this camera's preview would: its squares stay >= 5 px
             simulate={"n_poses": 10, "continuous": True, "camera_hz": 15.0, "hold_s": 1.2, "move_s": 0.6,
-                      "format": "ros2-mcap"}),
+                      "format": "ros2-mcap", "max_distance_m": 4.5}),
     Capture("continuous-5hz", "one continuous ROS2 bag, cameras at 5 Hz",
             rig={"lidars": [TOP, BUMPER], "cameras": [CAM_FRONT]},
             simulate={"n_poses": 10, "continuous": True, "camera_hz": 5.0, "hold_s": 1.5, "move_s": 0.6,
@@ -110,8 +112,41 @@ CAPTURES = [
                  "cameras": [_camera("/cam/wide/image", "wide800", (1.4, 0.0, 1.5), (0, 6, 0))]},
             simulate={"n_poses": 16}),
     Capture("drive-short", "targetless: a 10 s drive", drive={"duration": 10.0}),
+    Capture("person-behind-arm", "a non-square board, pattern off-centre on it (9x6 corners of 0.1 m on "
+            "1.2 x 0.9 m) held by a person standing behind it, an arm across its edge",
+            rig={"lidars": [_lidar("/os/points", "os1-64", (1.2, 0.0, 2.0), layout="ouster")], "cameras": [CAM_FRONT],
+                 "scene": {"person": "behind", "arm": True}},
+            board={"corners": [9, 6], "square_m": 0.1, "size_m": [1.2, 0.9], "pattern_offset_m": [0.03, -0.02]},
+            simulate={"n_poses": 16}),
+    Capture("person-beside-arm", "a square bordered board held by a person beside it, an arm across its edge",
+            rig={"lidars": [TOP, BUMPER], "scene": {"person": "beside", "arm": True}},
+            board={"corners": [8, 8], "square_m": 0.1, "size_m": [1.1, 1.1]}, simulate={"n_poses": 14}),
+    Capture("bag-per-pose-5hz", "cameras at 5 Hz, a bag per pose (~0.2-0.4 s long), drivers' log delays",
+            rig={"lidars": [TOP, BUMPER], "cameras": [CAM_COLOUR]}, simulate={"n_poses": 20, "camera_hz": 5.0}),
+    Capture("vertical-boards", "every board exactly vertical: the LIDARs' relative height is unobservable "
+            "(must be refused, naming the direction)",
+            rig={"lidars": [TOP, BUMPER]}, simulate={"n_poses": 12, "vertical_boards": True}, must_refuse=True),
+    Capture("ring-bias-elevation", "per-ring range bias (sd 2 cm) and ring elevation errors (sd 0.1 deg)",
+            rig={"lidars": [dict(TOP, ring_range_bias_m=0.02, ring_elevation_error_deg=0.1, errors_seed=3),
+                            dict(BUMPER, ring_range_bias_m=0.015, ring_elevation_error_deg=0.1, errors_seed=4)],
+                 "cameras": [CAM_FRONT]}, simulate={"n_poses": 16}),
+    Capture("tails-dark-mixed", "heavy-tailed returns (2 % at 10x the noise), dark squares returning 1.5 cm "
+            "long, mixed pixels (up to 10 cm) at the board's edge",
+            rig={"lidars": [dict(TOP, heavy_tail_fraction=0.02, dark_range_bias_m=0.015, mixed_pixel_m=0.1),
+                            dict(BUMPER, heavy_tail_fraction=0.02, dark_range_bias_m=0.02, mixed_pixel_m=0.1)],
+                 "cameras": [CAM_FRONT]}, simulate={"n_poses": 16}),
+    Capture("drive-long", "targetless: a 30 s drive", drive={"duration": 30.0}),
 ]
 
+# Small captures for CI (tests/cli/test_stress_ci.py): seconds each, end to end through the CLI.
+CI_CAPTURES = [
+    Capture("ci-continuous-lidars", "two LIDARs, one continuous ROS1 bag, no setting: cut into still "
+            "intervals by motion",
+            rig={"lidars": [TOP, BUMPER]},
+            simulate={"n_poses": 10, "continuous": True, "hold_s": 1.2, "move_s": 0.6}),
+    Capture("ci-vertical-boards", "exactly vertical boards: the relative height must be refused",
+            rig={"lidars": [TOP, BUMPER]}, simulate={"n_poses": 8, "vertical_boards": True}, must_refuse=True),
+]
 
 # ----------------------------------------------------------------------------------- running
 
@@ -153,9 +188,9 @@ def _write_lenses(d: Path, rig: dict) -> None:
         mrcal.cameramodel(intrinsics=(model, np.asarray(intrinsics, float)), imagersize=size).write(str(d / cam["model"]))
 
 
-def _prepare(c: Capture) -> Path:
-    """The capture's bags (simulated once per recipe)."""
-    d = BUILD / c.name
+def _prepare(c: Capture, build: Path = BUILD) -> Path:
+    """The capture's bags (simulated once per recipe) in ``build``/name."""
+    d = Path(build) / c.name
     key = _recipe_key(c)
     if (d / "recipe").exists() and (d / "recipe").read_text() == key and (d / "data" / "truth.yaml").exists():
         return d
@@ -230,22 +265,26 @@ def _judge(c: Capture, out: Path, truth: dict, bar_deg: float, bar_mm: float) ->
     return worst
 
 
-def run_capture(c: Capture) -> Outcome:
+def run_capture(c: Capture, settings: tuple[str, ...] = (), build: Path = BUILD) -> Outcome:
+    """``settings``: extra ``section.key=value`` settings passed to the command as ``--set``;
+    ``build``: where the capture is simulated and solved."""
     t0 = time.perf_counter()
     try:
-        d = _prepare(c)
+        d = _prepare(c, build)
     except Exception as e:  # noqa: BLE001 - a broken recipe is reported, the others run
         return Outcome(c.name, "FAILED", f"simulation: {e}")
     data = d / "data"
     truth = yaml.safe_load((data / "truth.yaml").read_text())
-    out = d / "out"
+    # each set of extra settings solves into its own folder (two settings can run at once)
+    out = d / ("out-" + hashlib.sha256(repr(settings).encode()).hexdigest()[:8] if settings else "out")
     shutil.rmtree(out, ignore_errors=True)
     t0 = time.perf_counter()
     if c.drive is not None:
         topics = [s["topic"] for s in truth["sensors"]]
         bag = next(p for p in data.iterdir() if p.name.startswith("drive"))
         r = _clcgraph("targetless", "--bag", bag, "--mapping-topic", topics[0],
-                      "--calibration-topics", ",".join(topics[1:]), "--out", out)
+                      "--calibration-topics", ",".join(topics[1:]), "--out", out,
+                      *[a for kv in settings if not kv.startswith("solve.") for a in ("--set", kv)])
         bar = (0.02, 3.0)
     else:
         topics = truth["topics"]
@@ -255,7 +294,7 @@ def run_capture(c: Capture) -> Outcome:
             (d / "board.yaml").write_text(yaml.safe_dump({"board": c.board}))
             config = ["--config", d / "board.yaml"]
         r = _clcgraph("solve", "--bag", data, "--topics", ",".join(topics),  # a directory of bags, as users give it
-                      *models, "--out", out, *config)
+                      *models, "--out", out, *config, *[a for kv in settings for a in ("--set", kv)])
         bar = (0.1, 5.0)
     seconds = time.perf_counter() - t0
     err = r.stderr.strip().splitlines()
@@ -286,11 +325,22 @@ def table(outcomes: list[Outcome]) -> str:
 
 
 def main(argv: list[str] | None = None) -> str:
-    names = sys.argv[1:] if argv is None else argv
-    chosen = [c for c in CAPTURES if not names or c.name in names]
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m bench.stress", description=__doc__.splitlines()[0])
+    ap.add_argument("names", nargs="*", help="captures to run (default: all)")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="an extra setting for every solve (targetless: all but solve.*)")
+    args = ap.parse_args(sys.argv[1:] if argv is None else argv)
+    every = CAPTURES + CI_CAPTURES
+    unknown = sorted(set(args.names) - {c.name for c in every})
+    if unknown:
+        ap.error(f"unknown capture {unknown[0]!r}; known: {', '.join(c.name for c in every)}")
+    by_name = {c.name: c for c in every}
+    chosen = [by_name[n] for n in dict.fromkeys(args.names)] if args.names else CAPTURES  # in the order given
     outcomes = []
     for c in chosen:
-        o = run_capture(c)
+        o = run_capture(c, tuple(args.set))
         print(f"  {o.name}: {o.verdict} ({o.seconds:.0f} s) {o.detail}", file=sys.stderr, flush=True)
         outcomes.append(o)
     return table(outcomes)

@@ -293,6 +293,8 @@ class Result:
         if isinstance(sensor, str):
             return next(i for i, s in enumerate(self.problem.sensors) if s.topic == sensor)
         return int(sensor)
+    # leave-one-snapshot-out check of the covariance (backend/jackknife.py); {} if not computed
+    jackknife: Mapping[str, object] = field(default_factory=dict)
 
     def variable_sensors(self) -> list[int]:
         """Sensor indices that have a block in covariance_rt, in block order."""

@@ -295,3 +295,20 @@ def test_continuous_camera_frame_outside_the_still_interval_is_dropped(tmp_path)
     snaps, rej = assemble_snapshots([path], ["/lidar0", "/lidar1"], ["/cam0"], o)
     assert _period_ids(snaps) == [0, 1, 3, 4, 5]
     assert len(rej) == 1 and "period 2" in rej[0].reason and "/cam0 has no message while the LIDARs saw" in rej[0].reason
+
+
+def test_single_continuous_bag_without_a_period_is_cut_at_the_motion(continuous_bag):
+    """No decimation period given: the bag's scene moves, so it is a continuous bag, cut where the
+    LIDAR saw motion; one snapshot per still interval, its messages inside that interval."""
+    snaps, rej = assemble_snapshots([continuous_bag], ["/lidar0"], ["/cam0"], SnapshotOptions())
+    assert len(snaps) == len(STILL), [s.source for s in snaps]
+    for s, (a, b) in zip(snaps, STILL):
+        for m in (s.scans["/lidar0"], s.images["/cam0"]):
+            t = (m.stamp_ns - T0) * 1e-9
+            assert a <= t <= min(b, 12.0), (s.source, t)
+        # the message nearest the middle of the interval the motion check found (a scan every
+        # 0.1 s: within half the interval of the true still interval's middle)
+        t_scan = (s.scans["/lidar0"].stamp_ns - T0) * 1e-9
+        assert abs(t_scan - (a + min(b, 11.9)) / 2) < 0.5, t_scan
+    assert any("scene moved" in r.reason for r in rej)
+    assert [s.index for s in snaps] == [0, 1, 2]

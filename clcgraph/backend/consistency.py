@@ -123,13 +123,17 @@ def linearize(problem: Problem, graph, values) -> Linearized:
     col = {i: 6 * k for k, i in enumerate(sensors)}
     lin = graph.linearize(values)
     H_global, g_global = np.zeros((n, n)), np.zeros(n)
-    obs = []
+    obs, effects = [], {}
     for f in range(lin.size()):
         A, b = lin.at(f).jacobian()
         keys = [gtsam.Symbol(k) for k in lin.at(f).keys()]
         cols = {}
         for j, s in enumerate(keys):
             cols[(chr(s.chr()), int(s.index()))] = slice(6 * j, 6 * j + 6)
+        effect = [key for key in cols if key[0] in "de"]
+        if effect:  # an observation's own board-pose error (backend/noise.py): condensed below
+            effects.setdefault(effect[0], []).append((A, b, cols))
+            continue
         boards = [k for c, k in cols if c == "b"]
         sens = [k for c, k in cols if c == "s"]
         if not boards:  # priors and extension factors on sensors only
@@ -149,12 +153,39 @@ def linearize(problem: Problem, graph, values) -> Linearized:
         else:
             obs.append(_Obs(None if is_prior else problem.reference, k, is_prior, None, None, Ab.T @ Ab, None,
                             Ab.T @ b))
+    for ekey, parts in effects.items():
+        obs.append(_condensed(problem, ekey, parts))
     R = np.array([np.eye(3) if i == problem.reference else values.atPose3(gtsam.symbol("s", i)).rotation().matrix()
                   for i in range(len(problem.sensors))])
     out = Linearized(sensors, obs, H_global, g_global, R, [x.topic for x in problem.sensors])
     for o in obs:
         out.by_snapshot.setdefault(o.snapshot, []).append(o)
     return out
+
+
+def _condensed(problem: Problem, ekey, parts) -> _Obs:
+    """One observation with its own board-pose error D: its factors (on sensor, board and D)
+    and D's prior summed, D eliminated (Schur complement): the observation's blocks on the
+    sensor and the board, as if its noise were white plus D's share."""
+    sens = sorted({k for _, _, cols in parts for c, k in cols if c == "s"})
+    boards = sorted({k for _, _, cols in parts for c, k in cols if c == "b"})
+    if len(boards) != 1 or len(sens) > 1:
+        raise _Unsupported(f"an observation error {ekey} on {len(boards)} boards and {len(sens)} sensors")
+    order = [("s", k) for k in sens] + [("b", boards[0]), ekey]
+    H, g = np.zeros((6 * len(order),) * 2), np.zeros(6 * len(order))
+    for A, b, cols in parts:
+        Af = np.zeros((A.shape[0], 6 * len(order)))
+        for j, key in enumerate(order):
+            if key in cols:
+                Af[:, 6 * j:6 * j + 6] = A[:, cols[key]]
+        H += Af.T @ Af
+        g += Af.T @ b
+    Hxe = H[:-6, -6:]
+    X = np.linalg.solve(H[-6:, -6:], np.c_[Hxe.T, g[-6:]])  # D's prior keeps H_ee positive definite
+    Hc, gc = H[:-6, :-6] - Hxe @ X[:, :-1], g[:-6] - Hxe @ X[:, -1]
+    if sens:
+        return _Obs(sens[0], boards[0], False, Hc[:6, :6], Hc[:6, 6:], Hc[6:, 6:], gc[:6], gc[6:])
+    return _Obs(problem.reference, boards[0], False, None, None, Hc, None, gc)
 
 
 def _pinv_psd(H: np.ndarray, floor: float = 0.0) -> np.ndarray:

@@ -39,6 +39,21 @@ def board_key(k: int) -> int:
     return gtsam.symbol("b", k)
 
 
+def effect_key(kind: str, j: int) -> int:
+    """Key of the board-pose error D of observation j (kind "lidar" or "camera"), backend/noise.py."""
+    import gtsam
+
+    return gtsam.symbol("d" if kind == "lidar" else "e", j)
+
+
+def board_centre(problem: Problem):
+    """Pose3 of the board's centre (margins included) in the board frame: where D tilts about."""
+    import gtsam
+
+    xmin, xmax, ymin, ymax = problem.board.extent()
+    return gtsam.Pose3(gtsam.Rot3(), np.array([(xmin + xmax) / 2, (ymin + ymax) / 2, 0.0]))
+
+
 @dataclass
 class Active:
     """What the solve still uses: per observation index, a point/corner mask, or None if rejected."""
@@ -71,26 +86,45 @@ def sigma_of(sigma, sensor: int) -> float:
 
 
 def build(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.ndarray, *, lidar: str,
-          sigma_lidar_m, sigma_camera_px, options, board_nominal: np.ndarray | None = None):
+          sigma_lidar_m, sigma_camera_px, options, board_nominal: np.ndarray | None = None,
+          effects: np.ndarray | None = None, effect_values=None):
     """(gtsam.NonlinearFactorGraph, gtsam.Values) for the active observations.
 
     ``lidar``: "plane" (point-to-plane) or "range" (maximum likelihood).
     ``sigma_lidar_m``, ``sigma_camera_px``: scalars, or per-sensor arrays (index = sensor).
     ``board_nominal``: (Nsnapshots,6) the in-plane prior's targets (default: ``rt_board``).
+    ``effects``: (Nsensors,6) sigmas of each observation's own board-pose error D (board-centre
+    tangent [omega, v]; backend/noise.py): every observation factor gets its D variable, with a
+    zero-mean prior of these sigmas; None = independent noise only. ``effect_values``: gtsam.Values
+    to start the D variables from (default: identity).
     """
     import gtsam
 
     make = lidar_plane_factor if lidar == "plane" else lidar_range_factor
     g = gtsam.NonlinearFactorGraph()
-    for o, m in zip(problem.lidar_observations, active.lidar):
+    v = gtsam.Values()
+    centre = board_centre(problem)
+
+    def effect(kind, j, sensor):
+        if effects is None:
+            return {}
+        k = effect_key(kind, j)
+        start = effect_values.atPose3(k) if effect_values is not None and effect_values.exists(k) else gtsam.Pose3()
+        v.insert(k, start)
+        g.add(gtsam.PriorFactorPose3(k, gtsam.Pose3(), gtsam.noiseModel.Diagonal.Sigmas(np.asarray(effects[sensor], float))))
+        return {"effect_key": k, "T_board_centre": centre}
+
+    for j, (o, m) in enumerate(zip(problem.lidar_observations, active.lidar)):
         if m is not None and m.any():
-            g.add(make(_key(problem, o.sensor), board_key(o.snapshot), o.points[m], sigma_of(sigma_lidar_m, o.sensor)))
-    for o, m in zip(problem.camera_observations, active.camera):
+            g.add(make(_key(problem, o.sensor), board_key(o.snapshot), o.points[m], sigma_of(sigma_lidar_m, o.sensor),
+                       **effect("lidar", j, o.sensor)))
+    for j, (o, m) in enumerate(zip(problem.camera_observations, active.camera)):
         if m is not None and m.any():
             s = problem.sensors[o.sensor]
             q = np.where(m[:, None], o.corners_px, np.nan)
             g.add(camera_corners_factor(sensor_key(o.sensor), board_key(o.snapshot), q, s.lensmodel,
-                                        s.intrinsics, problem.board, sigma_of(sigma_camera_px, o.sensor)))
+                                        s.intrinsics, problem.board, sigma_of(sigma_camera_px, o.sensor),
+                                        **effect("camera", j, o.sensor)))
     used, seen_by_camera = active.boards(problem)
     nominal = rt_board if board_nominal is None else board_nominal
     for k in sorted(used - seen_by_camera):
@@ -99,7 +133,6 @@ def build(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.
     for p in problem.priors:
         if p.sensor != problem.reference:
             g.add(pose_prior_factor(sensor_key(p.sensor), pose3_from_rt(p.rt_lidar0_sensor), p.sigma_rt))
-    v = gtsam.Values()
     for i in range(len(problem.sensors)):
         if i != problem.reference:
             v.insert(sensor_key(i), pose3_from_rt(rt_sensor[i]))

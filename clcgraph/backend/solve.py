@@ -35,7 +35,9 @@ from ..geometry import R_from_r, drt_dxi, rt_from_pose3, tangent_covariance_from
 from ..types import Problem, Rejected, Result
 from . import consistency
 from . import graph as G
+from . import noise as N
 from .convergence import MAX_UNCONVERGED_STEP_SIGMA, optimize_lm, public, step_sigma
+from .jackknife import jackknife
 from .seed import seed as make_seed
 
 log = logging.getLogger(__name__)
@@ -47,19 +49,26 @@ _MIN_SIGMA_CAMERA_PX = 1e-2
 _WHOLE_OBS_FACTOR = 3.0  # reject an observation whose RMS exceeds this many sigmas
 _MAX_ROUNDS = 8
 _MIN_INLIER_SHARE = 0.5
+_MAX_EFFECT_ROUNDS = 3  # solve <-> variance components of the per-observation errors
+# The cost is ~ half the number of residuals: 1e-7 of it is far below what moves a pose by
+# a fraction of its sigma (a cost change of 0.5), and the D variables make LM creep.
+_EFFECT_TOL = 1e-7
 _TIE_RATIO = 1.5  # deleted residuals this close cannot tell the culprit apart  # ... or whose points/corners are mostly beyond outlier_sigma
 
 
-def _lm(problem, active, rt_sensor, rt_board, lidar, sigma, options, nominal, stage):
-    """LM from the given poses; ``sigma``: per-sensor noise (m for LIDARs, px for cameras).
+def _lm(problem, active, rt_sensor, rt_board, lidar, sigma, options, nominal, stage, effects=None,
+        effect_values=None, relative_tol=1e-10):
+    """LM from the given poses; ``sigma``: per-sensor noise (m for LIDARs, px for cameras);
+    ``effects``: per-observation board-pose error sigmas (graph.build), None = white only.
     Returns (rt_sensor, rt_board, convergence record of ``stage``, (graph, values))."""
     import gtsam
 
     g, v = G.build(problem, active, rt_sensor, rt_board, lidar=lidar, sigma_lidar_m=sigma,
-                   sigma_camera_px=sigma, options=options, board_nominal=nominal)
+                   sigma_camera_px=sigma, options=options, board_nominal=nominal, effects=effects,
+                   effect_values=effect_values)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(options.max_iterations)
-    params.setRelativeErrorTol(1e-10)
+    params.setRelativeErrorTol(relative_tol)
     params.setAbsoluteErrorTol(1e-15)
     try:
         out, rec = optimize_lm(g, v, params, stage=stage)
@@ -237,6 +246,36 @@ def _final_step_sigma(problem, prev, values, rt_sensor, cov_rt) -> float:
     return step_sigma(prev, values, [G.sensor_key(i) for i in idx], cov_xi)
 
 
+def _solve_with_effects(problem, active, rt_sensor, rt_board, sig, options, nominal):
+    """Solve with each observation's own board-pose error D (noise.py): the variance components
+    (white sigmas, D's sigmas) by VCE on the linearization at the current solution, then LM
+    with them; again from there until they are stable. Returns (rt_sensor, rt_board, sig,
+    effects, (g, values), the LMs' convergence records)."""
+    import gtsam
+
+    effects = N.initial_effects(problem)
+    values, iters = None, []
+    for rnd in range(_MAX_EFFECT_ROUNDS):
+        g, v = G.build(problem, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig, sigma_camera_px=sig,
+                       options=options, board_nominal=nominal, effects=N.effect_sigmas(problem, effects),
+                       effect_values=values)
+        new_sig, new_effects, _ = N.estimate_components(problem, N.Linearization(problem, g, v), sig, effects)
+        change = max([float(np.max(np.abs(new_sig / sig - 1)))]
+                     + [abs(new_effects[i][c] / effects[i][c] - 1) for i in effects for c in effects[i]])
+        sig, effects = new_sig, new_effects
+        if change < 0.03 and values is not None:  # weights within 3 %: the estimate stands; the graph
+            g, values = G.build(problem, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig,  # gets them
+                                sigma_camera_px=sig, options=options, board_nominal=nominal,
+                                effects=N.effect_sigmas(problem, effects), effect_values=values)
+            break
+        rt_sensor, rt_board, rec, (g, values) = _lm(problem, active, rt_sensor, rt_board, "range", sig, options,
+                                                   nominal, f"observation effects round {rnd}",
+                                                   N.effect_sigmas(problem, effects), values, _EFFECT_TOL)
+        iters.append(rec)
+    log.debug("observation effects: %s", effects)
+    return rt_sensor, rt_board, sig, effects, (g, values), iters
+
+
 def _covariance(problem: Problem, g, values, rt_sensor, options) -> np.ndarray:
     """Joint covariance of the non-reference sensors in rt coordinates; DegenerateError if undetermined."""
     import gtsam
@@ -344,9 +383,22 @@ def calibrate(problem: Problem, options) -> Result:
         warnings.append(f"the noise re-estimation / outlier rounds did not settle in {_MAX_ROUNDS} rounds "
                         "(the last round's noise and rejections are used)")
 
+    effects = None
+    if options.observation_effects:
+        t = time.perf_counter()
+        rt_sensor, rt_board, sig, effects, (g, values), recs = _solve_with_effects(
+            problem, active, rt_sensor, rt_board, sig, options, nominal)
+        stages += recs
+        iters["effects"] = [r["iterations"] for r in recs]
+        times["noise_components"] = time.perf_counter() - t
+
     t = time.perf_counter()
     cov = _covariance(problem, g, values, rt_sensor, options)
     times["covariance"] = time.perf_counter() - t
+    t = time.perf_counter()
+    lin = N.Linearization(problem, g, values)
+    jk = jackknife(problem, lin, rt_sensor, cov)
+    times["jackknife"] = time.perf_counter() - t
     final = stages[-1]
     step = _final_step_sigma(problem, final.pop("_last_step"), values, rt_sensor, cov)
     for r in stages:
@@ -381,8 +433,13 @@ def calibrate(problem: Problem, options) -> Result:
     total = g.error(values)
     prior = sum(g.at(f).error(values) for f in range(g.size()) if "PriorFactor" in type(g.at(f)).__name__)
     per = _per_sensor_residuals(problem, lid, cam, active)
-    z = np.concatenate([per[i] / sig[i] for i in sorted(per)]) if per else np.zeros(0)
-    rms = {"normalized": float(np.sqrt(np.mean(z**2))) if len(z) else float("nan"),
+    if effects is None:
+        z2 = np.concatenate([per[i] / sig[i] for i in sorted(per)]) ** 2 if per else np.zeros(0)
+        normalized = float(np.sqrt(np.mean(z2))) if len(z2) else float("nan")
+    else:  # white residuals: at each observation's own board pose (its D applied)
+        white = [(t[5], t[6]) for t in lin.terms if t[2] is not None and t[2][0] == "white"]
+        normalized = float(np.sqrt(sum(q for q, _ in white) / max(sum(n for _, n in white), 1)))
+    rms = {"normalized": normalized,
            "lidar_m": float(np.sqrt(np.mean(rl**2))) if len(rl) else float("nan"),
            "camera_px": float(np.sqrt(np.mean(rc**2))) if len(rc) else float("nan")}
     def pooled(ids):  # the sigma of all of one kind's residuals together
@@ -391,7 +448,9 @@ def calibrate(problem: Problem, options) -> Result:
 
     cams = [i for i in range(len(sig)) if i not in lidars]
     noise = {"lidar_m": pooled(lidars), "camera_px": pooled(cams),
-             "per_sensor": {i: float(sig[i]) for i in sorted(per)}}
+             "per_sensor": {i: float(sig[i]) for i in sorted(per)},
+             # per sensor, the sigmas of each observation's own board-pose error (noise.py)
+             "observation_effects": {} if effects is None else {i: dict(effects[i]) for i in sorted(per)}}
     times["total"] = time.perf_counter() - t0
     stats = {"stage": "solve", "iterations": iters, "convergence": convergence, "time_s": times, "regularization_share": float(prior / max(total, 1e-300)),
              "n_outlier_points": int(sum(int((~m).sum()) for m in active.lidar if m is not None)),
@@ -403,7 +462,7 @@ def calibrate(problem: Problem, options) -> Result:
              noise["camera_px"], times["total"])
     return Result(problem=problem, rt_lidar0_sensor=rt_sensor, covariance_rt=cov, rt_lidar0_board=rt_board,
                   noise=noise, rms=rms, rejected=tuple(rejected), stats=stats,
-                  residuals=_residual_arrays(problem, lid, cam, active))
+                  residuals=_residual_arrays(problem, lid, cam, active), jackknife=jk)
 
 
 def _residual_arrays(problem, lid, cam, active) -> dict:

@@ -47,6 +47,35 @@ def make_factor(keys: Sequence[int], noise_model, residual_fn: ResidualFn):
     return gtsam.CustomFactor(noise_model, gtsam.KeyVector(keys), error)
 
 
+def board_perturbed(residual_fn: ResidualFn, board_index: int, T_board_centre) -> ResidualFn:
+    """``residual_fn`` with one more pose, a per-observation perturbation D of the board.
+
+    The wrapped function evaluates ``residual_fn`` at the board pose ``T_b C D C^-1`` (C =
+    ``T_board_centre``, the board centre in the board frame, so D tilts about the centre)
+    instead of ``T_b``, and takes D as its last pose: the random effect of
+    backend/noise.py (one observation's own board-pose error: a LIDAR's plane offset and
+    tilt, a camera's board-pose jitter). Jacobians by the right-perturbation identities
+    ``T Exp(xi) M = T M Exp(Ad(M^-1) xi)`` and ``C D Exp(xi) C^-1 = C D C^-1 Exp(Ad(C) xi)``.
+    """
+    C = T_board_centre
+    Ad_C = C.AdjointMap()
+
+    def fn(poses, want):
+        *head, D = poses
+        M = C.compose(D).compose(C.inverse())
+        head = list(head)
+        head[board_index] = head[board_index].compose(M)
+        err, jac = residual_fn(head, want)
+        if not want:
+            return err, None
+        J_b = jac[board_index]
+        jac = list(jac)
+        jac[board_index] = J_b @ M.inverse().AdjointMap()
+        return err, [*jac, J_b @ Ad_C]
+
+    return fn
+
+
 def isotropic(dim: int, sigma: float):
     """An isotropic Gaussian noise model of ``dim`` rows and std ``sigma``."""
     import gtsam

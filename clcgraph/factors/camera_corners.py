@@ -18,7 +18,7 @@ import numpy as np
 
 from .. import cameras
 from ..geometry import skew
-from .base import isotropic, make_factor
+from .base import board_perturbed, isotropic, make_factor
 
 
 def _residual(T_cam, T_board, q_obs, ok, corners_b, lensmodel, intrinsics, want: bool):
@@ -64,9 +64,14 @@ def camera_corners_residuals(T_lidar0_camera, T_lidar0_board, corners_px, lensmo
 
 
 def camera_corners_factor(sensor_key: int, board_key: int, corners_px, lensmodel: str, intrinsics,
-                          board, sigma_px: float):
-    """Reprojection factor of one camera's chessboard detection, whitened by ``sigma_px``."""
+                          board, sigma_px: float, *, effect_key: int | None = None, T_board_centre=None):
+    """Reprojection factor of one camera's chessboard detection, whitened by ``sigma_px``;
+    with ``effect_key``, also of that observation's board-pose error D (base.board_perturbed)."""
     q, ok, c = _prepare(corners_px, board)
     intr = np.array(intrinsics, dtype=float)
     fn = lambda poses, want: _residual(poses[0], poses[1], q, ok, c, lensmodel, intr, want)  # noqa: E731
-    return make_factor([sensor_key, board_key], isotropic(2 * len(q), sigma_px), fn)
+    keys = [sensor_key, board_key]
+    if effect_key is not None:
+        fn = board_perturbed(fn, 1, T_board_centre)
+        keys.append(effect_key)
+    return make_factor(keys, isotropic(2 * len(q), sigma_px), fn)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import isotropic, make_factor
+from .base import board_perturbed, isotropic, make_factor
 
 _E3 = np.array([0.0, 0.0, 1.0])
 
@@ -50,8 +50,10 @@ def lidar_plane_residuals(T_lidar0_sensor, T_lidar0_board, points_sensor) -> np.
     return _residual(T_lidar0_sensor, T_lidar0_board, np.asarray(points_sensor, float), False)[0]
 
 
-def lidar_plane_factor(sensor_key: int | None, board_key: int, points_sensor, sigma_m: float):
-    """Point-to-plane factor of one LIDAR observation of the board, whitened by ``sigma_m``."""
+def lidar_plane_factor(sensor_key: int | None, board_key: int, points_sensor, sigma_m: float, *,
+                       effect_key: int | None = None, T_board_centre=None):
+    """Point-to-plane factor of one LIDAR observation of the board, whitened by ``sigma_m``;
+    with ``effect_key``, also of that observation's board-pose error D (base.board_perturbed)."""
     pts = np.array(points_sensor, dtype=float)
     if sensor_key is None:
         fn = lambda poses, want: _residual(None, poses[0], pts, want)  # noqa: E731
@@ -59,4 +61,7 @@ def lidar_plane_factor(sensor_key: int | None, board_key: int, points_sensor, si
     else:
         fn = lambda poses, want: _residual(poses[0], poses[1], pts, want)  # noqa: E731
         keys = [sensor_key, board_key]
+    if effect_key is not None:  # this observation's own board-pose error (factors/base.board_perturbed)
+        fn = board_perturbed(fn, len(keys) - 1, T_board_centre)
+        keys = [*keys, effect_key]
     return make_factor(keys, isotropic(len(pts), sigma_m), fn)

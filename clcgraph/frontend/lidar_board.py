@@ -347,9 +347,22 @@ def _local_noise(pts: np.ndarray, ring: np.ndarray, k: int) -> float:
     return float(np.median(np.sqrt(np.maximum(lam[:, 0] + lam[:, 1], 0))) * np.sqrt(k / (k - 2)))
 
 
-def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: float, noise_m: float, o):
-    """Whether ``pts`` (with their ring ranks) are the board: (None or why not, the refit plane
-    (n, d, rms), the mask of the points kept)."""
+def _rms_about_ring_offsets(pts: np.ndarray, ring: np.ndarray, n: np.ndarray, d: float) -> float:
+    """RMS of the distances to the plane n . x = d about each ring's mean distance (the dof of
+    the per-ring means taken out)."""
+    res = pts @ n - d
+    _, r = np.unique(ring, return_inverse=True)
+    counts = np.bincount(r)
+    within = res - (np.bincount(r, weights=res) / counts)[r]
+    dof = max(len(res) - len(counts) - 2, 1)  # ring means + the plane's tilt
+    return float(np.sqrt(np.sum(within**2) / dof))
+
+
+def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: float, noise_m: float, o,
+             intensity: np.ndarray | None = None):
+    """Whether ``pts`` (with their ring ranks and ``intensity``) are the board: (None or why not,
+    the refit plane (n, d, rms), the mask of the points kept). The plane and its flatness are
+    judged with the dark squares' range walk removed (``dark_square_correction``)."""
     keep = np.ones(len(pts), bool)
     n, d, rms = fit_plane(pts)
     c = pts.mean(axis=0)
@@ -371,6 +384,8 @@ def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: floa
         keep &= res <= max(3.0 * sigma, 0.01)
     keep[keep] = _main_piece_per_ring(pts[keep], ring[keep], step, o)
     pts, ring = pts[keep], ring[keep]
+    if intensity is not None:
+        pts, _ = dark_square_correction(pts, intensity[keep])
     n, d, rms = fit_plane(pts)
     if d > 0:
         n, d = -n, -d  # normal toward the sensor at the origin
@@ -386,11 +401,18 @@ def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: floa
     # so the plane's own along-ring noise counts too; a body or a curved surface is straight
     # along 8 returns but far off one plane.
     local_m = _local_noise(pts, ring, o.points_per_segment)
+    # Real LIDARs range each laser with its own offset (1-3 cm, the same in every scan): a flat
+    # board's rings then sit at different depths. So the noise bound applies to the points about
+    # their own ring's offset (a body or a corner is curved along its rings), and the whole
+    # plane's RMS, ring offsets included, only has to stay under max_plane_rms_m.
+    rms_ring = _rms_about_ring_offsets(pts, ring, n, d)
     if n_rings < o.min_rings:
         why = f"{at} crosses {n_rings} rings < min_rings {o.min_rings}"
-    elif rms > min(o.max_plane_rms_m, o.max_plane_rms_sigmas * max(noise_m, local_m)):
-        why = (f"{at} not flat: RMS {rms * 1e3:.0f} mm > max_plane_rms_m or {o.max_plane_rms_sigmas:g} x "
-               f"the range noise (scan {noise_m * 1e3:.0f} mm, along this plane's rings {local_m * 1e3:.0f} mm)")
+    elif rms > o.max_plane_rms_m or rms_ring > o.max_plane_rms_sigmas * max(noise_m, local_m):
+        why = (f"{at} not flat: RMS {rms * 1e3:.0f} mm (about each ring's offset {rms_ring * 1e3:.0f} mm) > "
+               f"max_plane_rms_m {o.max_plane_rms_m * 1e3:.0f} mm or, about the ring offsets, "
+               f"{o.max_plane_rms_sigmas:g} x the range noise (scan {noise_m * 1e3:.0f} mm, along this plane's "
+               f"rings {local_m * 1e3:.0f} mm)")
     elif tilt > o.max_tilt_deg:
         why = f"{at} tilted {tilt:.0f} deg from head-on > max_tilt_deg"
     elif diameter > max_size:
@@ -459,8 +481,10 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
             if len(rows) >= len(members) // 2:
                 pieces.append((rows, n, d))
     found = []
+    intensity = None if scan.intensity is None else np.asarray(scan.intensity, float)[R.index]
     for rows in _merge(pieces, R.points, o.point_plane_tolerance_m, float(np.hypot(*board.size_m))):
-        why, plane, keep = _verdict(R.points[rows], rank[rows], board, step, noise, o)
+        why, plane, keep = _verdict(R.points[rows], rank[rows], board, step, noise, o,
+                                    None if intensity is None else intensity[rows])
         rows = rows[keep]
         if o.debug_region is not None:
             c = R.points[rows].mean(axis=0) if len(rows) else np.full(3, np.nan)
@@ -493,20 +517,71 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
     idx = np.sort(R.index[rows])
     if debug is not None:
         debug.accepted = idx
-    return LidarBoardObservation(sensor=sensor, snapshot=snapshot, points=np.asarray(scan.points, float)[idx],
-                                 plane=np.r_[n, d], rms_m=rms, indices=idx)
+    pts = np.asarray(scan.points, float)[idx]
+    if scan.intensity is not None:  # the plane is already the corrected points' (_verdict)
+        pts, offset = dark_square_correction(pts, np.asarray(scan.intensity, float)[idx])
+        if offset:
+            log.debug("%s: the board's weak returns range %.1f mm long; corrected", scan.topic, offset * 1e3)
+    return LidarBoardObservation(sensor=sensor, snapshot=snapshot, points=pts, plane=np.r_[n, d], rms_m=rms,
+                                 indices=idx)
+
+
+def dark_square_correction(pts: np.ndarray, intensity: np.ndarray) -> tuple[np.ndarray, float]:
+    """(points, range offset in m or 0.0): a chessboard's dark squares return weak and, in real
+    LIDARs, long (range walk: 1-2 cm). When the board's returns fall into two intensity groups
+    (the pattern) whose ranges to the bright group's plane differ significantly (> 4 standard
+    errors), the weak returns are moved back along their rays by that offset: the bright squares
+    and the white border return like the targets a LIDAR's ranges are calibrated on.
+
+    Groups: the two means of the intensities (1-D 2-means), each >= 10 % of the returns and
+    apart by more than 4x their pooled spread; otherwise nothing is changed."""
+    if len(pts) < 20 or not np.all(np.isfinite(intensity)):
+        return pts, 0.0
+    lo, hi = np.percentile(intensity, [5, 95])
+    if not hi > lo:
+        return pts, 0.0
+    thr = (lo + hi) / 2
+    for _ in range(10):  # 2-means in one dimension
+        weak = intensity < thr
+        if weak.all() or not weak.any():
+            return pts, 0.0
+        new = (intensity[weak].mean() + intensity[~weak].mean()) / 2
+        if new == thr:
+            break
+        thr = new
+    share = weak.mean()
+    spread = np.sqrt((intensity[weak].var() * weak.sum() + intensity[~weak].var() * (~weak).sum()) / len(pts))
+    if not (0.1 <= share <= 0.9) or intensity[~weak].mean() - intensity[weak].mean() <= 4 * spread:
+        return pts, 0.0
+    n, d, _ = fit_plane(pts[~weak])
+    r = np.linalg.norm(pts, axis=1)
+    u = pts / r[:, None]
+    along = d / (u @ n)  # where each ray meets the bright returns' plane
+    delta = r - along
+    a, b = delta[weak], delta[~weak]
+    offset = float(np.median(a) - np.median(b))
+    se = 1.2533 * np.sqrt(np.var(a) / len(a) + np.var(b) / len(b))  # of a median
+    if abs(offset) <= 4 * se:
+        return pts, 0.0
+    out = pts.copy()
+    out[weak] = u[weak] * (r[weak] - offset)[:, None]
+    return out, offset
 
 
 def _merge(pieces: list, points: np.ndarray, tol: float, reach: float) -> list:
     """Rows per physical plane: coplanar pieces within ``reach`` of each other (a board split by
-    the azimuth wrap, a dropout or RANSAC) join up."""
+    the azimuth wrap, a dropout or RANSAC) join up, and so do pieces that grew over the same
+    returns (most of the smaller one's: a return lies on one surface; with noisy returns the
+    pieces' own plane fits can differ by more than the coplanarity test allows)."""
     groups: list = []  # [rows, n, d]
     for rows, n, d in pieces:
         c = points[rows].mean(axis=0)
         for g in groups:
             c2 = points[g[0]].mean(axis=0)
+            shared = np.intersect1d(rows, g[0], assume_unique=True).size
             same = (abs(n @ g[1]) > np.cos(np.radians(10)) and abs(c @ g[1] - g[2]) < tol
-                    and abs(c2 @ n - d) < tol and np.linalg.norm(c - c2) < reach)
+                    and abs(c2 @ n - d) < tol and np.linalg.norm(c - c2) < reach) \
+                or 2 * shared > min(len(rows), len(g[0]))
             if same:
                 g[0] = np.union1d(g[0], rows)
                 break
@@ -534,10 +609,79 @@ def segment_many(scans, options, lidar_options, board: BoardGeometry, *, sensor:
     jobs = jobs or min(2, os.cpu_count() or 1)
     if jobs <= 1 or len(scans) < 4:
         it = map(one, range(len(scans)))
-        return list(progress(it, len(scans)) if progress else it)
-    # threads, not processes: numpy and scipy release the GIL in the heavy parts, and worker
-    # processes would either fork a threaded process (deadlocks) or re-import the caller's
-    # script (forkserver/spawn: a fleet script without a __main__ guard would run again)
-    with ThreadPoolExecutor(max_workers=jobs) as ex:
-        it = ex.map(one, range(len(scans)))
-        return list(progress(it, len(scans)) if progress else it)
+        found = list(progress(it, len(scans)) if progress else it)
+    else:
+        # threads, not processes: numpy and scipy release the GIL in the heavy parts, and worker
+        # processes would either fork a threaded process (deadlocks) or re-import the caller's
+        # script (forkserver/spawn: a fleet script without a __main__ guard would run again)
+        with ThreadPoolExecutor(max_workers=jobs) as ex:
+            it = ex.map(one, range(len(scans)))
+            found = list(progress(it, len(scans)) if progress else it)
+    return correct_ring_offsets(found, scans)
+
+
+def correct_ring_offsets(found: list, scans: list) -> list:
+    """``found`` (segment_board results per scan of one LIDAR) with each ring's own range offset,
+    measured on all the boards, taken out of the board points and planes.
+
+    Real lasers range with fixed offsets of their own (1-3 cm; the same in every scan): on one
+    board they tilt and shift the plane by degrees and millimetres, differently for each board
+    (which rings crossed it), errors the solver would take for independent noise. Each ring's
+    offset is its returns' mean range beyond their board's plane, over all boards, alternating
+    with the plane fits; what no board can tell apart from the planes (a common offset, one linear
+    in the rings' elevation) is left. Applied only where the offsets stand out of their own
+    standard errors (chi-square over the rings beyond 4 sigma of its dof), else ``found`` unchanged.
+    """
+    obs = [(k, o) for k, o in enumerate(found) if isinstance(o, LidarBoardObservation) and o.indices is not None
+           and scans[k].ring is not None]
+    if len(obs) < 3:
+        return found
+    pts = [np.asarray(o.points, float) for _, o in obs]
+    rings = [np.asarray(scans[k].ring)[o.indices].astype(np.int64) for k, o in obs]
+    all_rings = np.unique(np.concatenate(rings))
+    rid = [np.searchsorted(all_rings, r) for r in rings]
+    R = len(all_rings)
+    if R < 4:
+        return found
+    rng_m = [np.linalg.norm(p, axis=1) for p in pts]
+    u = [p / r[:, None] for p, r in zip(pts, rng_m)]
+    elev = np.zeros(R)
+    np.add.at(elev, np.concatenate(rid), np.concatenate([x[:, 2] for x in u]))
+    counts = np.bincount(np.concatenate(rid), minlength=R).astype(float)
+    elev = elev / np.maximum(counts, 1)
+    A = np.c_[np.ones(R), elev] * np.sqrt(counts)[:, None]  # the unidentifiable part, point-weighted
+    offset = np.zeros(R)
+    for _ in range(6):
+        num, sq = np.zeros(R), np.zeros(R)
+        for p_u, r, ri in zip(u, rng_m, rid):
+            q = p_u * (r - offset[ri])[:, None]
+            n, d, _ = fit_plane(q)
+            e = r - d / (p_u @ n)  # measured range beyond the corrected plane
+            np.add.at(num, ri, e)
+            np.add.at(sq, ri, e**2)
+        mean = num / np.maximum(counts, 1)
+        w = np.sqrt(counts)
+        coef, *_ = np.linalg.lstsq(A, mean * w, rcond=None)
+        new = mean - np.c_[np.ones(R), elev] @ coef
+        done = np.max(np.abs(new - offset)) < 1e-4
+        offset = new
+        if done:
+            break
+    var = np.maximum(sq / np.maximum(counts, 1) - mean**2, 0)
+    se2 = var / np.maximum(counts, 1)
+    dof = R - 2
+    ok = counts >= 2
+    chi2 = float(np.sum(offset[ok] ** 2 / np.maximum(se2[ok], 1e-12)))
+    if dof < 2 or chi2 <= dof + 4 * np.sqrt(2 * dof):
+        return found
+    log.info("ring range offsets of %s from %d boards: %s mm", scans[obs[0][0]].topic, len(obs),
+             np.array2string(offset * 1e3, precision=0))
+    out = list(found)
+    for (k, o), p_u, r, ri in zip(obs, u, rng_m, rid):
+        q = p_u * (r - offset[ri])[:, None]
+        n, d, rms = fit_plane(q)
+        if d > 0:
+            n, d = -n, -d
+        out[k] = LidarBoardObservation(sensor=o.sensor, snapshot=o.snapshot, points=q, plane=np.r_[n, d], rms_m=rms,
+                                       indices=o.indices)
+    return out

@@ -6,7 +6,9 @@ SYNOPSIS
 
 Two capture schemes (the clc seed's):
 - one bag per board pose (``decimation_period_s`` None): the first message of every
-  topic in each bag;
+  topic in each bag. A bag in which the scene moves and stops more than once is a continuous
+  one, cut at the motion (``still_intervals``): one snapshot per still interval, from the
+  messages nearest its centre; so a single continuous bag needs no setting;
 - one continuous bag: periods of ``decimation_period_s`` from the first kept message
   (messages in header-stamp order, never log order: see ``frontend.bag``); per period and
   topic the message nearest the period's centre. Whether a period is usable rests on
@@ -187,8 +189,14 @@ def scene_motion(a: LidarScan, b: LidarScan, *, threshold_m: float, min_cells: i
     (isolated noise hits do not); motion if at least ``min_cells`` such cells.
     Returns (moved, median |change| of those cells in m, their count).
     """
-    ra, ia = range_image(a, azimuth_bins=azimuth_bins)
-    rb, ib = range_image(b, azimuth_bins=azimuth_bins)
+    return motion_between(range_image(a, azimuth_bins=azimuth_bins), range_image(b, azimuth_bins=azimuth_bins),
+                          threshold_m=threshold_m, min_cells=min_cells)
+
+
+def motion_between(image_a, image_b, *, threshold_m: float, min_cells: int) -> tuple[bool, float, int]:
+    """``scene_motion`` of two scans' ``range_image``s (each computed once when one scan is
+    compared with many)."""
+    (ra, ia), (rb, ib) = image_a, image_b
     common, ka, kb = np.intersect1d(ra, rb, return_indices=True)
     A, B = ia[ka], ib[kb]  # (R, A)
     # the change to the closest of the cell and its azimuth neighbours in the other scan:
@@ -347,6 +355,15 @@ def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
     bag_iter = progress(kept_bags) if progress else kept_bags
     if options.decimation_period_s is None:
         for b in bag_iter:
+            still, moving_s = still_intervals(b, lidar_topics, options, tfilter)
+            # the board stopped more than once: a continuous bag, a snapshot per still interval (a
+            # bag per pose in which something moved, e.g. a passer-by, keeps its first messages)
+            if moving_s > 0 and len(still) >= 2:
+                s_new, r_new = _still_snapshots(b, still, moving_s, lidar_topics, camera_topics, options,
+                                                tfilter, len(snaps))
+                snaps += s_new
+                rejected += r_new
+                continue
             first = first_messages(b, topics)
             chosen = {t: _Msg(t, d.stamp_ns, d) for t, d in first.items()}
             if not chosen:
@@ -372,6 +389,100 @@ def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
                                    tfilter)
                 (rejected if isinstance(r, Rejected) else snaps).append(r)
     log.info("%d snapshots kept, %d rejected", len(snaps), len(rejected))
+    return snaps, rejected
+
+
+def still_intervals(bag: Path, lidar_topics: Sequence[str], options,
+                    tfilter: TimeFilter = TimeFilter()) -> tuple[list[tuple[int, int, dict]], float]:
+    """Where the scene in ``bag`` was still, judged by motion, and how long it moved (s).
+
+    Every LIDAR's scans are compared (``scene_motion``, ``options.max_board_motion_m``,
+    ``min_moving_cells``) with the first scan of the current still run, so slow motion adds
+    up; any LIDAR seeing motion ends the run. A run is a still interval only if each LIDAR
+    scanned it at least twice (stillness was measured, not assumed) and it lasts at least
+    ``motion_window_s`` (the span over which the motion threshold is judged, as for periods:
+    a board drifting slowly changes little from one scan to the next): (start_ns, end_ns,
+    {topic: scans}) from its first scan's stamp to the end of its last (``time_s``). A bag
+    with one scan per LIDAR, or no motion, has moving time 0 (a bag per pose).
+    """
+    from clcgraph.frontend.bag import message_count, read_messages
+
+    if all(message_count(bag, t) <= 1 for t in lidar_topics):
+        return [], 0.0
+    runs: list[dict] = []  # {"anchor": {topic: scan}, "n": {topic: count}, "start", "end"}
+    cur = None
+    moving_ns = 0
+    for m in read_messages([bag], lidar_topics, start_ns=tfilter.after_ns, stop_ns=tfilter.before_ns):
+        if tfilter.why_not(m.stamp_ns) is not None:
+            continue
+        t = m.data.time_s
+        end = m.stamp_ns + (int(float(np.max(t)) * 1e9) if t is not None and len(t) else 0)
+        scan = range_image(m.data)  # all the comparison needs of the scan
+        if cur is not None and m.topic in cur["anchor"]:
+            moved, _, _ = motion_between(cur["anchor"][m.topic], scan, threshold_m=options.max_board_motion_m,
+                                         min_cells=options.min_moving_cells)
+            if moved:
+                moving_ns += max(0, m.stamp_ns - cur["end"])
+                cur = None
+        if cur is None:
+            cur = {"anchor": {}, "n": {}, "start": m.stamp_ns, "end": end}
+            runs.append(cur)
+        cur["anchor"].setdefault(m.topic, scan)
+        cur["n"][m.topic] = cur["n"].get(m.topic, 0) + 1
+        cur["end"] = max(cur["end"], end)
+    if len(runs) <= 1:
+        return [], 0.0
+    present = {t for r in runs for t in r["n"]}
+    window_ns = int(options.motion_window_s * 1e9)
+
+    def is_still(r):
+        return set(r["n"]) == present and min(r["n"].values()) >= 2 and r["end"] - r["start"] >= window_ns
+
+    still = [(r["start"], r["end"], dict(r["n"])) for r in runs if is_still(r)]
+    moving_ns += sum(r["end"] - r["start"] for r in runs if not is_still(r))
+    return still, moving_ns * 1e-9
+
+
+def _still_snapshots(bag: Path, still, moving_s: float, lidar_topics, camera_topics, options,
+                     tfilter: TimeFilter, first_index: int) -> tuple[list[Snapshot], list[Rejected]]:
+    """One snapshot per still interval of a continuous ``bag`` (``still_intervals``): per topic the
+    message nearest the interval's centre among those inside it (streamed: one message per
+    topic held)."""
+    from clcgraph.frontend.bag import read_messages
+
+    snaps: list[Snapshot] = []
+    rejected = [Rejected(f"{bag}: the scene moved for {moving_s:.1f} s in all (not used); "
+                         f"{len(still)} still interval(s) judged by motion", "snapshot")]
+    if not still:
+        return snaps, rejected
+    starts = np.array([a for a, _, _ in still], np.int64)
+    picks: dict[str, tuple[int, object]] = {}
+    k_open = -1
+
+    def close(k):
+        a, b, _ = still[k]
+        where = f"{bag} still {a * 1e-9:.3f}-{b * 1e-9:.3f}s"
+        chosen = {t: m for t, (_, m) in picks.items()}
+        spread = _spread_rejection(chosen.values(), options)
+        if spread:
+            rejected.append(Rejected(f"{where}: {spread}", "snapshot"))
+        elif chosen:
+            snaps.append(_snapshot(first_index + len(snaps), chosen, where, lidar_topics, camera_topics))
+
+    for m in read_messages([bag], list(lidar_topics) + list(camera_topics), start_ns=int(starts[0]),
+                           stop_ns=int(still[-1][1]) + 1):
+        k = int(np.searchsorted(starts, m.stamp_ns, side="right")) - 1
+        if k < 0 or m.stamp_ns > still[k][1] or tfilter.why_not(m.stamp_ns) is not None:
+            continue
+        if k != k_open:
+            if k_open >= 0:
+                close(k_open)
+            picks, k_open = {}, k
+        dt = abs(m.stamp_ns - (still[k][0] + still[k][1]) // 2)
+        if m.topic not in picks or dt < picks[m.topic][0]:
+            picks[m.topic] = (dt, _Msg(m.topic, m.stamp_ns, m.data))
+    if k_open >= 0:
+        close(k_open)
     return snaps, rejected
 
 

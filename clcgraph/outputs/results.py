@@ -137,6 +137,7 @@ def _target_sections(result: Result) -> dict:
         # (6 significant digits: the checks' eigen-decompositions differ in the last digits
         # between BLAS thread counts, and the same inputs must give the same bytes)
         "consistency": _plain(result.stats.get("consistency"), digits=6),
+        "uncertainty_check": uncertainty_check_dict(result),
     }
 
 
@@ -175,6 +176,43 @@ def _plain(v, digits: int | None = None):
         x = _scalar(v)
         return x if x is None or digits is None else float(f"{x:.{digits}g}")
     return v
+
+
+def uncertainty_check_dict(result: Result) -> dict:
+    """The noise model and its leave-one-snapshot-out check, YAML-safe ({} if not computed).
+
+    Per sensor along the model covariance's principal axes (unit vectors in lidar0, rt
+    coordinates; position in mm, orientation in deg): the model sigma, the jackknife sigma and
+    their ratio (near 1: the sigma can be trusted; well above 1: it is too small), and the
+    snapshot whose removal moves the sensor most.
+    """
+    jk = result.jackknife
+    problem = result.problem
+    effects = result.noise.get("observation_effects") or {}
+    out = {
+        "noise_model": {problem.sensors[i].topic: {k: float(v) for k, v in e.items()} for i, e in effects.items()},
+        # mrcal's intrinsics uncertainty is not propagated (docs/uncertainty.md)
+        "camera_intrinsics_uncertainty": "not included",
+    }
+    if not jk:
+        return out
+    out["jackknife"] = {
+        "method": jk["method"],
+        "axes": "principal axes of each sensor's model covariance (position: of t in lidar0; orientation: of r)",
+        "n_snapshots": int(jk["n_snapshots"]),
+        "indispensable_snapshots": [int(k) for k in jk["indispensable_snapshots"]],
+        "sensors": {
+            problem.sensors[i].topic: {
+                **{k: _floats(v) for k, v in s.items() if k != "largest_influence"},
+                "largest_influence": {k: (int(v) if k == "snapshot" else float(v)) for k, v in s["largest_influence"].items()},
+            }
+            for i, s in jk["sensors"].items()
+        },
+        "largest_influence": {"sensor": problem.sensors[jk["largest_influence"]["sensor"]].topic,
+                              **{k: (int(v) if k == "snapshot" else float(v))
+                                 for k, v in jk["largest_influence"].items() if k != "sensor"}},
+    }
+    return out
 
 
 def sectors_dict(result: Result) -> dict:

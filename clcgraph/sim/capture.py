@@ -46,18 +46,22 @@ DEMO_RIG = Path(__file__).resolve().parents[2] / "data" / "synthetic" / "demo-ri
 DEMO_DIR = DEMO_RIG.parent / "demo"
 
 
-def _board_pose(rng, rig: Rig, tilt_max_deg: float) -> np.ndarray:
+def _board_pose(rng, rig: Rig, tilt_max_deg: float, vertical: bool = False, max_distance_m=None) -> np.ndarray:
     """T_world_board: in front of a random camera (half the time) or anywhere around a LIDAR;
-    2.5-9 m away for a 1.3 m board, a smaller board proportionally closer (as people hold it)."""
+    2.5-9 m away for a 1.3 m board, a smaller board proportionally closer (as people hold it).
+    ``vertical``: the board plane exactly vertical (``random_board_pose``); ``max_distance_m``: at
+    most this far (a capture plan for a low-resolution camera)."""
     far = max(4.0, 9.0 * min(1.0, float(np.hypot(*rig.board.size_m)) / np.hypot(1.3, 1.3)))
+    if max_distance_m is not None:
+        far = min(far, float(max_distance_m))
     if rig.cameras and rng.uniform() < 0.5:
         cam = rig.cameras[rng.integers(len(rig.cameras))]
         fwd = cam.T_base_sensor[:3, :3] @ R_from_r(rng.normal(0, 0.25, 3)) @ np.array([0.0, 0.0, 1.0])
         return random_board_pose(rng, rig.board, cam.T_base_sensor[:3, 3], tilt_max_deg=tilt_max_deg, forward=fwd,
-                                 distance_m=(2.5, far))
+                                 distance_m=(2.5, far), vertical=vertical)
     L = rig.lidars[rng.integers(len(rig.lidars))]
     return random_board_pose(rng, rig.board, L.T_base_sensor[:3, 3], tilt_max_deg=tilt_max_deg,
-                             distance_m=(2.5, far))
+                             distance_m=(2.5, far), vertical=vertical)
 
 
 def _lowest_z(rig: Rig, T: np.ndarray) -> float:
@@ -68,7 +72,7 @@ def _lowest_z(rig: Rig, T: np.ndarray) -> float:
 
 def _observe(rig: Rig, T_board, static, rng, stamps):
     """Scans and images of one board pose, and how many sensors see the board."""
-    scene = make_scene(rig.board, T_board, rng, static=static)
+    scene = make_scene(rig.board, T_board, rng, static=static, person=rig.person, arm=rig.arm)
     seen = 0
     scans = {}
     for i, L in enumerate(rig.lidars):
@@ -130,10 +134,13 @@ def _write(w: BagWriter, rig: Rig, scans, images):
 def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str = "ros1", continuous: bool = False,
              tilt_max_deg: float = 40.0, tf_error=(1.0, 0.03), hold_s: float = 2.0, move_s: float = 1.0,
              camera_hz: float = 5.0, clutter: bool = True, compress: bool = False, log_delays: bool = True,
-             force: bool = False) -> dict:
+             vertical_boards: bool = False, max_distance_m: float | None = None, force: bool = False) -> dict:
     """Simulate a capture session of the rig in ``rig_yaml`` into ``out_dir`` (replaced atomically).
     ``compress``: lz4-compressed ROS1 bags (as `rosbag record --lz4` writes them).
     ``log_delays``: drivers' log times (see the module docstring); False: log time = stamp.
+    ``vertical_boards``: every board plane exactly vertical (one LIDAR's height then unobservable).
+    ``max_distance_m``: boards at most this far from the sensor they are shown to (default 9 m
+    for a 1.3 m board), e.g. for a low-resolution camera whose squares must stay >= ~5 px.
     ``force``: replace ``out_dir`` even if it is not a previous simulated session.
 
     Returns the truth dict that is also written to ``out_dir/truth.yaml``.
@@ -162,7 +169,7 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
         t_ns = T0_NS
         for k in progress(range(n_poses), desc="simulating board poses", unit="pose"):
             for _ in range(200):
-                T_board = _board_pose(rng, rig, tilt_max_deg)
+                T_board = _board_pose(rng, rig, tilt_max_deg, vertical_boards, max_distance_m)
                 if _lowest_z(rig, T_board) < 0.15:
                     continue
                 if continuous:
@@ -225,13 +232,14 @@ def _write_move(w, rig, T_a, T_b, static, rng, stamps, t0_ns, move_s):
 
     for i, L in enumerate(rig.lidars):
         for t in stamps["lidar"][i]:
-            scene = make_scene(rig.board, board_at(t + 50_000_000), rng, static=static)  # mid-rotation
+            scene = make_scene(rig.board, board_at(t + 50_000_000), rng, static=static,  # mid-rotation
+                               person=rig.person, arm=rig.arm)
             scan, _ = simulate_scan(L.model, L.T_base_sensor, scene, rng, stamp_ns=t, topic=L.topic)
             w.write_pointcloud(L.topic, scan, frame_id=L.frame_id, layout=L.model.layout)
     for j, C in enumerate(rig.cameras):
         for t in stamps["camera"][j]:
             Tm = board_at(t)
-            scene = make_scene(rig.board, Tm, rng, static=static)
+            scene = make_scene(rig.board, Tm, rng, static=static, person=rig.person, arm=rig.arm)
             img, _ = render(C.sensor, C.T_base_sensor, scene, rig.board, Tm, rng, topic=C.topic, stamp_ns=t,
                             colour=C.encoding == "bgr8")
             w.write_image(C.topic, img, frame_id=C.frame_id, compressed=C.compressed)

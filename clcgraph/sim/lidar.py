@@ -36,6 +36,27 @@ class LidarModel:
     min_range_m: float = 0.3
     layout: str = "velodyne"
     rotation_period_s: float = 0.1
+    # Errors real LIDARs make the same way in every scan (sim/observations.CorrelatedErrors):
+    # sd of each ring's range bias and of its elevation error, drawn once from errors_seed.
+    ring_range_bias_m: float = 0.0
+    ring_elevation_error_deg: float = 0.0
+    errors_seed: int = 0
+    # Errors that vary per return (the factors assume none of them; 0 = off):
+    # this share of returns has range noise heavy_tail_scale times range_noise_m (a heavy tail),
+    heavy_tail_fraction: float = 0.0
+    heavy_tail_scale: float = 10.0
+    # returns from the board's dark squares are this much long (low reflectivity: their
+    # intensity is then low too, 20 against the board's 180),
+    dark_range_bias_m: float = 0.0
+    # a ring's board return next to a miss of the board is up to this much long (part of the
+    # beam's footprint hit the background: a mixed pixel).
+    mixed_pixel_m: float = 0.0
+
+    def ring_errors(self) -> tuple[np.ndarray, np.ndarray]:
+        """(range bias (rings,) m, elevation error (rings,) deg): this unit's fixed errors."""
+        rng = np.random.default_rng(self.errors_seed)
+        bias, elev = rng.normal(0, 1, self.n_rings), rng.normal(0, 1, self.n_rings)
+        return self.ring_range_bias_m * bias, self.ring_elevation_error_deg * elev
 
     @staticmethod
     def preset(name: str, **overrides) -> "LidarModel":
@@ -55,9 +76,11 @@ class LidarModel:
     def n_rings(self) -> int:
         return len(self.elevations_deg)
 
-    def directions(self) -> np.ndarray:
-        """(rings, columns, 3) unit ray directions in the LIDAR frame (front-left-up)."""
-        el = np.radians(np.asarray(self.elevations_deg))[:, None]
+    def directions(self, true: bool = False) -> np.ndarray:
+        """(rings, columns, 3) unit ray directions in the LIDAR frame (front-left-up): as the
+        driver reports them, or (``true``) as the beams really leave (ring elevation errors)."""
+        el = np.asarray(self.elevations_deg, float) + (self.ring_errors()[1] if true else 0.0)
+        el = np.radians(el)[:, None]
         az = np.pi - 2 * np.pi * np.arange(self.npoints_per_rotation) / self.npoints_per_rotation
         az = az[None, :]
         return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) * np.ones_like(az)], -1)
@@ -71,24 +94,29 @@ def simulate_scan(model: LidarModel, T_world_lidar: np.ndarray, scene, rng, *, s
     firing time, for a moving one (the scan is then motion-distorted like a real driver's).
     """
     d = model.directions()
+    d_true = model.directions(true=True) if model.ring_elevation_error_deg else d
     T = np.asarray(T_world_lidar, float)
     if T.ndim == 2:
-        dw = d.reshape(-1, 3) @ T[:3, :3].T
+        dw = d_true.reshape(-1, 3) @ T[:3, :3].T
         ow = np.broadcast_to(T[:3, 3], dw.shape)
     else:
-        dw = np.einsum("cij,rcj->rci", T[:, :3, :3], d).reshape(-1, 3)
+        dw = np.einsum("cij,rcj->rci", T[:, :3, :3], d_true).reshape(-1, 3)
         ow = np.broadcast_to(T[None, :, :3, 3], d.shape).reshape(-1, 3)
     rays = np.concatenate([ow, dw], axis=1)
     r, gid = scene.cast(rays)
     valid = np.isfinite(r) & (r > model.min_range_m) & (r < model.max_range_m)
     valid &= rng.uniform(size=r.shape) >= model.dropout
-    r = np.where(valid, r + rng.normal(0.0, model.range_noise_m, r.shape), 0.0)
-    pts = d.reshape(-1, 3) * r[:, None]
     rings, cols = model.n_rings, model.npoints_per_rotation
     ring = np.repeat(np.arange(rings), cols)
+    bias = model.ring_errors()[0][ring] if model.ring_range_bias_m else 0.0
+    on_board = gid == getattr(scene, "board_id", -2)
+    extra, dark = _per_return_errors(model, scene, rays, r, on_board, rng)
+    r = np.where(valid, r + bias + extra + rng.normal(0.0, model.range_noise_m, r.shape), 0.0)
+    pts = d.reshape(-1, 3) * r[:, None]
     time_s = np.tile(np.arange(cols) / cols * model.rotation_period_s, rings)
-    intensity = np.where(gid == getattr(scene, "board_id", -2), 180.0, 60.0).astype(np.float32)
-    hit_board = valid & (gid == getattr(scene, "board_id", -2))
+    # the board bright; with dark_range_bias_m its dark squares also return weak (what makes them long)
+    intensity = np.where(on_board, np.where(dark, 20.0, 180.0), 60.0).astype(np.float32)
+    hit_board = valid & on_board
     if model.layout == "ouster":
         return LidarScan(topic, stamp_ns, pts, valid, intensity, ring, time_s, (rings, cols)), hit_board
     order = np.arange(rings * cols).reshape(rings, cols).T.ravel()  # firing order: column by column
@@ -96,3 +124,30 @@ def simulate_scan(model: LidarModel, T_world_lidar: np.ndarray, scene, rng, *, s
     scan = LidarScan(topic, stamp_ns, pts[order], np.ones(len(order), bool), intensity[order], ring[order],
                      time_s[order], None)
     return scan, hit_board[order]
+
+
+def _per_return_errors(model: LidarModel, scene, rays: np.ndarray, r: np.ndarray, on_board: np.ndarray,
+                       rng) -> tuple[np.ndarray | float, np.ndarray | bool]:
+    """((rings*columns,) range errors of ``model``'s per-return options (0.0 when all are off):
+    heavy-tailed noise, dark squares returning long, mixed pixels at the board's edge; the mask
+    of returns from the board's dark squares (False unless dark_range_bias_m))."""
+    dark = np.zeros(r.shape, bool)
+    if not (model.heavy_tail_fraction or model.dark_range_bias_m or model.mixed_pixel_m):
+        return 0.0, dark
+    e = np.zeros(r.shape)
+    if model.heavy_tail_fraction:
+        wild = rng.uniform(size=r.shape) < model.heavy_tail_fraction
+        e[wild] += rng.normal(0.0, model.heavy_tail_scale * model.range_noise_m, int(wild.sum()))
+    if model.dark_range_bias_m and on_board.any() and getattr(scene, "T_world_board", None) is not None:
+        from .camera import BLACK, board_shade
+
+        p_world = rays[on_board, :3] + rays[on_board, 3:] * r[on_board, None]
+        T = scene.T_world_board
+        xy = ((p_world - T[:3, 3]) @ T[:3, :3])[:, :2]
+        dark[on_board] = board_shade(scene.board, xy) == BLACK
+        e[dark] += model.dark_range_bias_m
+    if model.mixed_pixel_m:
+        grid = on_board.reshape(model.n_rings, model.npoints_per_rotation)
+        edge = (grid & ~(np.roll(grid, 1, axis=1) & np.roll(grid, -1, axis=1))).ravel()
+        e[edge] += rng.uniform(0.0, model.mixed_pixel_m, int(edge.sum()))
+    return e, dark

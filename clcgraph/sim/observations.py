@@ -6,6 +6,11 @@ intersections of each ring's rays with the board rectangle (margin included) plu
 Gaussian range noise along the ray; camera corners are mrcal projections plus Gaussian
 pixel noise, kept only when the whole board is in view.
 
+``errors=CorrelatedErrors.realistic()`` adds what real sensors correlate within one
+observation and the solver's factors do not assume: per-ring range bias and elevation
+error, a bowed board, mixed pixels at the board's edges, a per-board corner-detector bias
+and a smooth lens-model error field (see CorrelatedErrors).
+
 SYNOPSIS
     rig = make_rig(n_lidars=2, n_cameras=3)
     problem, truth = simulate_problem(rig=rig, n_snapshots=40, seed=1)
@@ -42,6 +47,49 @@ class Rig:
     sensors: tuple[Sensor, ...]
     rt_lidar0_sensor: np.ndarray  # (N,6)
     lidars: dict = field(default_factory=dict)  # sensor index -> SimLidar
+
+
+@dataclass(frozen=True)
+class CorrelatedErrors:
+    """Errors correlated within an observation (0 = off; the default is independent noise only).
+
+    Each is drawn once per simulated capture: per LIDAR ring, per camera, per board.
+    """
+
+    ring_range_bias_m: float = 0.0  # sd of each ring's range bias (real LIDARs: 1-3 cm)
+    ring_elevation_deg: float = 0.0  # sd of each ring's elevation error (~0.1 deg)
+    board_warp_m: float = 0.0  # bow: the board's centre this far off the plane of its edges (2-5 mm)
+    mixed_pixel_m: float = 0.0  # the board-edge point of each ring is up to this much farther
+    corner_bias_px: float = 0.0  # sd of one shift of all corners, per (camera, board) (0.1-0.3 px)
+    lens_field_px: float = 0.0  # amplitude of a smooth pixel-error field per camera (0.2-0.5 px)
+
+    @classmethod
+    def realistic(cls) -> "CorrelatedErrors":
+        """Middle-of-the-range values of real sensors and boards (issue 12)."""
+        return cls(ring_range_bias_m=0.02, ring_elevation_deg=0.1, board_warp_m=0.003, mixed_pixel_m=0.03,
+                   corner_bias_px=0.2, lens_field_px=0.3)
+
+
+def board_warp(board: BoardGeometry, xy: np.ndarray, bow_m: float) -> np.ndarray:
+    """(K,) board-frame z of a board bowed by ``bow_m`` at (K,2) board points: 0 on the edges."""
+    xmin, xmax, ymin, ymax = board.extent()
+    u = (2 * xy[:, 0] - xmin - xmax) / (xmax - xmin)
+    v = (2 * xy[:, 1] - ymin - ymax) / (ymax - ymin)
+    return bow_m * np.clip(1 - u**2, 0, None) * np.clip(1 - v**2, 0, None)
+
+
+def _lens_field(rng, imagersize, amplitude_px: float):
+    """A smooth (K,2) -> (K,2) pixel-error field: two low-frequency waves per axis."""
+    w, h = imagersize
+    f = rng.uniform(0.5, 1.5, (2, 2, 2)) * rng.choice([-1, 1], (2, 2, 2))  # axis, wave, (x, y) cycles
+    phase = rng.uniform(0, 2 * np.pi, (2, 2))
+
+    def field(q):
+        a = np.stack([np.sum(np.sin(2 * np.pi * (f[ax, :, 0] * q[:, :1] / w + f[ax, :, 1] * q[:, 1:] / h)
+                                    + phase[ax]), axis=1) for ax in range(2)], -1)
+        return amplitude_px / np.sqrt(2) * a
+
+    return field
 
 
 @dataclass(frozen=True, eq=False)
@@ -116,26 +164,48 @@ def _board_pose(rng, board: BoardGeometry, range_m, tilt_max_deg, vertical_only,
     return rt_from_R_t(R, c - R @ centre_b)
 
 
-def _lidar_hits(model: SimLidar, rt_sensor_board: np.ndarray, board: BoardGeometry, rng, sigma_m: float):
-    """(points (K,3) in the sensor frame, rings (K,)) where the rays meet the board rectangle."""
+def _rays(elevations_rad, npoints: int) -> np.ndarray:
+    el = np.asarray(elevations_rad)[:, None]
+    az = np.linspace(-np.pi, np.pi, npoints, endpoint=False)[None, :]
+    return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) * np.ones_like(az)], -1).reshape(-1, 3)
+
+
+def _lidar_hits(model: SimLidar, rt_sensor_board: np.ndarray, board: BoardGeometry, rng, sigma_m: float,
+                errors: CorrelatedErrors = CorrelatedErrors(), ring_bias_m=None, ring_elevation_error_rad=None):
+    """(points (K,3) in the sensor frame, rings (K,)) where the rays meet the board rectangle.
+
+    With ``errors``: the rays really leave at the elevations plus ``ring_elevation_error_rad``
+    but are reported at the nominal ones, each ring's range is off by ``ring_bias_m``, the
+    board is bowed, and each ring's first and last board point is a mixed pixel (farther).
+    """
     R, t = R_from_r(rt_sensor_board[:3]), rt_sensor_board[3:]
     n = R[:, 2]
     d = n @ t
-    el = np.asarray(model.elevations_rad)[:, None]
-    az = np.linspace(-np.pi, np.pi, model.npoints_per_rotation, endpoint=False)[None, :]
-    u = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) * np.ones_like(az)], -1).reshape(-1, 3)
-    ring = np.repeat(np.arange(len(model.elevations_rad)), model.npoints_per_rotation)
+    n_rings, n_az = len(model.elevations_rad), model.npoints_per_rotation
+    u_nominal = _rays(model.elevations_rad, n_az)
+    u = u_nominal if ring_elevation_error_rad is None else \
+        _rays(np.asarray(model.elevations_rad) + ring_elevation_error_rad, n_az)
+    ring = np.repeat(np.arange(n_rings), n_az)
     cos = u @ n
     with np.errstate(divide="ignore", invalid="ignore"):
         rho = d / cos
     ok = np.isfinite(rho) & (rho > 0.5) & (rho < model.max_range_m) & (np.abs(cos) > 0.05)
-    p = u[ok] * rho[ok, None]
-    q = (p - t) @ R  # board frame
+    rho = np.where(ok, rho, 0.0)
+    q = (u * rho[:, None] - t) @ R  # board frame
     xmin, xmax, ymin, ymax = board.extent()
-    inside = (q[:, 0] >= xmin) & (q[:, 0] <= xmax) & (q[:, 1] >= ymin) & (q[:, 1] <= ymax)
-    p, rr = p[inside], rho[ok][inside]
-    noisy = rr + rng.normal(0, sigma_m, len(rr)) if sigma_m > 0 else rr
-    return p * (noisy / rr)[:, None], ring[ok][inside]
+    inside = ok & (q[:, 0] >= xmin) & (q[:, 0] <= xmax) & (q[:, 1] >= ymin) & (q[:, 1] <= ymax)
+    measured = rho.copy()
+    if errors.board_warp_m:  # the bowed surface is this much farther along the normal
+        measured[inside] += board_warp(board, q[inside, :2], errors.board_warp_m) / cos[inside]
+    if ring_bias_m is not None:
+        measured += ring_bias_m[ring]
+    if errors.mixed_pixel_m:  # a ring's board points next to a miss: part of the beam hit the background
+        grid = inside.reshape(n_rings, n_az)
+        edge = (grid & ~(np.roll(grid, 1, axis=1) & np.roll(grid, -1, axis=1))).ravel()
+        measured[edge] += rng.uniform(0, errors.mixed_pixel_m, int(edge.sum()))
+    if sigma_m > 0:
+        measured[inside] += rng.normal(0, sigma_m, int(inside.sum()))
+    return u_nominal[inside] * measured[inside, None], ring[inside]
 
 
 def plane_fit(points: np.ndarray) -> tuple[np.ndarray, float]:
@@ -154,7 +224,8 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
                      range_m: tuple[float, float] = (2.0, 8.0), vertical_only: bool = False,
                      vertical_jitter_deg: float = 2.0, corrupt_fraction: float = 0.0,
                      lidar_only: bool = False, min_rings: int = 3, min_points: int = 20,
-                     azimuth_rad: tuple[float, float] = (-0.45, 0.45), origin=(0.0, 0.0, 0.0)):
+                     azimuth_rad: tuple[float, float] = (-0.45, 0.45), origin=(0.0, 0.0, 0.0),
+                     errors: CorrelatedErrors = CorrelatedErrors()):
     """A Problem with noisy board observations of ``rig`` and its Truth (see module doc).
 
     ``sigma_lidar_m``: one range sigma, or one per LIDAR (in sensor order).
@@ -164,6 +235,7 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
     turned; camera: every corner shifted by ~12 px), listed in ``truth.corrupted``.
     ``lidar_only`` drops the rig's cameras. A snapshot is kept if >= 2 sensors saw it.
     ``azimuth_rad``, ``origin``: the boards face ``origin`` from those azimuths (lidar0 axes).
+    ``errors``: the correlated errors to add (CorrelatedErrors; default none).
     """
     rig = rig or make_rig()
     rng = np.random.default_rng(seed)
@@ -176,6 +248,16 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
         lidars = {keep.index(i): m for i, m in rig.lidars.items()}
     else:
         lidars = dict(rig.lidars)
+    # the correlated errors' fixed parts: per LIDAR ring, per camera
+    ring_bias = {i: rng.normal(0, errors.ring_range_bias_m, len(m.elevations_rad)) if errors.ring_range_bias_m else None
+                 for i, m in lidars.items()}
+    ring_elevation = {i: rng.normal(0, np.radians(errors.ring_elevation_deg), len(m.elevations_rad))
+                      if errors.ring_elevation_deg else None for i, m in lidars.items()}
+    lens_field = {i: _lens_field(rng, s.imagersize, errors.lens_field_px) for i, s in enumerate(sensors)
+                  if s.is_camera and errors.lens_field_px}
+    corners_b = board.corners()
+    if errors.board_warp_m:
+        corners_b = np.c_[corners_b[:, :2], board_warp(board, corners_b[:, :2], errors.board_warp_m)]
     lidar_obs, camera_obs, boards = [], [], []
     k = 0
     attempts = 0
@@ -189,15 +271,19 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
             rt_s_b = compose_rt(invert_rt(rts[i]), rt_b)
             if s.is_lidar:
                 sigma = sigma_lidar_m[i] if np.ndim(sigma_lidar_m) else sigma_lidar_m  # per LIDAR, or one
-                p, ring = _lidar_hits(lidars[i], rt_s_b, board, rng, sigma)
+                p, ring = _lidar_hits(lidars[i], rt_s_b, board, rng, sigma, errors, ring_bias[i], ring_elevation[i])
                 if len(p) >= min_points and len(np.unique(ring)) >= min_rings:
                     plane, rms = plane_fit(p)
                     lo.append(LidarBoardObservation(sensor=i, snapshot=k, points=p, plane=plane, rms_m=rms))
             else:
-                pc = transform(rt_s_b, board.corners())
+                pc = transform(rt_s_b, corners_b)
                 q = cameras.project(pc, s.lensmodel, s.intrinsics)
                 w, h = s.imagersize
                 if np.all(pc[:, 2] > 0.3) and np.all((q >= 0) & (q <= [w - 1, h - 1])):
+                    if i in lens_field:
+                        q = q + lens_field[i](q)
+                    if errors.corner_bias_px:
+                        q = q + rng.normal(0, errors.corner_bias_px, 2)
                     if sigma_camera_px > 0:
                         q = q + rng.normal(0, sigma_camera_px, q.shape)
                     co.append(CameraBoardObservation(sensor=i, snapshot=k, corners_px=q))
@@ -268,4 +354,4 @@ def _visibility_points(model: SimLidar) -> np.ndarray:
                      15 * np.tan(el) * np.ones_like(az)], -1).reshape(-1, 3)
 
 
-__all__ = ["Rig", "SimLidar", "Truth", "make_rig", "plane_fit", "simulate_problem"]
+__all__ = ["CorrelatedErrors", "Rig", "SimLidar", "Truth", "board_warp", "make_rig", "plane_fit", "simulate_problem"]

@@ -10,6 +10,12 @@
         xyz: [1.2, 0.0, 1.8]         # pose in base_link: position (m) ...
         rpy_deg: [0, 0, 0]           # ... and roll, pitch, yaw (deg) of the front-left-up frame
         range_noise_m: 0.01
+        ring_range_bias_m: 0.02          # optional: sd of each ring's fixed range bias (0 = off)
+        ring_elevation_error_deg: 0.1    # optional: sd of each ring's fixed elevation error (0 = off)
+        errors_seed: 3                   # optional: which unit (draws the per-ring errors)
+        heavy_tail_fraction: 0.02        # optional: share of returns with heavy_tail_scale (10) x the noise
+        dark_range_bias_m: 0.015         # optional: the board's dark squares return weak and this long
+        mixed_pixel_m: 0.1               # optional: a ring's board-edge return up to this long
         dropout: 0.005
     cameras:
       - topic: /cam/left/image
@@ -21,6 +27,9 @@
         rpy_deg: [0, 5, 10]          # of a front-left-up frame; the optical axes follow mrcal
     board: {corners: [10, 10], square_m: 0.1, size_m: [1.3, 1.3]}   # as the config's board:
                                      # section (default: this board); pattern_offset_m: [x, y] too
+    scene:                           # optional: who holds the board
+      person: edge                   # edge (default: 0.5 m behind a side edge) | behind | beside | none
+      arm: false                     # an arm across the board's side edge, in front of it
 
 The first LIDAR is lidar0. Errors name the file and the key.
 
@@ -44,6 +53,7 @@ from ..errors import InputError
 from ..geometry import T_from_xyz_rpy
 from ..types import BoardGeometry, Sensor
 from .lidar import LidarModel
+from .scene import PERSON_PLACES
 
 # camera optical axes (right-down-forward) in a front-left-up frame
 R_FLU_CAMERA = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -74,6 +84,8 @@ class Rig:
     lidars: tuple[RigLidar, ...]
     cameras: tuple[RigCamera, ...]
     board: BoardGeometry
+    person: str = "edge"  # sim.scene.PERSON_PLACES
+    arm: bool = False
 
     @property
     def topics(self) -> list[str]:
@@ -100,7 +112,8 @@ def _pose(d, where, path) -> np.ndarray:
 
 
 _LIDAR_KEYS = {"topic", "model", "elevations_deg", "npoints_per_rotation", "layout", "frame_id", "xyz", "rpy_deg",
-               "range_noise_m", "dropout", "max_range_m"}
+               "range_noise_m", "dropout", "max_range_m", "ring_range_bias_m", "ring_elevation_error_deg",
+               "errors_seed", "heavy_tail_fraction", "heavy_tail_scale", "dark_range_bias_m", "mixed_pixel_m"}
 _CAMERA_KEYS = {"topic", "model", "encoding", "compressed", "frame_id", "xyz", "rpy_deg"}
 
 
@@ -121,7 +134,7 @@ def load_rig(path) -> Rig:
         raise InputError(f"{path}: not valid YAML: {str(e).splitlines()[0]}") from None
     if not isinstance(d, dict):
         raise InputError(f"{path}: a rig file is a mapping with 'lidars' (and 'cameras', 'board')")
-    _unknown(d, {"lidars", "cameras", "board"}, "top level", path)
+    _unknown(d, {"lidars", "cameras", "board", "scene"}, "top level", path)
     lidars = []
     for k, L in enumerate(_need(d, "lidars", "top level", path) or []):
         where = f"lidars[{k}]"
@@ -135,8 +148,10 @@ def load_rig(path) -> Rig:
                 model = LidarModel.preset(str(_need(L, "model", where, path)))
         except KeyError as e:
             raise InputError(f"{path}: {where}.model: {e.args[0]}") from None
-        over = {k2: L[k2] for k2 in ("layout", "range_noise_m", "dropout", "max_range_m", "npoints_per_rotation")
-                if k2 in L}
+        over = {k2: L[k2] for k2 in ("layout", "range_noise_m", "dropout", "max_range_m", "npoints_per_rotation",
+                                     "ring_range_bias_m", "ring_elevation_error_deg", "errors_seed",
+                                     "heavy_tail_fraction", "heavy_tail_scale", "dark_range_bias_m",
+                                     "mixed_pixel_m") if k2 in L}
         if over.get("layout", model.layout) not in ("velodyne", "ouster"):
             raise InputError(f"{path}: {where}.layout must be velodyne or ouster")
         model = replace(model, **over)
@@ -171,4 +186,11 @@ def load_rig(path) -> Rig:
     topics = [x.topic for x in lidars] + [c.topic for c in cams]
     if len(set(topics)) != len(topics):
         raise InputError(f"{path}: a topic is listed twice")
-    return Rig(path, tuple(lidars), tuple(cams), board)
+    sc = d.get("scene") or {}
+    if not isinstance(sc, dict):
+        raise InputError(f"{path}: 'scene' must be a mapping")
+    _unknown(sc, {"person", "arm"}, "scene", path)
+    person = str(sc.get("person", "edge"))
+    if person not in PERSON_PLACES:
+        raise InputError(f"{path}: scene.person must be one of {', '.join(PERSON_PLACES)}")
+    return Rig(path, tuple(lidars), tuple(cams), board, person, bool(sc.get("arm", False)))

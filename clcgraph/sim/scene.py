@@ -78,22 +78,62 @@ def board_mesh(board: BoardGeometry, T_world_board: np.ndarray):
     return m
 
 
-def person_mesh(board: BoardGeometry, T_world_board: np.ndarray, rng):
-    """Someone holding the board: a 1.75 m body (a 0.2 m radius cylinder, round like a torso)
-    half a metre behind one edge of it."""
+PERSON_PLACES = ("edge", "behind", "beside", "none")
+BODY_RADIUS_M = 0.2
+
+
+def person_mesh(board: BoardGeometry, T_world_board: np.ndarray, rng, *, place: str = "edge", arm: bool = False):
+    """Someone holding the board: a 1.75 m body (a 0.2 m radius cylinder, round like a torso),
+    ``place``: "edge" half a metre behind one side edge, "behind" 0.35 m behind the board's
+    centre (legs and head show below and above it), "beside" next to a side edge in the
+    board's plane. ``arm``: an arm (a 4.5 cm radius cylinder) from the shoulder across the
+    nearer side edge, 3 cm in front of the board, its end 6 cm onto it (the hand holding it)."""
     xmin, xmax, ymin, ymax = board.extent()
     side = rng.choice([xmin - 0.05, xmax + 0.05])
-    p = T_world_board[:3, :3] @ np.array([side, (ymin + ymax) / 2, 0.0]) + T_world_board[:3, 3]
-    behind = T_world_board[:3, 2] * np.array([1.0, 1.0, 0.0])
-    p = p + 0.5 * behind / max(np.linalg.norm(behind), 1e-9)
-    body = cylinder_mesh(0.2, 1.75, p[0], p[1])
-    return body
+    R, t = T_world_board[:3, :3], T_world_board[:3, 3]
+    behind = R[:, 2] * np.array([1.0, 1.0, 0.0])
+    behind = behind / max(np.linalg.norm(behind), 1e-9)
+    ymid = (ymin + ymax) / 2
+    if place == "behind":
+        p = R @ np.array([(xmin + xmax) / 2, ymid, 0.0]) + t + (0.35 + BODY_RADIUS_M) * behind
+    elif place == "beside":
+        out = np.sign(side - (xmin + xmax) / 2)
+        p = R @ np.array([side + out * (BODY_RADIUS_M + 0.05), ymid, 0.0]) + t
+    else:
+        p = R @ np.array([side, ymid, 0.0]) + t + 0.5 * behind
+    meshes = [cylinder_mesh(BODY_RADIUS_M, 1.75, p[0], p[1])]
+    if arm:
+        edge = xmin if side < xmin else xmax
+        inward = 1.0 if side < xmin else -1.0
+        hand = R @ np.array([edge + inward * 0.06, ymid + rng.uniform(-0.2, 0.2) * (ymax - ymin), -0.03]) + t
+        shoulder = np.array([p[0], p[1], 1.45])
+        shoulder[:2] += (hand[:2] - shoulder[:2]) * BODY_RADIUS_M / max(np.linalg.norm(hand[:2] - shoulder[:2]), 1e-9)
+        meshes.append(segment_mesh(0.045, shoulder, hand))
+    return meshes
+
+
+def segment_mesh(r: float, a: np.ndarray, b: np.ndarray):
+    """A cylinder of radius r from point a to point b."""
+    import open3d as o3d
+
+    d = np.asarray(b, float) - np.asarray(a, float)
+    L = float(np.linalg.norm(d))
+    m = o3d.geometry.TriangleMesh.create_cylinder(r, L, resolution=12)  # along z, centred at 0
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(z, d / L)
+    angle = np.arccos(np.clip(z @ d / L, -1, 1))
+    if np.linalg.norm(axis) > 1e-9:
+        m.rotate(R_from_r(axis / np.linalg.norm(axis) * angle), center=(0, 0, 0))
+    m.translate((np.asarray(a) + np.asarray(b)) / 2)
+    return m
 
 
 def random_board_pose(rng, board: BoardGeometry, origin, *, tilt_max_deg: float = 45.0, distance_m=(2.5, 9.0),
-                      height_m=(0.9, 1.9), forward=None) -> np.ndarray:
+                      height_m=(0.9, 1.9), forward=None, vertical: bool = False) -> np.ndarray:
     """T_world_board: held ``distance_m`` from ``origin`` (toward ``forward``, else a random azimuth),
-    facing it, tilted up to ``tilt_max_deg`` about a random in-plane axis and rolled +-20 deg."""
+    facing it, tilted up to ``tilt_max_deg`` about a random in-plane axis and rolled +-20 deg.
+    ``vertical``: the board plane exactly vertical (normal horizontal), turned up to
+    ``tilt_max_deg`` about the vertical only."""
     xmin, xmax, ymin, ymax = board.extent()
     centre_b = np.array([(xmin + xmax) / 2, (ymin + ymax) / 2, 0.0])
     o = np.asarray(origin, float)
@@ -105,11 +145,15 @@ def random_board_pose(rng, board: BoardGeometry, origin, *, tilt_max_deg: float 
     c = o + fwd * rng.uniform(*distance_m)
     c[2] = rng.uniform(*height_m)
     z = c - o  # board normal away from the sensor (mrcal's board convention)
+    if vertical:
+        z[2] = 0.0
     z /= np.linalg.norm(z)
     y = np.array([0.0, 0.0, -1.0]) - (np.array([0.0, 0.0, -1.0]) @ z) * z
     y /= np.linalg.norm(y)
     R = np.c_[np.cross(y, z), y, z]
     axis = rng.normal(size=3)
+    if vertical:
+        axis = np.array([0.0, 0.0, np.sign(axis[2]) or 1.0])
     axis -= (axis @ z) * z
     R = R_from_r(axis / np.linalg.norm(axis) * np.radians(rng.uniform(0, tilt_max_deg))) @ R
     R = R @ R_from_r(np.array([0.0, 0.0, np.radians(rng.uniform(-20, 20))]))
@@ -125,6 +169,8 @@ class Scene:
     raycasting: object
     board_id: int  # -1 without a board
     person_id: int
+    board: BoardGeometry | None = None
+    T_world_board: np.ndarray | None = None
 
     def cast(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(t_hit (N,) inf where nothing is hit, geometry id (N,)) for rays (N,6) origin+direction."""
@@ -135,9 +181,12 @@ class Scene:
 
 
 def make_scene(board: BoardGeometry, T_world_board: np.ndarray | None, rng, *, clutter: bool = True,
-               person: bool = True, walls_m=(12.0, 25.0), static: list | None = None) -> Scene:
+               person: bool | str = True, arm: bool = False, walls_m=(12.0, 25.0),
+               static: list | None = None) -> Scene:
     """The scene with the board at T_world_board (None: no board). ``static``: reuse meshes
-    from static_meshes() (the same site for every board pose)."""
+    from static_meshes() (the same site for every board pose). ``person``: True ("edge"), False
+    ("none") or a place of ``PERSON_PLACES``; ``arm``: the person's arm across the board's edge
+    (``person_mesh``)."""
     import open3d as o3d
 
     meshes = static if static is not None else static_meshes(rng, clutter=clutter, walls_m=walls_m)
@@ -147,7 +196,8 @@ def make_scene(board: BoardGeometry, T_world_board: np.ndarray | None, rng, *, c
     board_id = person_id = -1
     if T_world_board is not None:
         board_id = int(rc.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(board_mesh(board, T_world_board))))
-        if person:
-            person_id = int(rc.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(
-                person_mesh(board, T_world_board, rng))))
-    return Scene(rc, board_id, person_id)
+        place = {True: "edge", False: "none"}.get(person, person)
+        if place != "none":
+            for m in person_mesh(board, T_world_board, rng, place=place, arm=arm):
+                person_id = int(rc.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(m)))
+    return Scene(rc, board_id, person_id, board, T_world_board)

@@ -207,3 +207,60 @@ def test_map_registration_factor_jacobians_and_zero_at_truth():
             v.insert(k, p)
         e = mapreg_fn(moved, Z, links, has_bias, False)[0]
         assert f.error(v) == pytest.approx(0.5 * e @ e / 4e-6, rel=1e-9)
+
+
+@pytest.mark.parametrize("kind", ["plane", "range", "range-lidar0", "camera"])
+def test_board_perturbed_jacobians_and_meaning(kind):
+    # The per-observation board-pose error D (backend/noise.py): the factor's residual at the
+    # board pose T_b C D C^-1 (C = the board centre), with Jacobians w.r.t. T_s, T_b and D.
+    from clcgraph.backend.graph import board_centre
+    from clcgraph.factors.base import board_perturbed
+    from clcgraph.types import Problem
+
+    rng = np.random.default_rng(21)
+    C = board_centre(Problem(sensors=(), board=BOARD, lidar_observations=(), camera_observations=(),
+                             snapshot_stamps_ns=np.zeros(0)))
+    np.testing.assert_allclose(C.translation(), [0.45, 0.45, 0.0])  # corners 0..0.9 m, margins alike
+    for _ in range(3):
+        T_s, T_b, p = _scene(rng)
+        D = gtsam.Pose3.Expmap(rng.normal(0, 0.02, 6))
+        Ts2, Tb2 = perturb(T_s, rng.normal(0, 0.05, 6)), perturb(T_b, rng.normal(0, 0.05, 6))
+        if kind == "camera":
+            T_c = gtsam.Pose3(gtsam.Rot3(np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float)), np.zeros(3))
+            q = cameras.project(np.array([T_c.transformTo(Tb2.transformFrom(c)) for c in BOARD.corners()]),
+                                "LENSMODEL_OPENCV4", np.array(LENSES["LENSMODEL_OPENCV4"])) + rng.normal(0, 0.3, (100, 2))
+            ok = np.ones(100, bool)
+            base = lambda P, w: corners_fn(P[0], P[1], q, ok, BOARD.corners(), "LENSMODEL_OPENCV4",  # noqa: E731
+                                           np.array(LENSES["LENSMODEL_OPENCV4"]), w)
+            poses, ib = [perturb(T_c, rng.normal(0, 0.01, 6)), Tb2], 1
+        elif kind == "range-lidar0":
+            base = lambda P, w: range_fn(None, P[0], p, w)  # noqa: E731
+            poses, ib = [Tb2], 0
+        else:
+            f0 = plane_fn if kind == "plane" else range_fn
+            base = lambda P, w, f0=f0: f0(P[0], P[1], p, w)  # noqa: E731
+            poses, ib = [Ts2, Tb2], 1
+        fn = board_perturbed(base, ib, C)
+        assert check_jacobians(fn, [*poses, D]) < 1e-5
+        # it is the plain residual at the perturbed board pose; D = identity changes nothing
+        moved = list(poses)
+        moved[ib] = poses[ib].compose(C).compose(D).compose(C.inverse())
+        np.testing.assert_allclose(fn([*poses, D], False)[0], base(moved, False)[0], atol=1e-12)
+        np.testing.assert_allclose(fn([*poses, gtsam.Pose3()], False)[0], base(poses, False)[0], atol=1e-12)
+
+
+def test_lidar_board_error_d_tilts_about_the_board_centre():
+    # D's offset DOF (v_z) moves every point of a board seen face-on by the same range; its
+    # tilt about the board's x axis leaves the centre row of points where it was.
+    from clcgraph.factors.base import board_perturbed
+
+    T_b = gtsam.Pose3(gtsam.Rot3(np.array([[0, 0, 1.0], [1, 0, 0], [0, 1, 0]]).T), np.array([5.0, -0.45, -0.45]))
+    C = gtsam.Pose3(gtsam.Rot3(), np.array([0.45, 0.45, 0.0]))
+    xy = np.stack(np.meshgrid(np.linspace(0, 0.9, 5), np.linspace(0, 0.9, 5)), -1).reshape(-1, 2)
+    p = np.array([T_b.transformFrom(np.r_[u, 0.0]) for u in xy])
+    fn = board_perturbed(lambda P, w: plane_fn(None, P[0], p, w), 0, C)
+    e_off = fn([T_b, gtsam.Pose3(gtsam.Rot3(), np.array([0, 0, 0.01]))], False)[0]
+    np.testing.assert_allclose(e_off, -0.01, atol=1e-12)
+    e_tilt = fn([T_b, gtsam.Pose3(gtsam.Rot3.Rx(0.01), np.zeros(3))], False)[0]
+    centre_row = np.isclose(xy[:, 1], 0.45)
+    assert np.abs(e_tilt[centre_row]).max() < 1e-12 and np.abs(e_tilt[~centre_row]).min() > 1e-3

@@ -1,0 +1,253 @@
+"""The noise model with a per-observation part, and its variance components from the data.
+
+Real errors are correlated within one observation: a LIDAR's per-ring range bias and
+beam-elevation error, a board that is not flat, mixed pixels along its edge, a corner
+detector's bias for a whole board, lens-model error at the same image position. So the
+1000 points of one board are not 1000 independent facts. The model (docs/uncertainty.md):
+
+    residual = white noise (sigma per sensor, m or px)
+             + the effect of D, this observation's own board-pose error
+
+D is a Pose3 variable per (sensor, snapshot) observation (graph.effect_key) at the board's
+centre, with a zero-mean prior of per-sensor sigmas: for a LIDAR its plane tilt (omega_x,
+omega_y) and offset (v_z), the only DOFs a plane sees; for a camera all six (board-pose
+jitter). Marginalizing D gives each factor the covariance sigma^2 I + J_D Sigma_D J_D^T;
+keeping D as a variable keeps the graph sparse and gtsam's Marginals exact.
+
+The variance components (per sensor: white sigma; LIDAR tilt, offset; camera rotation,
+translation) are estimated by Foerstner's iterative variance-component estimation (as the
+targetless graph does): sigma_c^2 <- v_c^T W_c v_c / r_c, with r_c = n_c - tr(W_c A_c Cov A_c^T)
+the redundancy of group c, on the linearization at the solution, then re-solved.
+
+SYNOPSIS
+    lin = Linearization(problem, g, values)          # per-factor Jacobians, grouped
+    sig, effects, info = estimate_components(problem, lin, sig, effects)
+    S, r = lin.reduced()                              # sensor-only information (Schur)
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from . import graph as G
+
+log = logging.getLogger(__name__)
+
+# D's DOFs (board-centre tangent [omega, v]) each variance component covers
+LIDAR_COMPONENTS = {"tilt_rad": (0, 1), "offset_m": (5,)}
+CAMERA_COMPONENTS = {"rotation_rad": (0, 1, 2), "translation_m": (3, 4, 5)}
+# The prior sigma of D's DOFs a LIDAR cannot see (in-plane): no observation touches them,
+# so their posterior is this prior and nothing else depends on it.
+_UNSEEN = 1.0
+# Where VCE starts (a real board's plane is good to ~1 mrad / a few mm) and the floor: below
+# these a component adds nothing to the covariance, and an exact prior would be singular.
+_START = {"tilt_rad": 1e-3, "offset_m": 3e-3, "rotation_rad": 1e-3, "translation_m": 3e-3}
+_FLOOR = {"tilt_rad": 1e-4, "offset_m": 1e-4, "rotation_rad": 1e-4, "translation_m": 1e-4}
+_MIN_REDUNDANCY = 0.5  # a component the data hardly see keeps its value
+_SIGNIFICANCE = 3.0  # standard deviations of F above 1 (estimate_components); 2 inflated independent-noise sigmas 1.4x
+_MAX_VCE_ITERATIONS = 40
+_VCE_TOL = 0.003  # relative change of every sigma
+
+
+def components(problem) -> dict:
+    """{sensor: {component name: DOFs of D}}."""
+    return {i: dict(LIDAR_COMPONENTS if s.is_lidar else CAMERA_COMPONENTS) for i, s in enumerate(problem.sensors)}
+
+
+def initial_effects(problem) -> dict:
+    """{sensor: {component: sigma}} where VCE starts."""
+    return {i: {c: _START[c] for c in comp} for i, comp in components(problem).items()}
+
+
+def effect_sigmas(problem, effects: dict) -> np.ndarray:
+    """(Nsensors,6) prior sigmas of D for graph.build from {sensor: {component: sigma}}."""
+    out = np.full((len(problem.sensors), 6), _UNSEEN)
+    for i, comp in components(problem).items():
+        for c, dofs in comp.items():
+            out[i, list(dofs)] = effects[i][c]
+    return out
+
+
+def _inv(M: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric positive definite M, Jacobi-scaled (its scales span 1e-8..1e10)."""
+    d = 1.0 / np.sqrt(np.diag(M))
+    return d[:, None] * np.linalg.inv(d[:, None] * M * d[None, :]) * d[None, :]
+
+
+class Linearization:
+    """The solve's Gauss-Newton system at ``values``, per factor and per snapshot.
+
+    Variables: the sensors (``variable_sensors`` order, 6 each) and, per snapshot k, its local
+    variables (board k and the D of its observations), which no other snapshot touches. Each
+    factor is kept as terms (snapshot or None, columns, group, A^T A, A^T b, b^T b, rows) in
+    gtsam's whitening at ``values``; ``weights`` rescale groups (VCE) without relinearizing.
+    Groups: ("white", sensor), ("effect", sensor, component), or None (priors, fixed).
+    """
+
+    def __init__(self, problem, g, values):
+        import gtsam
+
+        self.variable_sensors = [i for i in range(len(problem.sensors)) if i != problem.reference]
+        self.ns = 6 * len(self.variable_sensors)
+        sensor_col = {G.sensor_key(i): 6 * a for a, i in enumerate(self.variable_sensors)}
+        obs = {G.effect_key("lidar", j): o for j, o in enumerate(problem.lidar_observations)}
+        obs.update({G.effect_key("camera", j): o for j, o in enumerate(problem.camera_observations)})
+        obs_sensor = {k: o.sensor for k, o in obs.items()}
+        comp = components(problem)
+        self.local: dict[int, dict] = {}  # snapshot -> {key: column offset after the sensors}
+        self.terms = []
+        for f in range(g.size()):
+            factor = g.at(f)
+            lin = factor.linearize(values)
+            A, b = lin.jacobian()
+            keys = list(lin.keys())
+            syms = [gtsam.Symbol(k) for k in keys]
+            chars = [chr(s.chr()) for s in syms]
+            effect = next((k for k, c in zip(keys, chars) if c in "de"), None)
+            snapshot = obs[effect].snapshot if effect is not None else \
+                next((int(s.index()) for s, c in zip(syms, chars) if c == "b"), None)
+            if snapshot is not None:
+                loc = self.local.setdefault(snapshot, {})
+                for k, c in zip(keys, chars):
+                    if c in "bde" and k not in loc:
+                        loc[k] = 6 * len(loc)
+            cols = np.concatenate([np.arange(6) + (sensor_col[k] if c == "s" else self.ns + self.local[snapshot][k])
+                                   for k, c in zip(keys, chars)])
+            is_prior = "PriorFactor" in type(factor).__name__
+            if effect is not None and is_prior:  # D's prior: rows are D's DOFs, one group per component
+                i = obs_sensor[effect]
+                rows_of = {("effect", i, c): list(d) for c, d in comp[i].items()}
+                rows_of[None] = [d for d in range(6) if not any(d in x for x in comp[i].values())]
+            elif effect is not None:
+                rows_of = {("white", obs_sensor[effect]): list(range(len(b)))}
+            else:
+                rows_of = {None: list(range(len(b)))}
+            for group, rows in rows_of.items():
+                Ar, br = A[rows], b[rows]
+                n = int(np.count_nonzero(np.any(Ar != 0, axis=1)))  # masked corners are zero rows
+                self.terms.append((snapshot, cols, group, Ar.T @ Ar, Ar.T @ br, float(br @ br), n))
+        self.groups = sorted({t[2] for t in self.terms if t[2] is not None}, key=str)
+
+    def _by_group(self):
+        """{snapshot or None: {group: (M, v)}}, M, v over [sensors, the snapshot's locals]: the
+        normal equations split by group, so reweighting is a weighted sum (computed once)."""
+        if getattr(self, "_groups_cache", None) is None:
+            out: dict = {}
+            for snapshot, cols, group, AtA, Atb, btb, rows in self.terms:
+                n = self.ns + (6 * len(self.local[snapshot]) if snapshot is not None else 0)
+                acc = out.setdefault(snapshot, {}).setdefault(group, [np.zeros((n, n)), np.zeros(n), 0.0, 0])
+                acc[0][np.ix_(cols, cols)] += AtA
+                acc[1][cols] += Atb
+                acc[2] += btb
+                acc[3] += rows
+            self._groups_cache = out
+        return self._groups_cache
+
+    def _blocks(self, weights):
+        """Per snapshot (M, v) over [sensors, its locals]; and the sensor-only (M0, v0)."""
+        blocks = {}
+        for snapshot, parts in self._by_group().items():
+            blocks[snapshot] = (sum(weights.get(g, 1.0) * p[0] for g, p in parts.items()),
+                                sum(weights.get(g, 1.0) * p[1] for g, p in parts.items()))
+        M0, v0 = blocks.pop(None, (np.zeros((self.ns, self.ns)), np.zeros(self.ns)))
+        return M0, v0, blocks
+
+    def _schur(self, M, v):
+        """This snapshot's contribution to the sensor-only information and vector."""
+        ns = self.ns
+        iL = _inv(M[ns:, ns:])
+        K = M[:ns, ns:] @ iL
+        return M[:ns, :ns] - K @ M[ns:, :ns], v[:ns] - K @ v[ns:], iL
+
+    def reduced(self, weights=None):
+        """(S, r, {snapshot: (S_k, r_k)}): sensor-only normal equations S dx = r, the boards and
+        D marginalized out (Schur), and each snapshot's share of them."""
+        M0, v0, blocks = self._blocks(weights or {})
+        parts = {k: self._schur(M, v)[:2] for k, (M, v) in blocks.items()}
+        S = M0 + sum((p[0] for p in parts.values()), np.zeros_like(M0))
+        r = v0 + sum((p[1] for p in parts.values()), np.zeros_like(v0))
+        return S, r, parts
+
+    def solve_and_trace(self, weights):
+        """Per group: (n rows, v^T W v at the step's solution, tr(W A Cov A^T)), for VCE."""
+        ns = self.ns
+        M0, v0, blocks = self._blocks(weights)
+        S, r = M0.copy(), v0.copy()
+        schur = {}
+        for k, (M, v) in blocks.items():
+            S_k, r_k, iL = self._schur(M, v)
+            S += S_k
+            r += r_k
+            schur[k] = iL
+        Css = _inv(S) if ns else np.zeros((0, 0))
+        dx_s = Css @ r
+        step, cov = {None: dx_s}, {None: Css}
+        for k, (M, v) in blocks.items():
+            iL = schur[k]
+            dx_l = iL @ (v[ns:] - M[ns:, :ns] @ dx_s)
+            C_ls = -iL @ M[ns:, :ns] @ Css
+            C_ll = iL - C_ls @ M[:ns, ns:] @ iL
+            step[k] = np.r_[dx_s, dx_l]
+            cov[k] = np.block([[Css, C_ls.T], [C_ls, C_ll]])
+        out: dict = {}
+        for snapshot, parts in self._by_group().items():
+            x, C = step[snapshot], cov[snapshot]
+            for group, (M, v, btb, n) in parts.items():
+                if group is None:
+                    continue
+                w = weights.get(group, 1.0)
+                acc = out.setdefault(group, [0, 0.0, 0.0])
+                acc[0] += n
+                acc[1] += w * float(x @ M @ x - 2 * x @ v + btb)
+                acc[2] += w * float(np.sum(M * C))
+        return out
+
+
+def estimate_components(problem, lin: Linearization, sig: np.ndarray, effects: dict):
+    """Foerstner VCE on ``lin`` (built with white sigmas ``sig`` and ``effects``): new
+    (sig (Nsensors,), effects {sensor: {component: sigma}}, info {group: redundancy})."""
+    base = {}
+    for group in lin.groups:
+        base[group] = sig[group[1]] if group[0] == "white" else effects[group[1]][group[2]]
+    floor = {g: (_white_floor(problem, g) if g[0] == "white" else _FLOOR[g[2]]) for g in base}
+    # A component is estimated only if the data show it: with every D held near zero (at the
+    # floor), the D residuals' chi^2 per D DOF, F, is ~1 +- sqrt(2/n) without it (test: F >
+    # 1 + 3 sqrt(2/n)). Chance values of a component that is not there only inflate the sigmas.
+    at_floor = {g: (1.0 if g[0] == "white" else (base[g] / floor[g]) ** 2) for g in base}
+    stats = lin.solve_and_trace(at_floor)
+    shown = {g for g, (n, q, tr) in stats.items()
+             if g[0] == "effect" and n and n - tr > 0 and q / (n - tr) > 1 + _SIGNIFICANCE * np.sqrt(2.0 / n)}
+    w = {g: (1.0 if g[0] == "white" else (base[g] / max(base[g], _START[g[2]])) ** 2 if g in shown else at_floor[g])
+         for g in base}
+    fixed = {g for g in base if g[0] == "effect" and g not in shown}
+    red = {}
+    for _ in range(_MAX_VCE_ITERATIONS):
+        stats = lin.solve_and_trace(w)
+        change = 0.0
+        for g, (n, q, tr) in stats.items():
+            red[g] = n - tr
+            if g in fixed or red[g] < _MIN_REDUNDANCY or q <= 0:
+                continue
+            w_new = min(w[g] * red[g] / q, (base[g] / floor[g]) ** 2)
+            change = max(change, abs(np.sqrt(w[g] / w_new) - 1))
+            w[g] = w_new
+        if change < _VCE_TOL:
+            break
+    sig = np.array(sig, float).copy()
+    effects = {i: dict(e) for i, e in effects.items()}
+    for g, b in base.items():
+        s = b / np.sqrt(w[g])
+        if g[0] == "white":
+            sig[g[1]] = s
+        else:
+            effects[g[1]][g[2]] = s
+    return sig, effects, red
+
+
+def _white_floor(problem, group) -> float:
+    """The white sigma's floor (solve.py's: noise-free observations would get infinite weight)."""
+    from .solve import _MIN_SIGMA_CAMERA_PX, _MIN_SIGMA_LIDAR_M
+
+    return _MIN_SIGMA_LIDAR_M if problem.sensors[group[1]].is_lidar else _MIN_SIGMA_CAMERA_PX

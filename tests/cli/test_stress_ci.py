@@ -1,0 +1,41 @@
+"""Two small stress captures (bench/stress.py CI_CAPTURES) end to end through the `clcgraph`
+command with default settings, judged against the simulator's truth by the stress set's rule:
+right (0.1 deg / 5 mm and 3 sigma) or refused in one line naming the direction."""
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from bench import stress  # noqa: E402
+
+CI = {c.name: c for c in stress.CI_CAPTURES}
+
+
+def test_single_continuous_bag_needs_no_setting(tmp_path):
+    o = stress.run_capture(CI["ci-continuous-lidars"], build=tmp_path)
+    assert o.verdict == "ok", (o.verdict, o.detail, o.rot_deg, o.trans_mm, o.max_z)
+    assert o.rot_deg < 0.1 and o.trans_mm < 5.0 and o.max_z < 3.0
+
+
+def test_vertical_boards_are_refused_naming_the_direction(tmp_path):
+    o = stress.run_capture(CI["ci-vertical-boards"], build=tmp_path)
+    assert o.verdict == "refused", (o.verdict, o.detail)
+    assert "/lidar/front/points" in o.detail and "= z" in o.detail, o.detail
+
+
+@pytest.mark.parametrize("c", stress.CAPTURES + stress.CI_CAPTURES, ids=lambda c: c.name)
+def test_every_capture_recipe_loads(c, tmp_path):
+    """Each recipe's rig is a valid rig file (so the whole set cannot break unseen)."""
+    if c.drive is not None:
+        return
+    import yaml
+
+    from clcgraph.sim.rig import load_rig
+
+    rig = {**c.rig, **({"board": c.board} if c.board else {})}
+    stress._write_lenses(tmp_path, rig)
+    (tmp_path / "rig.yaml").write_text(yaml.safe_dump(rig))
+    r = load_rig(tmp_path / "rig.yaml")
+    assert [x.topic for x in r.lidars] == [x["topic"] for x in c.rig["lidars"]]

@@ -1,0 +1,243 @@
+"""The noise model with a per-observation part (backend/noise.py), the jackknife check
+(backend/jackknife.py), and the simulator's correlated errors they are tested against."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from clcgraph.config import Config
+from clcgraph.sim.observations import CorrelatedErrors, make_rig, simulate_problem
+
+
+def _solve(problem, **options):
+    from clcgraph.backend.solve import calibrate
+
+    # the per-observation model (off by default until it keeps independent noise within 1.3x)
+    return calibrate(problem, dataclasses.replace(Config().solve, **{"observation_effects": True, **options}))
+
+
+def _z(res, truth):
+    """(N,) rt errors over the reported sigma along each sensor's principal axes."""
+    out = []
+    for i in res.variable_sensors():
+        e = np.asarray(res.rt_lidar0_sensor[i]) - truth.rt_lidar0_sensor[i]
+        C = res.covariance_block(i)
+        for part in (slice(0, 3), slice(3, 6)):
+            lam, V = np.linalg.eigh(C[part, part])
+            out.extend((e[part] @ V) / np.sqrt(lam))
+    return np.array(out)
+
+
+def _shift_lidar_boards(problem, truth, sigma_m, rng):
+    """Each LIDAR observation's board moved along its normal by its own N(0, sigma_m): the
+    points slide along their rays (a per-observation plane-offset error)."""
+    from clcgraph.geometry import R_from_r, compose_rt, invert_rt
+    from clcgraph.sim.observations import plane_fit
+    from clcgraph.types import LidarBoardObservation
+
+    out = []
+    for o in problem.lidar_observations:
+        rt_s_b = compose_rt(invert_rt(truth.rt_lidar0_sensor[o.sensor]), truth.rt_lidar0_board[o.snapshot])
+        n = R_from_r(rt_s_b[:3])[:, 2]
+        u = o.points / np.linalg.norm(o.points, axis=1, keepdims=True)
+        p = o.points + u * (rng.normal(0, sigma_m) / (u @ n))[:, None]
+        plane, rms = plane_fit(p)
+        out.append(LidarBoardObservation(o.sensor, o.snapshot, p, plane, rms))
+    return dataclasses.replace(problem, lidar_observations=tuple(out))
+
+
+@pytest.fixture(scope="module")
+def independent():
+    problem, truth = simulate_problem(rig=make_rig(2, 2), n_snapshots=16, seed=5)
+    return problem, truth, _solve(problem), _solve(problem, observation_effects=False)
+
+
+def test_vce_finds_per_observation_plane_offsets_and_keeps_the_sigma_honest():
+    rng = np.random.default_rng(7)
+    problem, truth = simulate_problem(rig=make_rig(2, 1), n_snapshots=24, seed=8)
+    shifted = _shift_lidar_boards(problem, truth, 0.006, rng)
+    res = _solve(shifted)
+    for i in (0, 1):  # 20-24 boards per LIDAR: the sigma of 6 mm comes back to ~ +-30 %
+        assert 0.004 < res.noise["observation_effects"][i]["offset_m"] < 0.008, res.noise["observation_effects"]
+        assert res.noise["per_sensor"][i] == pytest.approx(0.015, rel=0.05)  # the white part stays white
+    assert np.all(np.abs(_z(res, truth)) < 3.5), _z(res, truth)
+    white = _solve(shifted, observation_effects=False)
+    # the white model trusts 1000 points per board: its sigmas are several times too small,
+    # and its own jackknife says so
+    assert np.max(np.abs(_z(white, truth))) > 4
+    assert np.median([r for s in white.jackknife["sensors"].values() for r in s["position_ratio"]]) > 2
+    assert 0.6 < np.median([r for s in res.jackknife["sensors"].values() for r in s["position_ratio"]]) < 1.6
+
+
+@pytest.mark.xfail(strict=True, reason="known (issue 12): a chance variance component inflates one camera "
+                   "translation axis 1.38x on this independent-noise capture (goal <= 1.3x)")
+def test_independent_noise_is_not_inflated(independent):
+    problem, truth, res, white = independent
+    sd, sd_white = np.sqrt(np.diag(res.covariance_rt)), np.sqrt(np.diag(white.covariance_rt))
+    assert np.all(sd / sd_white < 1.3) and np.all(sd / sd_white >= 0.99), sd / sd_white
+    for i, e in res.noise["observation_effects"].items():  # nothing to find: every component small
+        for c, s in e.items():
+            assert s < (2e-3 if c.endswith("rad") else 1e-3), (i, c, s)
+    assert res.rms["normalized"] == pytest.approx(1.0, abs=0.05)
+
+
+def test_reduced_information_is_the_marginal_covariance(independent):
+    # the Schur-reduced normal equations the jackknife uses are the solve's own covariance
+    from clcgraph.backend import graph as G
+    from clcgraph.backend import noise as N
+    from clcgraph.geometry import drt_dxi
+
+    problem, truth, res, _ = independent
+    g, v = G.build(problem, G.Active.all(problem), res.rt_lidar0_sensor, res.rt_lidar0_board, lidar="range",
+                   sigma_lidar_m=np.array([res.noise["per_sensor"][i] for i in range(4)]),
+                   sigma_camera_px=np.array([res.noise["per_sensor"][i] for i in range(4)]), options=Config().solve,
+                   effects=N.effect_sigmas(problem, res.noise["observation_effects"]))
+    import gtsam
+
+    v = gtsam.LevenbergMarquardtOptimizer(g, v).optimize()  # the D variables at their optimum
+    S, r, parts = N.Linearization(problem, g, v).reduced()
+    assert len(parts) == 16 and np.abs(np.linalg.solve(S, r)).max() < 1e-6  # at the optimum
+    J = np.zeros_like(S)
+    for a, i in enumerate(res.variable_sensors()):
+        J[6 * a:6 * a + 6, 6 * a:6 * a + 6] = drt_dxi(res.rt_lidar0_sensor[i])
+    np.testing.assert_allclose(J @ np.linalg.inv(S) @ J.T, res.covariance_rt, rtol=0.02,
+                               atol=1e-3 * np.abs(res.covariance_rt).max())
+
+
+@pytest.mark.parametrize("effects", [False, True])
+def test_one_step_jackknife_matches_a_resolve_without_the_snapshot(effects):
+    problem, truth = simulate_problem(rig=make_rig(2, 1), n_snapshots=10, seed=4,
+                                      errors=dataclasses.replace(CorrelatedErrors(), corner_bias_px=0.2, board_warp_m=0.003))
+    fixed = dict(reestimate_noise=False, reject_outliers=False, observation_effects=effects)
+    res = _solve(problem, **fixed)
+    jk = res.jackknife
+    assert jk["n_snapshots"] == 10 and not jk["indispensable_snapshots"]
+    sd = np.sqrt(np.diag(res.covariance_rt))
+    idx = res.variable_sensors()
+    for k in (jk["largest_influence"]["snapshot"], 5):
+        without = dataclasses.replace(problem, lidar_observations=tuple(o for o in problem.lidar_observations if o.snapshot != k),
+                                      camera_observations=tuple(o for o in problem.camera_observations if o.snapshot != k))
+        # the effects' sigmas are re-estimated by the re-solve, held by the one-step: a little looser
+        moved = np.asarray(_solve(without, **fixed).rt_lidar0_sensor)[idx] - np.asarray(res.rt_lidar0_sensor)[idx]
+        assert np.all(np.abs(moved.ravel() - jk["moves_rt"][k]) < (0.2 if effects else 0.03) * sd)
+        assert np.max(np.abs(moved.ravel()) / sd) > 0.3  # the check is not trivially met
+
+
+def test_calibration_yaml_and_report_carry_the_check(independent, tmp_path):
+    from clcgraph.outputs.report import report_html
+    from clcgraph.outputs.results import calibration_dict
+
+    problem, _, res, _ = independent
+    d = calibration_dict(res)["uncertainty_check"]
+    assert d["camera_intrinsics_uncertainty"] == "not included"
+    jk = d["jackknife"]
+    assert jk["n_snapshots"] == 16 and set(jk["sensors"]) == {s.topic for s in problem.sensors[1:]}
+    s = jk["sensors"]["/lidar1"]
+    np.testing.assert_allclose(np.array(s["position_jackknife_mm"]) / s["position_model_mm"], s["position_ratio"])
+    assert np.allclose(np.array(s["position_axes"]) @ np.array(s["position_axes"]).T, np.eye(3), atol=1e-9)
+    w = jk["largest_influence"]
+    assert w["position_mm"] == max(x["largest_influence"]["position_mm"] for x in jk["sensors"].values())
+    assert set(d["noise_model"]["/lidar0"]) == {"tilt_rad", "offset_m"}
+    import yaml
+
+    yaml.safe_dump(d)  # plain types only
+    page = report_html(res, {})
+    assert "Uncertainty check" in page and f"Snapshot {w['snapshot']} moves" in page
+
+
+def _ring_of(points, elevations):
+    el = np.arctan2(points[:, 2], np.linalg.norm(points[:, :2], axis=1))
+    return np.argmin(np.abs(el[:, None] - np.asarray(elevations)[None, :]), axis=1)
+
+
+def test_simulator_ring_bias_and_elevation_errors():
+    from clcgraph.backend.graph import residuals
+
+    rig = make_rig(1, 1)
+    only = dict(sigma_lidar_m=0.0, sigma_camera_px=0.0, n_snapshots=8, seed=2, rig=rig)
+    p, t = simulate_problem(errors=CorrelatedErrors(ring_range_bias_m=0.02), **only)
+    lid, _ = residuals(p, t.rt_lidar0_sensor, t.rt_lidar0_board)
+    per_ring = {}
+    for o, r in zip(p.lidar_observations, lid):
+        for ring, x in zip(_ring_of(o.points, rig.lidars[0].elevations_rad), r):
+            per_ring.setdefault(ring, []).append(x)
+    spread_within = max(np.ptp(v) for v in per_ring.values())
+    means = [np.mean(v) for v in per_ring.values()]
+    assert spread_within < 1e-9 and 0.005 < np.std(means) < 0.05  # one bias per ring, for every board
+    p, t = simulate_problem(errors=CorrelatedErrors(ring_elevation_deg=0.1), **only)
+    lid, _ = residuals(p, t.rt_lidar0_sensor, t.rt_lidar0_board)
+    r = np.concatenate(lid)
+    assert 1e-3 < np.abs(r).max() < 0.1  # 0.1 deg at a few m on tilted boards: mm to cm
+
+
+def test_simulator_board_warp_mixed_pixels_corner_bias_and_lens_field():
+    from clcgraph.backend.graph import residuals
+
+    only = dict(sigma_lidar_m=0.0, sigma_camera_px=0.0, n_snapshots=8, seed=2, rig=make_rig(1, 2))
+    p, t = simulate_problem(errors=CorrelatedErrors(board_warp_m=0.004), **only)
+    lid, cam = residuals(p, t.rt_lidar0_sensor, t.rt_lidar0_board)
+    r = np.concatenate(lid)
+    assert r.min() > -1e-12 and 0.003 < r.max() < 0.004 / np.cos(np.radians(60))  # farther, up to the bow
+    assert all(np.abs(c).max() > 0.01 for c in cam)  # the corners off the flat board too
+    p, t = simulate_problem(errors=CorrelatedErrors(mixed_pixel_m=0.05), **only)
+    lid, _ = residuals(p, t.rt_lidar0_sensor, t.rt_lidar0_board)
+    for r in lid:  # a few edge points per ring are farther, the rest exact
+        assert 0 < np.mean(r > 1e-9) < 0.35 and r.min() > -1e-12 and r.max() <= 0.05
+    p, t = simulate_problem(errors=CorrelatedErrors(corner_bias_px=0.2), **only)
+    _, cam = residuals(p, t.rt_lidar0_sensor, t.rt_lidar0_board)
+    shifts = np.array([c.mean(axis=0) for c in cam])
+    assert max(np.abs(c - c.mean(axis=0)).max() for c in cam) < 1e-6  # one shift per board
+    assert 0.08 < np.std(shifts) < 0.4
+    p, t = simulate_problem(errors=CorrelatedErrors(lens_field_px=0.4), **only)
+    _, cam = residuals(p, t.rt_lidar0_sensor, t.rt_lidar0_board)
+    for c in cam:  # smooth: neighbouring corners (~10-60 px apart) nearly share their error
+        g = c.reshape(10, 10, 2)
+        assert np.abs(np.diff(g, axis=1)).max() < 0.25 * np.abs(c).max() + 1e-3
+    assert 0.15 < max(np.abs(c).max() for c in cam) < 0.8
+
+
+@pytest.mark.slow
+def test_monte_carlo_with_correlated_errors_fast_version():
+    # The small CI version of bench/bench_uncertainty.py (which runs >= 200 trials).
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from bench.bench_uncertainty import RIGS, trial
+
+    z = np.concatenate([trial(shape, "per-observation", True, seed=2000 + 10 * r + k)["z"]
+                        for r, shape in enumerate(RIGS) for k in range(2)])
+    assert np.mean(np.abs(z) <= 3) >= 0.93 and 0.5 < np.mean(z**2) < 1.8, (np.mean(np.abs(z) <= 3), np.mean(z**2))
+
+
+def test_ray_casting_lidar_ring_errors():
+    # The full simulator's LIDAR (sim/lidar.py): a fixed range bias and elevation error per ring,
+    # the same in every scan of one unit; points reported along the nominal rays.
+    from clcgraph.sim.lidar import LidarModel, simulate_scan
+
+    class Ground:  # the plane z = -2 under the sensor
+        board_id = -2
+
+        def cast(self, rays):
+            dz = rays[:, 5]
+            t = np.where(dz < -1e-3, (-2.0 - rays[:, 2]) / np.where(dz < -1e-3, dz, -1.0), np.inf)
+            return t, np.zeros(len(t), np.int64)
+
+    base = LidarModel.preset("vlp16", range_noise_m=0.0, dropout=0.0, layout="ouster", npoints_per_rotation=64)
+    exact, _ = simulate_scan(base, np.eye(4), Ground(), np.random.default_rng(0))
+    down = exact.valid & (exact.ring < 8)
+    assert np.abs(exact.points[down, 2] + 2).max() < 1e-6
+    biased = dataclasses.replace(base, ring_range_bias_m=0.02, errors_seed=4)
+    scan, _ = simulate_scan(biased, np.eye(4), Ground(), np.random.default_rng(0))
+    dr = np.linalg.norm(scan.points, axis=1) - np.linalg.norm(exact.points, axis=1)
+    bias = biased.ring_errors()[0]
+    np.testing.assert_allclose(dr[down], bias[scan.ring[down]], atol=1e-5)  # float32 ray casting
+    again, _ = simulate_scan(biased, np.eye(4), Ground(), np.random.default_rng(9))
+    np.testing.assert_allclose(again.points, scan.points)  # the unit's errors, not the scan's
+    tilted = dataclasses.replace(base, ring_elevation_error_deg=0.1, errors_seed=4)
+    scan, _ = simulate_scan(tilted, np.eye(4), Ground(), np.random.default_rng(0))
+    el_err = tilted.ring_errors()[1]
+    z = scan.points[down, 2]
+    # a beam that leaves higher than reported meets the ground farther: the point lands below it
+    assert np.all(np.sign(z + 2) == -np.sign(el_err[scan.ring[down]])) and 1e-3 < np.abs(z + 2).max() < 0.2
