@@ -259,7 +259,9 @@ def _solve_with_effects(problem, active, rt_sensor, rt_board, sig, options, nomi
         g, v = G.build(problem, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig, sigma_camera_px=sig,
                        options=options, board_nominal=nominal, effects=N.effect_sigmas(problem, effects),
                        effect_values=values)
-        new_sig, new_effects, _ = N.estimate_components(problem, N.Linearization(problem, g, v), sig, effects)
+        # which components the data show is decided once, on the first linearization
+        new_sig, new_effects, _ = N.estimate_components(problem, N.Linearization(problem, g, v), sig, effects,
+                                                        select=rnd == 0)
         change = max([float(np.max(np.abs(new_sig / sig - 1)))]
                      + [abs(new_effects[i][c] / effects[i][c] - 1) for i in effects for c in effects[i]])
         sig, effects = new_sig, new_effects
