@@ -139,6 +139,7 @@ def test_jackknife_ratio_range_follows_the_design(independent):
     assert inside >= n - 2, (inside, n)
 
 
+@pytest.mark.slow
 def test_expected_jackknife_variance_matches_sampling():
     # The model's mean and variance of the jackknife variance, against the jackknife of many
     # data sets drawn from the model itself (the linear system of a small capture).
