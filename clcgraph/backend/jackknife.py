@@ -92,8 +92,11 @@ def jackknife(problem, lin, rt_lidar0_sensor: np.ndarray, covariance_rt: np.ndar
     D = T - T.mean(axis=0)  # of the deviations from the mean move
 
     def expected_var(W):  # W (ns, a): directions in rt -> (E, Var) of the jackknife variance along each
-        a = np.einsum("kjxy,xa->akjy", D, J.T @ W)
-        cov = (n - 1) / n * np.einsum("akjx,jxy,aljy->akl", a, S_j, a)  # of the scaled moves along w
+        a = np.ascontiguousarray(np.tensordot(D, J.T @ W, axes=([2], [0])).transpose(3, 0, 1, 2))  # (a,k,j,x)
+        na, m = a.shape[0], a.shape[2]
+        aS = (a.transpose(2, 0, 1, 3).reshape(m, na * n, -1) @ S_j).reshape(m, na, n, -1).transpose(1, 2, 0, 3)
+        flat = a.reshape(na, n, -1)
+        cov = (n - 1) / n * (aS.reshape(na, n, -1) @ flat.transpose(0, 2, 1))  # of the moves along w, (a,k,l)
         return np.einsum("akk->a", cov), 2 * np.einsum("akl,alk->a", cov, cov)
 
     sensors, worst = {}, None
