@@ -20,6 +20,8 @@ each solved with and without the per-observation effects (solve.observation_effe
 from __future__ import annotations
 
 import dataclasses
+import json
+import os
 import sys
 import time
 
@@ -62,7 +64,8 @@ def trial(rig_shape, errors: str, effects: bool, seed: int, n_snapshots: int = 1
     return {"z": np.array(z), "ratio": np.array(ratio)}
 
 
-def run(trials_per_rig: int, cases=None, seed0: int = 1000) -> str:
+def run(trials_per_rig: int, cases=None, seed0: int = 1000, log=None) -> str:
+    """The table; ``log``: a path to append one JSON line per trial to (z, ratios) as it goes."""
     cases = cases or [(e, fx) for e in ("independent", "per-observation", "all") for fx in (True, False)]
     from clcgraph.errors import DegenerateError, SolveError
 
@@ -84,6 +87,10 @@ def run(trials_per_rig: int, cases=None, seed0: int = 1000) -> str:
                     continue
                 Z.append((shape, out["z"]))
                 R.append(out["ratio"])
+                if log:
+                    with open(log, "a") as f:
+                        f.write(json.dumps({"errors": errors, "effects": effects, "rig": shape, "seed": seed0 + 100 * r + k,
+                                            "z": out["z"].tolist(), "ratio": out["ratio"].tolist()}) + "\n")
                 n += 1
         per_axis = {}  # (rig, axis) -> z over trials: "per axis" as the issue asks
         for (shape, z) in Z:
@@ -105,7 +112,7 @@ def main() -> str:
     args = [a for a in sys.argv[1:] if a != "uncertainty"]
     trials = int(args[0]) if args and args[0].isdigit() else 5
     cases = [(c.split(":")[0], c.split(":")[1] == "on") for c in args[1:]] or None
-    return run(trials_per_rig=trials, cases=cases)
+    return run(trials_per_rig=trials, cases=cases, log=os.environ.get("CLCGRAPH_BENCH_LOG"))
 
 
 if __name__ == "__main__":

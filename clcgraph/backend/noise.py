@@ -10,14 +10,17 @@ detector's bias for a whole board, lens-model error at the same image position. 
 
 D is a Pose3 variable per (sensor, snapshot) observation (graph.effect_key) at the board's
 centre, with a zero-mean prior of per-sensor sigmas: for a LIDAR its plane tilt (omega_x,
-omega_y) and offset (v_z), the only DOFs a plane sees; for a camera all six (board-pose
-jitter). Marginalizing D gives each factor the covariance sigma^2 I + J_D Sigma_D J_D^T;
+omega_y) and offset (v_z), the only DOFs a plane sees (the in-plane ones pinned at zero); for
+a camera all six (board-pose jitter). Marginalizing D gives each factor the covariance sigma^2 I + J_D Sigma_D J_D^T;
 keeping D as a variable keeps the graph sparse and gtsam's Marginals exact.
 
 The variance components (per sensor: white sigma; LIDAR tilt, offset; camera rotation,
 translation) are estimated by Foerstner's iterative variance-component estimation (as the
 targetless graph does): sigma_c^2 <- v_c^T W_c v_c / r_c, with r_c = n_c - tr(W_c A_c Cov A_c^T)
-the redundancy of group c, on the linearization at the solution, then re-solved.
+the redundancy of group c, on the linearization at the solution, then re-solved. Its fixed
+point is the restricted-likelihood (REML) estimate; a component is kept only if the REML
+likelihood-ratio test against "every D at its floor" shows it (p < 1e-3 per component), so
+independent noise keeps the independent model's sigmas.
 
 SYNOPSIS
     lin = Linearization(problem, g, values)          # per-factor Jacobians, grouped
@@ -306,8 +309,12 @@ def estimate_components(problem, lin: Linearization, sig: np.ndarray, effects: d
     lr = {}
     if select:
         w0, _, m2l0 = _vce(lin, {g: (1.0 if g[0] == "white" else at_floor[g]) for g in base}, set(), base, floor)
+        stats0, _ = lin.solve_and_trace(w0)
         for g in at_floor:
-            lr[g] = m2l0 - _profile(lin, w0, g, base, floor)
+            # d(-2 log L)/d(log sigma_g^2) = r_g - q_g: if q_g <= r_g (its chi^2 per redundancy is at
+            # most 1), a larger sigma only lowers the likelihood from the floor on: nothing to find
+            n, q, tr = stats0[g]
+            lr[g] = m2l0 - _profile(lin, w0, g, base, floor) if q > n - tr else 0.0
         free = {g for g in at_floor if lr[g] >= _LR_CRITICAL}
         w = {**w0, **{g: (base[g] / max(base[g], _START[g[2]])) ** 2 for g in free}}
     else:
