@@ -74,8 +74,8 @@ def run(trials_per_rig: int, cases=None, seed0: int = 1000, log=None) -> str:
     for errors, effects in cases:
         t0 = time.perf_counter()
         Z, R, n, skipped, failed = [], [], 0, 0, 0
-        for r, shape in enumerate(RIGS):
-            for k in range(trials_per_rig):
+        for k in range(trials_per_rig):  # the rigs in turn: a run stopped early still covers all three
+            for r, shape in enumerate(RIGS):
                 try:
                     out = trial(shape, errors, effects, seed0 + 100 * r + k)
                 except DegenerateError:  # a capture that left a sensor undetermined: not a sample
