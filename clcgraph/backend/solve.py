@@ -51,7 +51,8 @@ _MAX_ROUNDS = 8
 _MIN_INLIER_SHARE = 0.5
 _MAX_EFFECT_ROUNDS = 3  # solve <-> variance components of the per-observation errors
 # The cost is ~ half the number of residuals: 1e-7 of it is far below what moves a pose by
-# a fraction of its sigma (a cost change of 0.5). (LM crept while a LIDAR D's in-plane DOFs were loose: noise._UNSEEN.)
+# a fraction of its sigma (a cost change of 0.5). (LM crept while a LIDAR D's in-plane DOFs
+# were loose: noise._UNSEEN.)
 _EFFECT_TOL = 1e-7
 _TIE_RATIO = 1.5  # deleted residuals this close cannot tell the culprit apart  # ... or whose points/corners are mostly beyond outlier_sigma
 
