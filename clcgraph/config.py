@@ -229,9 +229,10 @@ class SolveOptions:
     # Each observation's own board-pose error (a LIDAR's plane tilt and offset, a camera's
     # board-pose jitter), its sigmas estimated from the data: real errors are correlated
     # within one observation (docs/uncertainty.md; on the real ACFR captures it brings the
-    # sigmas to the jackknife's spread, where independent noise is 3-8x too small). Off by
-    # default for now: on independent noise it can inflate one axis up to ~1.4x (goal 1.3x).
-    observation_effects: bool = False
+    # sigmas to the jackknife's spread, where independent noise is 3-8x too small). A
+    # component is kept only if a likelihood-ratio test shows it, so on independent noise
+    # the sigmas stay those of the independent model. False: independent noise only.
+    observation_effects: bool = True
 
 
 @dataclass(frozen=True)

@@ -11,9 +11,21 @@ model's principal axes (per sensor, position in lidar0 and orientation, rt coord
 A ratio near 1 says the sigmas can be trusted; the largest single-snapshot move says which
 board to re-take.
 
+How near 1 it should be depends on the design: the jackknife overstates the variance of an
+unbalanced design (a board of high leverage moves the answer by more than its share), and
+along an axis where one board carries most of the information it is a one- or two-sample
+estimate. So the model's own prediction is reported beside it: if the model is right, the
+move k is linear in the independent parts of the data, ``sum_j T_kj r_j`` with
+``r_j ~ N(0, S_j)``, ``T_kj = (S - S_k)^-1 - S^-1`` and ``T_kk = -S^-1``, which gives the
+jackknife variance's mean and variance along each axis exactly: the ratio the model expects
+(``*_ratio_expected``, ~1.1-1.2 typically) and the range it falls in 95 % of the time
+(``*_ratio_expected_95``; Satterthwaite: a scaled chi^2 with ``*_jackknife_dof`` DOF).
+A ratio outside that range says the model is wrong along that axis.
+
 SYNOPSIS
     jk = jackknife(problem, lin, rt_lidar0_sensor, covariance_rt)
     jk["sensors"][2]["position_ratio"]      # jackknife / model sigma along the 3 principal axes
+    jk["sensors"][2]["position_ratio_expected_95"]  # (3,2): its 95 % range if the model is right
     jk["largest_influence"]                  # {"sensor", "snapshot", "position_mm", "orientation_deg"}
 """
 
@@ -26,13 +38,23 @@ from ..geometry import drt_dxi
 _MIN_SNAPSHOTS = 4  # fewer: the spread says nothing
 
 
-def _axes(C_model: np.ndarray, C_jk: np.ndarray, scale: float) -> dict:
+def _axes(C_model: np.ndarray, C_jk: np.ndarray, scale: float, expected_var) -> dict:
+    """Per principal axis of C_model: the sigmas, their ratio, and the ratio the model expects:
+    ``expected_var(V)`` gives, per column of V, (E, Var) of the jackknife variance along it."""
+    from scipy.stats import chi2
+
     lam, V = np.linalg.eigh(C_model)
     V = V * np.sign(V[np.argmax(np.abs(V), axis=0), np.arange(3)])  # each axis' largest component positive
     model = np.sqrt(np.maximum(lam, 0.0))
     jk = np.sqrt(np.maximum(np.einsum("ia,ij,ja->a", V, C_jk, V), 0.0))
+    E, var = expected_var(V)
+    dof = 2 * E**2 / np.maximum(var, 1e-300)  # Satterthwaite: the jackknife variance ~ E chi2_dof / dof
+    safe = np.where(model > 0, model, 1.0)
+    centre = np.sqrt(E) / safe
+    q = np.stack([chi2.ppf(0.025, dof), chi2.ppf(0.975, dof)], axis=1) / dof[:, None]
     return {"axes": V.T, "model": model * scale, "jackknife": jk * scale,
-            "ratio": np.where(model > 0, jk / np.where(model > 0, model, 1.0), np.nan)}
+            "ratio": np.where(model > 0, jk / safe, np.nan), "dof": dof,
+            "expected": centre, "expected_95": centre[:, None] * np.sqrt(q)}
 
 
 def jackknife(problem, lin, rt_lidar0_sensor: np.ndarray, covariance_rt: np.ndarray) -> dict:
@@ -44,7 +66,8 @@ def jackknife(problem, lin, rt_lidar0_sensor: np.ndarray, covariance_rt: np.ndar
     J = np.zeros((lin.ns, lin.ns))  # tangent -> rt, per sensor
     for a, i in enumerate(lin.variable_sensors):
         J[6 * a:6 * a + 6, 6 * a:6 * a + 6] = drt_dxi(rt_lidar0_sensor[i])
-    moves, indispensable = {}, []
+    Si = np.linalg.inv(S)
+    moves, A, indispensable = {}, {}, []
     for k in sorted(parts):
         S_k, r_k = parts[k]
         try:
@@ -53,6 +76,7 @@ def jackknife(problem, lin, rt_lidar0_sensor: np.ndarray, covariance_rt: np.ndar
             indispensable.append(k)
             continue
         moves[k] = J @ (np.linalg.solve(S - S_k, r - r_k) - x_full)
+        A[k] = np.linalg.inv(S - S_k) - Si
     ks = sorted(moves)
     X = np.array([moves[k] for k in ks])
     n = len(ks)
@@ -60,20 +84,46 @@ def jackknife(problem, lin, rt_lidar0_sensor: np.ndarray, covariance_rt: np.ndar
         return {}
     dX = X - X.mean(axis=0)
     C_jk = (n - 1) / n * dX.T @ dX
+    # If the model is right, the move k is sum_j T_kj r_j over the independent parts r_j ~ N(0, S_j)
+    # (every snapshot, and the rest S_0 that is never left out): T_kj = A_k, T_kk = -S^-1.
+    js = sorted(parts)
+    S_j = np.array([parts[j][0] for j in js] + [S - sum(parts[j][0] for j in js)])
+    T = np.array([[-Si if j == k else A[k] for j in [*js, None]] for k in ks])  # (n, m, ns, ns)
+    D = T - T.mean(axis=0)  # of the deviations from the mean move
+
+    def expected_var(W):  # W (ns, a): directions in rt -> (E, Var) of the jackknife variance along each
+        a = np.ascontiguousarray(np.tensordot(D, J.T @ W, axes=([2], [0])).transpose(3, 0, 1, 2))  # (a,k,j,x)
+        na, m = a.shape[0], a.shape[2]
+        aS = (a.transpose(2, 0, 1, 3).reshape(m, na * n, -1) @ S_j).reshape(m, na, n, -1).transpose(1, 2, 0, 3)
+        flat = a.reshape(na, n, -1)
+        cov = (n - 1) / n * (aS.reshape(na, n, -1) @ flat.transpose(0, 2, 1))  # of the moves along w, (a,k,l)
+        return np.einsum("akk->a", cov), 2 * np.einsum("akl,alk->a", cov, cov)
+
     sensors, worst = {}, None
     for a, i in enumerate(lin.variable_sensors):
         blk = slice(6 * a, 6 * a + 6)
         Cm, Cj = np.asarray(covariance_rt)[blk, blk], C_jk[blk, blk]
-        pos = _axes(Cm[3:, 3:], Cj[3:, 3:], 1e3)
-        rot = _axes(Cm[:3, :3], Cj[:3, :3], np.degrees(1.0))
+        def along(part):
+            def f(V):
+                W = np.zeros((lin.ns, 3))
+                W[6 * a + part.start:6 * a + part.stop] = V
+                return expected_var(W)
+            return f
+
+        pos = _axes(Cm[3:, 3:], Cj[3:, 3:], 1e3, along(slice(3, 6)))
+        rot = _axes(Cm[:3, :3], Cj[:3, :3], np.degrees(1.0), along(slice(0, 3)))
         dp = np.linalg.norm(X[:, 6 * a + 3:6 * a + 6], axis=1) * 1e3
         dr = np.degrees(np.linalg.norm(X[:, 6 * a:6 * a + 3], axis=1))
         m = int(np.argmax(dp))
         big = {"snapshot": int(ks[m]), "position_mm": float(dp[m]), "orientation_deg": float(dr[m])}
         sensors[i] = {"position_axes": pos["axes"], "position_model_mm": pos["model"],
                       "position_jackknife_mm": pos["jackknife"], "position_ratio": pos["ratio"],
+                      "position_ratio_expected": pos["expected"], "position_ratio_expected_95": pos["expected_95"],
+                      "position_jackknife_dof": pos["dof"],
                       "orientation_axes": rot["axes"], "orientation_model_deg": rot["model"],
                       "orientation_jackknife_deg": rot["jackknife"], "orientation_ratio": rot["ratio"],
+                      "orientation_ratio_expected": rot["expected"], "orientation_ratio_expected_95": rot["expected_95"],
+                      "orientation_jackknife_dof": rot["dof"],
                       "largest_influence": big}
         if worst is None or big["position_mm"] > worst["position_mm"]:
             worst = {"sensor": i, **big}

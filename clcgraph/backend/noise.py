@@ -10,14 +10,17 @@ detector's bias for a whole board, lens-model error at the same image position. 
 
 D is a Pose3 variable per (sensor, snapshot) observation (graph.effect_key) at the board's
 centre, with a zero-mean prior of per-sensor sigmas: for a LIDAR its plane tilt (omega_x,
-omega_y) and offset (v_z), the only DOFs a plane sees; for a camera all six (board-pose
-jitter). Marginalizing D gives each factor the covariance sigma^2 I + J_D Sigma_D J_D^T;
+omega_y) and offset (v_z), the only DOFs a plane sees (the in-plane ones pinned at zero); for
+a camera all six (board-pose jitter). Marginalizing D gives each factor the covariance sigma^2 I + J_D Sigma_D J_D^T;
 keeping D as a variable keeps the graph sparse and gtsam's Marginals exact.
 
 The variance components (per sensor: white sigma; LIDAR tilt, offset; camera rotation,
 translation) are estimated by Foerstner's iterative variance-component estimation (as the
 targetless graph does): sigma_c^2 <- v_c^T W_c v_c / r_c, with r_c = n_c - tr(W_c A_c Cov A_c^T)
-the redundancy of group c, on the linearization at the solution, then re-solved.
+the redundancy of group c, on the linearization at the solution, then re-solved. Its fixed
+point is the restricted-likelihood (REML) estimate; a component is kept only if the REML
+likelihood-ratio test against "every D at its floor" shows it (p < 1e-3 per component), so
+independent noise keeps the independent model's sigmas.
 
 SYNOPSIS
     lin = Linearization(problem, g, values)          # per-factor Jacobians, grouped
@@ -38,15 +41,20 @@ log = logging.getLogger(__name__)
 # D's DOFs (board-centre tangent [omega, v]) each variance component covers
 LIDAR_COMPONENTS = {"tilt_rad": (0, 1), "offset_m": (5,)}
 CAMERA_COMPONENTS = {"rotation_rad": (0, 1, 2), "translation_m": (3, 4, 5)}
-# The prior sigma of D's DOFs a LIDAR cannot see (in-plane): no observation touches them,
-# so their posterior is this prior and nothing else depends on it.
-_UNSEEN = 1.0
+# The prior sigma of D's DOFs a LIDAR cannot see (in-plane): pinned at zero. Loose, they are
+# not free: with the plane tilted by D, an in-plane shift of the centre moves the plane
+# (second order), and a LIDAR's D wandered there (leave-one-out re-solves on the real ACFR
+# run 2 moved the camera 2.4x more than the linearized jackknife said).
+_UNSEEN = 1e-4
 # Where VCE starts (a real board's plane is good to ~1 mrad / a few mm) and the floor: below
 # these a component adds nothing to the covariance, and an exact prior would be singular.
 _START = {"tilt_rad": 1e-3, "offset_m": 3e-3, "rotation_rad": 1e-3, "translation_m": 3e-3}
 _FLOOR = {"tilt_rad": 1e-4, "offset_m": 1e-4, "rotation_rad": 1e-4, "translation_m": 1e-4}
 _MIN_REDUNDANCY = 0.5  # a component the data hardly see keeps its value
-_SIGNIFICANCE = 3.0  # standard deviations of F above 1 (estimate_components); 2 inflated independent-noise sigmas 1.4x
+# Likelihood-ratio statistic (-2 log, REML) a component must reach to be kept: a variance on
+# the boundary (zero) has the null distribution 0.5 chi2_0 + 0.5 chi2_1, so 9.55 is p = 1e-3
+# per component (a rig has up to ~10 of them).
+_LR_CRITICAL = 9.55
 _MAX_VCE_ITERATIONS = 40
 _VCE_TOL = 0.003  # relative change of every sigma
 
@@ -155,11 +163,13 @@ class Linearization:
         return M0, v0, blocks
 
     def _schur(self, M, v):
-        """This snapshot's contribution to the sensor-only information and vector."""
+        """This snapshot's contribution to the sensor-only information and vector, the inverse of
+        its local block and that block's log-determinant."""
         ns = self.ns
-        iL = _inv(M[ns:, ns:])
+        L = M[ns:, ns:]
+        iL = _inv(L)
         K = M[:ns, ns:] @ iL
-        return M[:ns, :ns] - K @ M[ns:, :ns], v[:ns] - K @ v[ns:], iL
+        return M[:ns, :ns] - K @ M[ns:, :ns], v[:ns] - K @ v[ns:], iL, _logdet(L)
 
     def reduced(self, weights=None):
         """(S, r, {snapshot: (S_k, r_k)}): sensor-only normal equations S dx = r, the boards and
@@ -170,71 +180,147 @@ class Linearization:
         r = v0 + sum((p[1] for p in parts.values()), np.zeros_like(v0))
         return S, r, parts
 
-    def solve_and_trace(self, weights):
-        """Per group: (n rows, v^T W v at the step's solution, tr(W A Cov A^T)), for VCE."""
+    def _batches(self):
+        """The per-group normal equations stacked over the snapshots whose locals have the same
+        size, for solve_and_trace: [(groups, M (G,K,n,n), v (G,K,n), btb (G,K), rows (G,K))],
+        and the sensor-only (groups, M0 (G,ns,ns), v0 (G,ns), btb (G,), rows (G,))."""
+        if getattr(self, "_batch_cache", None) is None:
+            parts = self._by_group()
+            groups = [None, *self.groups]
+            by_size: dict = {}
+            for k in parts:
+                if k is not None:
+                    by_size.setdefault(len(self.local[k]), []).append(k)
+            batches = []
+            for size, ks in sorted(by_size.items()):
+                n = self.ns + 6 * size
+                M, v = np.zeros((len(groups), len(ks), n, n)), np.zeros((len(groups), len(ks), n))
+                btb, rows = np.zeros((len(groups), len(ks))), np.zeros((len(groups), len(ks)))
+                for a, g in enumerate(groups):
+                    for b, k in enumerate(ks):
+                        if g in parts[k]:
+                            M[a, b], v[a, b], btb[a, b], rows[a, b] = parts[k][g]
+                batches.append((M, v, btb, rows))
+            ns, G0 = self.ns, parts.get(None, {})
+            zero = (np.zeros((ns, ns)), np.zeros(ns), 0.0, 0)
+            sensor_only = tuple(np.array([G0.get(g, zero)[i] for g in groups], float) for i in range(4))
+            self._batch_cache = (groups, batches, sensor_only)
+        return self._batch_cache
+
+    def solve_and_trace(self, weights, trace: bool = True):
+        """(stats, m2l): per group, (n rows, v^T W v at the step's solution, tr(W A Cov A^T)) for
+        VCE (the trace 0 unless ``trace``); and -2 log of the restricted (REML) likelihood of the
+        weights, up to a constant: ``-sum_g n_g log w_g + log det N + v^T W v`` (N the normal
+        matrix of every variable; the D's are the random effects, their priors the rows of G^-1).
+        Vectorized over the snapshots (their local blocks stacked by size)."""
         ns = self.ns
-        M0, v0, blocks = self._blocks(weights)
-        S, r = M0.copy(), v0.copy()
-        schur = {}
-        for k, (M, v) in blocks.items():
-            S_k, r_k, iL = self._schur(M, v)
-            S += S_k
-            r += r_k
-            schur[k] = iL
+        groups, batches, (M0g, v0g, btb0, rows0) = self._batches()
+        wv = np.array([1.0 if g is None else weights.get(g, 1.0) for g in groups])
+        S, r = np.einsum("g,gij->ij", wv, M0g), wv @ v0g
+        logdet, solved = 0.0, []
+        for Mg, vg, _, _ in batches:
+            M, v = np.einsum("g,gkij->kij", wv, Mg), np.einsum("g,gki->ki", wv, vg)
+            L, B = M[:, ns:, ns:], M[:, :ns, ns:]
+            d = 1.0 / np.sqrt(np.diagonal(L, axis1=1, axis2=2))
+            Ls = d[:, :, None] * L * d[:, None, :]
+            logdet += float(2 * np.sum(np.log(np.diagonal(np.linalg.cholesky(Ls), axis1=1, axis2=2))) - 2 * np.sum(np.log(d)))
+            iL = d[:, :, None] * np.linalg.inv(Ls) * d[:, None, :]
+            K = B @ iL
+            S = S + np.sum(M[:, :ns, :ns] - K @ B.transpose(0, 2, 1), axis=0)
+            r = r + np.sum(v[:, :ns] - np.einsum("kij,kj->ki", K, v[:, ns:]), axis=0)
+            solved.append((M, v, B, iL))
         Css = _inv(S) if ns else np.zeros((0, 0))
+        logdet += _logdet(S) if ns else 0.0
         dx_s = Css @ r
-        step, cov = {None: dx_s}, {None: Css}
-        for k, (M, v) in blocks.items():
-            iL = schur[k]
-            dx_l = iL @ (v[ns:] - M[ns:, :ns] @ dx_s)
-            C_ls = -iL @ M[ns:, :ns] @ Css
-            C_ll = iL - C_ls @ M[:ns, ns:] @ iL
-            step[k] = np.r_[dx_s, dx_l]
-            cov[k] = np.block([[Css, C_ls.T], [C_ls, C_ll]])
-        out: dict = {}
-        for snapshot, parts in self._by_group().items():
-            x, C = step[snapshot], cov[snapshot]
-            for group, (M, v, btb, n) in parts.items():
-                if group is None:
-                    continue
-                w = weights.get(group, 1.0)
-                acc = out.setdefault(group, [0, 0.0, 0.0])
-                acc[0] += n
-                acc[1] += w * float(x @ M @ x - 2 * x @ v + btb)
-                acc[2] += w * float(np.sum(M * C))
-        return out
+        q = np.einsum("i,gij,j->g", dx_s, M0g, dx_s, optimize=True) - 2 * v0g @ dx_s + btb0
+        tr = np.einsum("gij,ij->g", M0g, Css) if trace else np.zeros(len(groups))
+        n = rows0.copy()
+        for (Mg, vg, btbg, rowsg), (M, v, B, iL) in zip(batches, solved):
+            dx_l = np.einsum("kij,kj->ki", iL, v[:, ns:] - np.einsum("kji,j->ki", B, dx_s))
+            x = np.concatenate([np.broadcast_to(dx_s, (len(dx_l), ns)), dx_l], axis=1)
+            q = q + np.sum(np.einsum("ki,gkij,kj->gk", x, Mg, x, optimize=True) - 2 * np.einsum("gki,ki->gk", vg, x) + btbg, axis=1)
+            if trace:
+                C_ls = -iL @ B.transpose(0, 2, 1) @ Css
+                C_ll = iL - C_ls @ B @ iL
+                tr = tr + np.einsum("gkij,kij->g", Mg[:, :, :ns, :ns], np.broadcast_to(Css, (len(x), ns, ns))) \
+                    + 2 * np.einsum("gkij,kij->g", Mg[:, :, ns:, :ns], C_ls) \
+                    + np.einsum("gkij,kij->g", Mg[:, :, ns:, ns:], C_ll)
+            n = n + np.sum(rowsg, axis=1)
+        q, tr = wv * q, wv * tr
+        m2l = logdet + float(np.sum(q)) - float(np.sum(n[1:] * np.log(wv[1:])))
+        out = {g: [int(n[a]), float(q[a]), float(tr[a])] for a, g in enumerate(groups) if g is not None}
+        return out, m2l
 
 
-def estimate_components(problem, lin: Linearization, sig: np.ndarray, effects: dict):
-    """Foerstner VCE on ``lin`` (built with white sigmas ``sig`` and ``effects``): new
-    (sig (Nsensors,), effects {sensor: {component: sigma}}, info {group: redundancy})."""
-    base = {}
-    for group in lin.groups:
-        base[group] = sig[group[1]] if group[0] == "white" else effects[group[1]][group[2]]
-    floor = {g: (_white_floor(problem, g) if g[0] == "white" else _FLOOR[g[2]]) for g in base}
-    # A component is estimated only if the data show it: with every D held near zero (at the
-    # floor), the D residuals' chi^2 per D DOF, F, is ~1 +- sqrt(2/n) without it (test: F >
-    # 1 + 3 sqrt(2/n)). Chance values of a component that is not there only inflate the sigmas.
-    at_floor = {g: (1.0 if g[0] == "white" else (base[g] / floor[g]) ** 2) for g in base}
-    stats = lin.solve_and_trace(at_floor)
-    shown = {g for g, (n, q, tr) in stats.items()
-             if g[0] == "effect" and n and n - tr > 0 and q / (n - tr) > 1 + _SIGNIFICANCE * np.sqrt(2.0 / n)}
-    w = {g: (1.0 if g[0] == "white" else (base[g] / max(base[g], _START[g[2]])) ** 2 if g in shown else at_floor[g])
-         for g in base}
-    fixed = {g for g in base if g[0] == "effect" and g not in shown}
-    red = {}
+def _logdet(M: np.ndarray) -> float:
+    """log det of a symmetric positive definite M, Jacobi-scaled like _inv."""
+    d = 1.0 / np.sqrt(np.diag(M))
+    return float(2 * np.sum(np.log(np.diag(np.linalg.cholesky(d[:, None] * M * d[None, :])))) - 2 * np.sum(np.log(d)))
+
+
+def _vce(lin: Linearization, w: dict, free: set, base: dict, floor: dict):
+    """Foerstner's iteration from weights ``w`` (a REML fixed point): the white groups and the
+    effect groups in ``free`` re-estimated, the others held. -> (w, redundancies, -2 log L_REML)."""
+    w, red = dict(w), {}
     for _ in range(_MAX_VCE_ITERATIONS):
-        stats = lin.solve_and_trace(w)
+        stats, _ = lin.solve_and_trace(w)
         change = 0.0
         for g, (n, q, tr) in stats.items():
             red[g] = n - tr
-            if g in fixed or red[g] < _MIN_REDUNDANCY or q <= 0:
+            if (g[0] == "effect" and g not in free) or red[g] < _MIN_REDUNDANCY or q <= 0:
                 continue
             w_new = min(w[g] * red[g] / q, (base[g] / floor[g]) ** 2)
             change = max(change, abs(np.sqrt(w[g] / w_new) - 1))
             w[g] = w_new
         if change < _VCE_TOL:
             break
+    return w, red, lin.solve_and_trace(w)[1]
+
+
+def _profile(lin: Linearization, w: dict, g, base: dict, floor: dict) -> float:
+    """min over component g's sigma of -2 log L_REML, the other weights held at ``w``: on a
+    log grid (3 per decade from the floor to 1000x it: 0.1 m or rad), then Foerstner's iteration
+    from the best point."""
+    grid = floor[g] * 10.0 ** (np.arange(1, 10) / 3.0)
+    m2l = [lin.solve_and_trace({**w, g: (base[g] / s) ** 2}, trace=False)[1] for s in grid]
+    best = int(np.argmin(m2l))
+    if best == 0:  # at the floor end: nothing to find
+        return float(m2l[0])
+    return min(float(m2l[best]), _vce(lin, {**w, g: (base[g] / grid[best]) ** 2}, {g}, base, floor)[2])
+
+
+def estimate_components(problem, lin: Linearization, sig: np.ndarray, effects: dict, *, select: bool = True):
+    """REML variance components on ``lin`` (built with white sigmas ``sig`` and ``effects``):
+    new (sig (Nsensors,), effects {sensor: {component: sigma}}, info {"redundancy": {group: r},
+    "lr": {group: likelihood-ratio statistic of the components kept}}). ``select=False``:
+    re-estimate the components above their floor, keep the others there (no tests)."""
+    base = {}
+    for group in lin.groups:
+        base[group] = sig[group[1]] if group[0] == "white" else effects[group[1]][group[2]]
+    floor = {g: (_white_floor(problem, g) if g[0] == "white" else _FLOOR[g[2]]) for g in base}
+    at_floor = {g: (base[g] / floor[g]) ** 2 for g in base if g[0] == "effect"}
+    # A component is kept only if the data show it: its restricted likelihood-ratio statistic
+    # against the model with every D at its floor (the white sigmas re-estimated, the other
+    # components held there) must reach _LR_CRITICAL. Each is tested alone, so two components
+    # that explain the same thing (a LIDAR's plane tilt and a camera's board rotation, both
+    # tilting the board between them) are both kept and the joint estimate shares it out
+    # smoothly, where eliminating one would flip between them from one subset of boards to
+    # the next. Chance values of a component that is not there only inflate the sigmas.
+    lr = {}
+    if select:
+        w0, _, m2l0 = _vce(lin, {g: (1.0 if g[0] == "white" else at_floor[g]) for g in base}, set(), base, floor)
+        stats0, _ = lin.solve_and_trace(w0)
+        for g in at_floor:
+            # d(-2 log L)/d(log sigma_g^2) = r_g - q_g: if q_g <= r_g (its chi^2 per redundancy is at
+            # most 1), a larger sigma only lowers the likelihood from the floor on: nothing to find
+            n, q, tr = stats0[g]
+            lr[g] = m2l0 - _profile(lin, w0, g, base, floor) if q > n - tr else 0.0
+        free = {g for g in at_floor if lr[g] >= _LR_CRITICAL}
+        w = {**w0, **{g: (base[g] / max(base[g], _START[g[2]])) ** 2 for g in free}}
+    else:
+        w = {g: 1.0 for g in base}
+        free = {g for g in at_floor if base[g] > floor[g] * (1 + 1e-9)}
+    w, red, _ = _vce(lin, w, free, base, floor)
     sig = np.array(sig, float).copy()
     effects = {i: dict(e) for i, e in effects.items()}
     for g, b in base.items():
@@ -243,7 +329,7 @@ def estimate_components(problem, lin: Linearization, sig: np.ndarray, effects: d
             sig[g[1]] = s
         else:
             effects[g[1]][g[2]] = s
-    return sig, effects, red
+    return sig, effects, {"redundancy": red, "lr": {g: x for g, x in lr.items() if g in free}}
 
 
 def _white_floor(problem, group) -> float:

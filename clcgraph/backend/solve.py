@@ -51,7 +51,8 @@ _MAX_ROUNDS = 8
 _MIN_INLIER_SHARE = 0.5
 _MAX_EFFECT_ROUNDS = 3  # solve <-> variance components of the per-observation errors
 # The cost is ~ half the number of residuals: 1e-7 of it is far below what moves a pose by
-# a fraction of its sigma (a cost change of 0.5), and the D variables make LM creep.
+# a fraction of its sigma (a cost change of 0.5). (LM crept while a LIDAR D's in-plane DOFs
+# were loose: noise._UNSEEN.)
 _EFFECT_TOL = 1e-7
 _TIE_RATIO = 1.5  # deleted residuals this close cannot tell the culprit apart  # ... or whose points/corners are mostly beyond outlier_sigma
 
@@ -259,7 +260,9 @@ def _solve_with_effects(problem, active, rt_sensor, rt_board, sig, options, nomi
         g, v = G.build(problem, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig, sigma_camera_px=sig,
                        options=options, board_nominal=nominal, effects=N.effect_sigmas(problem, effects),
                        effect_values=values)
-        new_sig, new_effects, _ = N.estimate_components(problem, N.Linearization(problem, g, v), sig, effects)
+        # which components the data show is decided once, on the first linearization
+        new_sig, new_effects, _ = N.estimate_components(problem, N.Linearization(problem, g, v), sig, effects,
+                                                        select=rnd == 0)
         change = max([float(np.max(np.abs(new_sig / sig - 1)))]
                      + [abs(new_effects[i][c] / effects[i][c] - 1) for i in effects for c in effects[i]])
         sig, effects = new_sig, new_effects
