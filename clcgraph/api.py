@@ -50,8 +50,6 @@ log = logging.getLogger(__name__)
 
 # Visibility points kept per LIDAR for the sector report (a subsample of one scan).
 _VISIBILITY_POINTS = 20000
-# Images per mrgingham call: big enough for its --jobs, small enough for a live progress bar.
-_DETECT_BATCH = 16
 
 
 # ---------------------------------------------------------------- inputs
@@ -174,7 +172,7 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
     """
     clock = StageClock(timings)
     from . import cameras
-    from .frontend.camera_board import choose_detector, detect_corners
+    from .frontend.camera_board import choose_detector
     from .frontend.snapshots import assemble_snapshots
 
     cfg = _config(config)
@@ -200,45 +198,58 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
         raise DataError(f"no usable snapshot in {len(paths)} bag(s): "
                         + (rejected[0].reason if rejected else "no messages on the topics"))
 
-    lidar_obs: list[LidarBoardObservation] = []
-    visibility: dict[int, np.ndarray] = {}
-    clock.start("segment")
-    for t in lidar_topics:
-        scans = [s.scans[t] for s in snaps if t in s.scans]
-        if scans and not any(sc.valid.any() for sc in scans):
-            raise DataError(f"topic {t}: every point of all {len(scans)} scans is invalid (NaN, inf or zero); "
-                            "is this LIDAR's driver writing its points?")
-    for i, t in enumerate(lidar_topics):
-        scans = [(s.index, s.scans[t]) for s in snaps if t in s.scans]
-        for k, r in zip([k for k, _ in scans], segment([sc for _, sc in scans], config=cfg, sensor=i,
-                                                      snapshots=[k for k, _ in scans], board=board)):
-            (lidar_obs if isinstance(r, LidarBoardObservation) else rejected).append(r)
-        if scans:
-            pts = scans[0][1].points[scans[0][1].valid]
-            step = max(1, len(pts) // _VISIBILITY_POINTS)
-            visibility[i] = np.asarray(pts[::step], float)
-
-    clock.stop()
-    camera_obs: list[CameraBoardObservation] = []
-    clock.start("detect")
+    # every camera's images, checked against their models before any work
+    cam_images: list[tuple[int, int, object]] = []  # (sensor index, snapshot, Image)
     for j, t in enumerate(camera_topics):
         i = len(lidar_topics) + j
-        ims = [(s.index, s.images[t]) for s in snaps if t in s.images]
         w, h = sensors[i].imagersize
-        for k, im in ims:
+        for s in snaps:
+            im = s.images.get(t)
+            if im is None:
+                continue
             if im.pixels.shape[:2] != (h, w):
                 raise DataError(f"topic {t}: images are {im.pixels.shape[1]}x{im.pixels.shape[0]} but its model "
                                 f"{models[j]} is {w}x{h}; give the model of this camera")
-        batches = [ims[k:k + _DETECT_BATCH] for k in range(0, len(ims), _DETECT_BATCH)]
-        found = [r for batch in progress(batches, desc=f"detecting {t}", unit="batch")
-                 for r in detect_corners([im for _, im in batch], cfg.detection, board)]
-        for (k, _), r in zip(ims, found):
+            cam_images.append((i, s.index, im))
+
+    from concurrent.futures import ThreadPoolExecutor
+
+    lidar_obs: list[LidarBoardObservation] = []
+    visibility: dict[int, np.ndarray] = {}
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="clcgraph-detect") as pool:
+        # the first detection pass (one mrgingham process for every image) runs while the LIDARs
+        # are segmented; its misses are retried below, where the LIDARs say a board can be
+        first = pool.submit(_first_detection_pass, [im for *_, im in cam_images], cfg.detection, board,
+                            clock.into) if cam_images else None
+        clock.start("segment")
+        for t in lidar_topics:
+            scans = [s.scans[t] for s in snaps if t in s.scans]
+            if scans and not any(sc.valid.any() for sc in scans):
+                raise DataError(f"topic {t}: every point of all {len(scans)} scans is invalid (NaN, inf or zero); "
+                                "is this LIDAR's driver writing its points?")
+        for i, t in enumerate(lidar_topics):
+            scans = [(s.index, s.scans[t]) for s in snaps if t in s.scans]
+            for k, r in zip([k for k, _ in scans], segment([sc for _, sc in scans], config=cfg, sensor=i,
+                                                          snapshots=[k for k, _ in scans], board=board)):
+                (lidar_obs if isinstance(r, LidarBoardObservation) else rejected).append(r)
+            if scans:
+                pts = scans[0][1].points[scans[0][1].valid]
+                step = max(1, len(pts) // _VISIBILITY_POINTS)
+                visibility[i] = np.asarray(pts[::step], float)
+        clock.stop()
+        detection = first.result() if first is not None else None
+
+    camera_obs: list[CameraBoardObservation] = []
+    if detection is not None:
+        with clock("detect"):
+            found = detection.retry(_board_regions(sensors, lidar_obs, cam_images, detection, cfg, board,
+                                                   1 + max(s.index for s in snaps)))
+        for (i, k, _), r in zip(cam_images, found):
             if isinstance(r, Rejected):
                 rejected.append(dataclasses.replace(r, sensor=i, snapshot=k))
             else:
                 camera_obs.append(CameraBoardObservation(sensor=i, snapshot=k, corners_px=np.asarray(r, float)))
 
-    clock.stop()
     # The seed's rule: a snapshot counts only if >= 2 sensors saw the board.
     seen: dict[int, int] = {}
     for o in [*lidar_obs, *camera_obs]:
@@ -299,6 +310,55 @@ def _report_snapshots(sensors, lidar_obs, camera_obs) -> set[int]:
     if lidars_at:
         keep.add(max(lidars_at, key=lambda k: (lidars_at[k], points_at[k])))
     return keep
+
+
+def _first_detection_pass(images, options, board, timings):
+    """The chessboard detection's first pass over every camera image (frontend BoardDetection)."""
+    from .frontend.camera_board import BoardDetection
+
+    with StageClock(timings)("detect"):
+        return BoardDetection(images, options, board)
+
+
+def _board_regions(sensors, lidar_obs, cam_images, detection, cfg, board, n_snapshots) -> list | None:
+    """Per camera image, where its board can be (frontend.camera_board.board_regions): each camera
+    with misses is seeded with the LIDARs from the first pass's detections (backend.seed), and the
+    LIDARs' views of each missed board are projected into it. None for a camera the seed cannot
+    place (fewer than min_shared_snapshots boards seen with a LIDAR): its misses are searched whole."""
+    from .backend.seed import seed
+    from .errors import ClcgraphError
+    from .frontend.camera_board import board_regions
+    from .geometry import compose_rt, invert_rt
+
+    missed = set(detection.missed)
+    if not missed:
+        return None
+    lidars = [i for i, s in enumerate(sensors) if s.is_lidar]
+    by_snapshot: dict[int, list] = {}
+    for o in lidar_obs:
+        by_snapshot.setdefault(o.snapshot, []).append(o)
+    regions: list = [None] * len(cam_images)
+    for cam in sorted({cam_images[k][0] for k in missed}):
+        mine = [k for k, (i, _, _) in enumerate(cam_images) if i == cam]
+        c = len(lidars)  # the camera's index in a problem of the LIDARs and this camera
+        obs = tuple(CameraBoardObservation(sensor=c, snapshot=cam_images[k][1],
+                                           corners_px=np.asarray(detection.results[k], float))
+                    for k in mine if not isinstance(detection.results[k], Rejected))
+        problem = Problem(sensors=tuple(sensors[i] for i in lidars) + (sensors[cam],), board=board,
+                          lidar_observations=tuple(lidar_obs), camera_observations=obs,
+                          snapshot_stamps_ns=np.zeros(n_snapshots, np.int64))
+        try:
+            rt_lidar0 = seed(problem, cfg.solve).rt_lidar0_sensor
+        except (ClcgraphError, np.linalg.LinAlgError, ValueError) as e:  # a prediction only: search whole
+            log.debug("%s: no seed for predicting where its boards are (%s): missed images searched whole",
+                      sensors[cam].topic, e)
+            continue
+        rt_camera_lidar = {i: compose_rt(invert_rt(rt_lidar0[c]), rt_lidar0[n]) for n, i in enumerate(lidars)}
+        todo = [k for k in mine if k in missed]
+        views = [[(rt_camera_lidar[o.sensor], o) for o in by_snapshot.get(cam_images[k][1], ())] for k in todo]
+        for k, box in zip(todo, board_regions(sensors[cam], views, board)):
+            regions[k] = box
+    return regions
 
 
 def _why_missed(sensors, lidar_obs, camera_obs, rejected) -> str:
@@ -391,6 +451,8 @@ def calibrate_bags(bags, topics: Sequence[str], models: Sequence[str | Path] = (
         check_out_dir(out, force=force)
     timings: dict[str, float] = {}
     material: dict = {}
+    if out is not None:
+        _import_in_background("clcgraph.outputs.report", "clcgraph.outputs.plots")
     problem = read_problem(bags, topics, models, config=cfg, timings=timings, report_material=material)
     result = calibrate(problem, cfg, timings=timings)
     result = dataclasses.replace(result, stats={**result.stats, "stage_time_s": timings})
@@ -399,6 +461,23 @@ def calibrate_bags(bags, topics: Sequence[str], models: Sequence[str | Path] = (
             inputs = _report_inputs(bags, topics, models, out, cfg, problem, material)
             write_outputs(result, out, cfg, force=force, report_inputs=inputs)
     return result
+
+
+def _import_in_background(*modules: str) -> None:
+    """Import modules in a daemon thread: the report's matplotlib import overlaps reading and
+    detection instead of following the solve. A later import of the same module waits for this
+    one (Python's per-module import lock)."""
+    import importlib
+    import threading
+
+    def run():
+        for m in modules:
+            try:
+                importlib.import_module(m)
+            except Exception:  # noqa: BLE001 - the real import, later, reports it
+                return
+
+    threading.Thread(target=run, name="clcgraph-import", daemon=True).start()
 
 
 def _report_inputs(bags, topics, models, out, cfg: Config, problem: Problem, material: dict):

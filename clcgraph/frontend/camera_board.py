@@ -36,6 +36,7 @@ import shutil
 import subprocess
 import tempfile
 from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
 
 import numpy as np
 
@@ -248,22 +249,31 @@ def choose_detector(options, board: BoardGeometry) -> str:
     return options.detector
 
 
+def _scratch_dir() -> str | None:
+    """Where the images for the mrgingham command go: memory-backed /dev/shm when there is one."""
+    return "/dev/shm" if os.access("/dev/shm", os.W_OK) else None
+
+
 def _run_mrgingham(grays: list[np.ndarray], n: int, jobs: int) -> list[np.ndarray | None]:
-    """Corners (N,2) or None per image of an n x n grid, from ONE mrgingham run over all the images."""
+    """Corners (N,2) or None per image of an n x n grid, from ONE mrgingham run over all the images.
+
+    The images are written uncompressed (PGM: a memory copy; PNG compression cost 6x the detector)."""
     import cv2
 
     exe = shutil.which(MRGINGHAM)
     if exe is None:
         raise DependencyError("mrgingham command-line tool not found (apt install mrgingham, "
                               "or set detection.detector: opencv)")
-    with tempfile.TemporaryDirectory(prefix="clcgraph-mrg-") as tmp:
+    if not grays:
+        return []
+    with tempfile.TemporaryDirectory(prefix="clcgraph-mrg-", dir=_scratch_dir()) as tmp:
         names = []
         for i, g in enumerate(grays):
-            name = os.path.join(tmp, f"{i:06d}.png")
-            cv2.imwrite(name, g, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+            name = os.path.join(tmp, f"{i:06d}.pgm")
+            if not cv2.imwrite(name, np.ascontiguousarray(g)):
+                raise DependencyError(f"cannot write the image for mrgingham in {tmp}")
             names.append(name)
-        cmd = [exe, "--jobs", str(max(1, jobs)), "--gridn", str(n),
-               os.path.join(tmp, "*.png")]
+        cmd = [exe, "--jobs", str(max(1, jobs)), "--gridn", str(n), os.path.join(tmp, "*.pgm")]
         r = subprocess.run(cmd, capture_output=True, text=True)
         if r.returncode != 0:
             raise DependencyError(f"mrgingham failed (exit {r.returncode}): "
@@ -296,7 +306,7 @@ def _opencv_one(args) -> np.ndarray | None:
 
 def _run_opencv(grays: list[np.ndarray], nx: int, ny: int, jobs: int) -> list[np.ndarray | None]:
     args = [(g, nx, ny) for g in grays]
-    if jobs <= 1 or len(grays) < 4:
+    if jobs <= 1 or len(grays) < 2:
         return [_opencv_one(a) for a in args]
     # threads: OpenCV releases the GIL while detecting (and worker processes would fork a
     # threaded process or re-import the caller's script)
@@ -309,49 +319,182 @@ def _run_opencv(grays: list[np.ndarray], nx: int, ny: int, jobs: int) -> list[np
 _OFFSET_PX = {"mrgingham": np.zeros(2), "opencv": np.zeros(2)}
 
 
-def detect_corners(images: list[Image], options, board: BoardGeometry) -> list[np.ndarray | Rejected]:
+def detect_corners(images: list[Image], options, board: BoardGeometry, *,
+                   regions: list | None = None) -> list[np.ndarray | Rejected]:
     """Chessboard corners per image: (corners_y*corners_x, 2) pixels, or Rejected(reason).
 
     options: ``config.DetectionOptions``; ``board``: its inner-corner grid is searched for.
     Corners are in canonical board order (module docstring) in mrcal's pixel convention. The
-    mrgingham detector runs one batched command-line call (``--jobs``); OpenCV runs in
-    ``jobs`` threads.
+    mrgingham detector runs one batched command-line call (``--jobs``) for all the images, then
+    one for the retries of its misses; OpenCV runs in ``jobs`` threads. ``regions``: per image,
+    where a missed board can be (see ``BoardDetection.retry``); None: anywhere.
     """
-    import cv2
+    return BoardDetection(images, options, board).retry(regions)
 
-    detector = choose_detector(options, board)
-    if not images:
-        return []
-    grays = [to_gray8(im.pixels) for im in images]
-    nx, ny, jobs = board.corners_x, board.corners_y, options.jobs
-    if detector == MRGINGHAM:
-        raw = [None if c is None else c + _OFFSET_PX["mrgingham"] for c in _run_mrgingham(grays, nx, jobs)]
-        # mrgingham misses small boards (squares of 5-8 px): it finds them in the image upsampled 2x
-        missed = [k for k, c in enumerate(raw) if c is None]
-        up = {k: cv2.resize(grays[k], None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC) for k in missed}
-        if missed:
-            for k, c in zip(missed, _run_mrgingham([up[k] for k in missed], nx, jobs)):
-                if c is not None:  # pixel centres at integers in both images
-                    raw[k] = (c + _OFFSET_PX["mrgingham"] + 0.5) / 2 - 0.5
+
+class BoardDetection:
+    """Chessboard detection in two steps, so a caller can say where the missed boards can be.
+
+    SYNOPSIS
+        d = BoardDetection(images, options, board)   # first pass: every image at once
+        d.results                                     # (N,2) corners or Rejected, per image
+        d.missed                                      # indices of the images with no grid found
+        d.retry(regions)                              # the misses again, only where a board can be
+
+    The first pass finds boards with squares of >= ~8 px. A miss is retried in the image
+    upsampled 2x (mrgingham finds squares of 5-8 px there), then with OpenCV's sector-based
+    detector where it still finds nothing. Upsampling a whole image costs 4x a first pass:
+    ``regions`` limits the retries to a box per image (a LIDAR's view of the board predicts
+    it), and an empty box skips them.
+    """
+
+    def __init__(self, images: list[Image], options, board: BoardGeometry):
+        self.images, self.options, self.board = list(images), options, board
+        self.detector = choose_detector(options, board)
+        self.grays = [to_gray8(im.pixels) for im in self.images]
+        nx, ny, jobs = board.corners_x, board.corners_y, options.jobs
+        if self.detector == MRGINGHAM:
+            raw = [None if c is None else c + _OFFSET_PX["mrgingham"] for c in _run_mrgingham(self.grays, nx, jobs)]
+        else:
+            raw = [None if c is None else c + _OFFSET_PX["opencv"] for c in _run_opencv(self.grays, nx, ny, jobs)]
+        self.results = [self._validated(k, c) for k, c in enumerate(raw)]
+        # only mrgingham's misses are retried (OpenCV has searched the whole image already)
+        self.missed = [k for k, c in enumerate(raw) if c is None] if self.detector == MRGINGHAM else []
+
+    def _validated(self, k: int, corners: np.ndarray | None) -> np.ndarray | Rejected:
+        nx, ny = self.board.corners_x, self.board.corners_y
+        r = _validate(corners, self.grays[k], nx, ny, self.options, f"no full {nx}x{ny} chessboard found")
+        if isinstance(r, Rejected):
+            log.debug("%s @%d: %s", self.images[k].topic, self.images[k].stamp_ns, r.reason)
+        return r
+
+    def retry(self, regions: list | None = None) -> list[np.ndarray | Rejected]:
+        """Retry the missed images (mrgingham, then the OpenCV fallback); returns ``results``.
+
+        ``regions``: per image (all of them, in order) None (the board can be anywhere: the whole
+        image, upsampled 2x), or a ``Region`` where it can be: that box is searched, upsampled 2x
+        only if the predicted squares are small (``_UPSAMPLE_BELOW_PX``); an empty box
+        (``NOWHERE``) means it cannot be in view and the image is not searched again."""
+        import cv2
+
+        nx, ny, jobs = self.board.corners_x, self.board.corners_y, self.options.jobs
+        crops = {}  # image index -> (x0, y0, x1, y1, upsampling factor) searched again
+        for k in self.missed:
+            h, w = self.grays[k].shape
+            r = None if regions is None else regions[k]
+            box = (0, 0, w, h) if r is None else r[:4]
+            f = 2 if r is None or r.square_px is None or r.square_px < _UPSAMPLE_BELOW_PX else 1
+            x0, y0 = max(0, int(np.floor(box[0]))), max(0, int(np.floor(box[1])))
+            x1, y1 = min(w, int(np.ceil(box[2]))), min(h, int(np.ceil(box[3])))
+            if x1 - x0 >= 2 * (nx + 1) and y1 - y0 >= 2 * (ny + 1):  # room for squares of >= 2 px
+                crops[k] = (x0, y0, x1, y1, f)
+        log.debug("retrying %d of the %d missed images (%d of them whole: no prediction)", len(crops), len(self.missed),
+                  sum(regions is None or regions[k] is None for k in crops))
+        self.missed = []
+        up = {k: cv2.resize(self.grays[k][y0:y1, x0:x1], None, fx=f, fy=f, interpolation=cv2.INTER_CUBIC)
+              if f > 1 else self.grays[k][y0:y1, x0:x1] for k, (x0, y0, x1, y1, f) in crops.items()}
+
+        def back(k, c):  # (upsampled) crop -> image pixels (pixel centres at integers in both)
+            x0, y0, _, _, f = crops[k]
+            return (c + 0.5) / f - 0.5 + (x0, y0)
+
+        # mrgingham misses small boards (squares of 5-8 px): it finds them in the image upsampled 2x,
+        # and some boards in a crop it misses in the whole image
+        keys = list(crops)
+        still = []
+        for k, c in zip(keys, _run_mrgingham([up[k] for k in keys], nx, jobs)):
+            if c is None:
+                still.append(k)
+            else:
+                self.results[k] = self._validated(k, back(k, c + _OFFSET_PX["mrgingham"]))
         # ... and where it still finds nothing, OpenCV's sector-based detector may, in the
         # upsampled image too (its grid passes the same checks). The full detector is slow, so
         # it runs only where OpenCV's quick check sees a board, except in low-resolution images
         # (<= SMALL_IMAGE_PX on the long side, cheap to search): there a board at LIDAR ranges
         # has squares of 3-5 px, which the quick check misses
-        missed = [k for k, c in enumerate(raw) if c is None]
-        if missed and options.fallback_opencv:
-            missed = [k for k in missed if max(grays[k].shape) <= SMALL_IMAGE_PX
-                      or cv2.checkChessboard(up[k], (nx, ny))]
-            for k, c in zip(missed, _run_opencv([up[k] for k in missed], nx, ny, jobs)):
-                raw[k] = None if c is None else (c + _OFFSET_PX["opencv"] + 0.5) / 2 - 0.5
-    else:
-        raw = [None if c is None else c + _OFFSET_PX["opencv"] for c in _run_opencv(grays, nx, ny, jobs)]
+        if still and self.options.fallback_opencv:
+            still = [k for k in still if max(self.grays[k].shape) <= SMALL_IMAGE_PX
+                     or cv2.checkChessboard(up[k], (nx, ny))]
+            for k, c in zip(still, _run_opencv([up[k] for k in still], nx, ny, jobs)):
+                if c is not None:
+                    self.results[k] = self._validated(k, back(k, c + _OFFSET_PX["opencv"]))
+        return self.results
+
+
+# The seed's camera pose is good to ~1 deg: predicted pixels get this angle's worth of slack.
+_REGION_MARGIN_RAD = np.radians(2.0)
+# mrgingham misses squares of 5-8 px; a predicted square (from the board's diagonal) is up to
+# 1/cos(45 deg) = 1.4x a tilted board's short side: under 8 x 1.4 px, a retry upsamples 2x
+_UPSAMPLE_BELOW_PX = 12.0
+
+
+class Region(NamedTuple):
+    """Where a board can be in an image (pixels), and its predicted square size (px; None: unknown)."""
+    x0: float
+    y0: float
+    x1: float
+    y1: float
+    square_px: float | None = None
+
+
+NOWHERE = Region(0.0, 0.0, 0.0, 0.0)
+
+
+def board_regions(camera, views, board: BoardGeometry) -> list:
+    """Where the board can be in each of a camera's images, from LIDAR views of the same boards.
+
+    ``camera``: the camera's Sensor; ``views``: per image, a list of (rt_camera_lidar (6,),
+    LidarBoardObservation) of its snapshot (empty: no LIDAR saw that board). Returns per image
+    None (no prediction: the board may be anywhere), a ``Region`` (a box in pixels and the
+    predicted square size), or ``NOWHERE`` when the whole board cannot be in view.
+
+    The LIDAR's board points are on the board: when one of them projects outside the image
+    (by more than the seed's error, ``_REGION_MARGIN_RAD``) or lies behind the camera, the
+    board is not whole in the image and no detector can find it. Otherwise the board lies
+    within its half diagonal of the points' centroid: the box holds that disc, projected.
+    """
+    from clcgraph import cameras
+    from clcgraph.geometry import transform
+
+    xmin, xmax, ymin, ymax = board.extent()
+    radius = 0.5 * float(np.hypot(xmax - xmin, ymax - ymin))
+    a = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    w, h = camera.imagersize
+    slack = float(np.mean(np.asarray(camera.intrinsics[:2], float))) * np.tan(_REGION_MARGIN_RAD)
+
+    def project(p):  # pixels, and whether each is a true projection (in front, not folded back by the lens)
+        q = cameras.project(p, camera.lensmodel, camera.intrinsics)
+        back = cameras.unproject(q, camera.lensmodel, camera.intrinsics)
+        ray = p / np.linalg.norm(p, axis=1)[:, None]
+        ok = (p[:, 2] > 0) & np.all(np.isfinite(q), axis=1) & (np.einsum("ij,ij->i", back, ray) > np.cos(np.radians(1.0)))
+        return q, ok
+
     out = []
-    for im, g, c in zip(images, grays, raw):
-        r = _validate(c, g, nx, ny, options, f"no full {nx}x{ny} chessboard found")
-        if isinstance(r, Rejected):
-            log.debug("%s @%d: %s", im.topic, im.stamp_ns, r.reason)
-        out.append(r)
+    for image_views in views:
+        if not image_views:
+            out.append(None)
+            continue
+        on_board, discs = [], []
+        for rt_camera_lidar, obs in image_views:
+            p = np.asarray(obs.points, float)
+            n = np.asarray(obs.plane[:3], float)
+            u = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
+            u /= np.linalg.norm(u)
+            v = np.cross(n, u)
+            on_board.append(transform(np.asarray(rt_camera_lidar, float), p))
+            discs.append(transform(np.asarray(rt_camera_lidar, float),
+                                   p.mean(axis=0) + radius * (np.cos(a)[:, None] * u + np.sin(a)[:, None] * v)))
+        q, ok = project(np.concatenate(on_board))
+        inside = ok & np.all((q >= -slack) & (q <= np.array([w - 1, h - 1]) + slack), axis=1)
+        if not np.all(inside):
+            out.append(NOWHERE)
+            continue
+        qd, okd = project(np.concatenate(discs))
+        # the disc's projected diameter is the board's diagonal: squares are that over diagonal / square
+        square = float(np.max(np.ptp(qd[okd], axis=0))) * board.square_m / (2 * radius) if okd.sum() > 2 else None
+        q = np.r_[q, qd[okd]]
+        lo, hi = q.min(axis=0) - slack, q.max(axis=0) + slack
+        out.append(Region(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]), square))
     return out
 
 

@@ -156,17 +156,43 @@ def _run(fd, T0, kind, corr, o, leaf):
     return r.T_target_source
 
 
+# The ensemble stops once this many frames in a row registered (all three ways, from the best so
+# far) to within their own uncertainty of the best: more frames from the same start find the same pose.
+_AGREEING_FRAMES = 3
+_CHI2_6DOF_99 = 16.81  # 99 % quantile of chi-square with 6 degrees of freedom
+
+
+def agrees(fd: FrameData, T_best: np.ndarray, Ts, o) -> bool:
+    """Whether every T of ``Ts`` (T_lidar0_sensor) lies within frame ``fd``'s 99 % uncertainty of
+    T_best: d = Log(T_best^-1 T) (right perturbation, [omega, v]) with d^T H d / sigma^2 under the
+    6-DOF chi-square quantile, H the point-to-plane information at T_best and sigma^2 its mean
+    squared residual. Independent point errors make H optimistic, so the test errs on the strict side."""
+    import gtsam
+
+    J, r, _ = plane_residuals(fd, T_best, o.max_corr_dist_fine)
+    if len(r) < 6:
+        return False
+    H = J.T @ J / max(float(np.mean(r * r)), 1e-12)
+    Tinv = np.linalg.inv(T_best)
+    ds = [np.asarray(gtsam.Pose3.Logmap(gtsam.Pose3(Tinv @ T))) for T in Ts]
+    return all(float(d @ H @ d) < _CHI2_6DOF_99 for d in ds)
+
+
 def ensemble(frames, T_guess: np.ndarray, o, *, progress=None):
     """Best T_lidar0_sensor among the guess, per-frame registrations (ICP coarse-to-fine, GICP,
     VGICP) and a batched ICP over all frames.
 
     Each registration starts from the best candidate so far; every candidate is scored
-    on all frames. Returns (T_best (4,4), list of (name, frame index (-1: all), score)).
+    on all frames. Once ``_AGREEING_FRAMES`` frames in a row found nothing outside their own
+    uncertainty of the best (``agrees``), the other frames are not registered one by one.
+    Returns (T_best (4,4), list of (name, frame index (-1: all), score)).
     """
     best, best_s = T_guess, score(frames, T_guess, o)
     cands = [("initial guess", -1, best_s)]
     leaf = 0.1
+    in_a_row = 0
     for i, fd in enumerate(frames):
+        Ts = []
         for name in ("ICP coarse-to-fine", "GICP", "VGICP"):
             if name == "ICP coarse-to-fine":
                 T = _run(fd, best, "ICP", o.max_corr_dist_coarse, o, leaf)
@@ -179,10 +205,16 @@ def ensemble(frames, T_guess: np.ndarray, o, *, progress=None):
                 T = _run(fd, best, "VGICP", o.max_corr_dist_coarse, o, leaf)
             s = score(frames, T, o)
             cands.append((name, i, s))
+            Ts.append(T)
             if s < best_s:
                 best, best_s = T, s
         if progress is not None:
             progress(1)
+        in_a_row = in_a_row + 1 if agrees(fd, best, Ts, o) else 0
+        if in_a_row >= _AGREEING_FRAMES and i + 1 < len(frames):
+            log.info("ensemble: %d frames in a row agree with the best within their uncertainty; "
+                     "%d of %d frames registered", in_a_row, i + 1, len(frames))
+            break
     T = batched_icp(frames, best, o)  # all frames at once, from the best single-frame result
     s = score(frames, T, o)
     cands.append(("batched ICP", -1, s))

@@ -1,0 +1,95 @@
+"""Retries of missed chessboards only where a LIDAR says the board can be (issue 16).
+
+board_regions projects a LIDAR's board points and the board's disc into the camera: the box
+must hold the true corners, the predicted square size must be the true one's, and a board
+partly outside the image, behind the camera or far outside the field of view is NOWHERE.
+BoardDetection.retry searches a box (upsampled only for small squares) and maps its corners
+back to the image's pixels; NOWHERE skips the retry."""
+
+import numpy as np
+import pytest
+
+from clcgraph.config import DetectionOptions
+from clcgraph.frontend.camera_board import NOWHERE, BoardDetection, Region, board_regions
+from clcgraph.types import BoardGeometry, Image, LidarBoardObservation, Sensor
+
+W, H, F = 1024, 768, 700.0
+CAMERA = Sensor("/cam", "camera", "LENSMODEL_PINHOLE", np.array([F, F, (W - 1) / 2, (H - 1) / 2]), (W, H))
+BOARD = BoardGeometry()  # 10x10 inner corners of 0.1 m, a 1.3 m square board
+
+
+def _board(centre_cam, yaw_deg=20.0):
+    """R_cam_board, t_cam_board of a board whose centre is at ``centre_cam``, facing the camera."""
+    a = np.radians(yaw_deg)
+    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    return R, np.asarray(centre_cam, float) - R @ BOARD.centre()
+
+
+def _lidar_view(R, t, rng):
+    """The board's points a LIDAR (here: in the camera's frame) sees: 4 rings across its middle."""
+    xmin, xmax, ymin, ymax = BOARD.extent()
+    x = rng.uniform(xmin, xmax, 400)
+    y = np.repeat(np.linspace(ymin + 0.3, ymax - 0.5, 4), 100)
+    p = np.c_[x, y, np.zeros_like(x)] @ R.T + t
+    n = R[:, 2] if R[:, 2] @ t < 0 else -R[:, 2]
+    return LidarBoardObservation(0, 0, p, np.r_[n, n @ p[0]], 0.01)
+
+
+def _project(R, t):
+    pc = BOARD.corners() @ R.T + t
+    return F * pc[:, :2] / pc[:, 2:] + [(W - 1) / 2, (H - 1) / 2]
+
+
+@pytest.mark.parametrize("centre", [(0.0, 0.0, 5.0), (-1.5, 0.4, 8.0), (1.0, -0.3, 3.5)])
+def test_region_holds_the_board_and_its_square_size(centre):
+    rng = np.random.default_rng(0)
+    R, t = _board(centre)
+    (region,) = board_regions(CAMERA, [[(np.zeros(6), _lidar_view(R, t, rng))]], BOARD)
+    q = _project(R, t)
+    assert isinstance(region, Region) and region != NOWHERE
+    assert region.x0 <= q[:, 0].min() and q[:, 0].max() <= region.x1
+    assert region.y0 <= q[:, 1].min() and q[:, 1].max() <= region.y1
+    # no bigger than the board's disc (its diagonal, 1.84 m, across) plus 2 deg of slack per side
+    most = 1.15 * F * np.hypot(*BOARD.size_m) / centre[2] + 2 * F * np.tan(np.radians(2))
+    assert region.x1 - region.x0 < most and region.y1 - region.y0 < most
+    square = F * BOARD.square_m / centre[2]
+    assert 0.8 * square < region.square_px < 1.3 * square
+
+
+@pytest.mark.parametrize("centre", [(3.3, 0.0, 5.0), (0.0, 0.0, -5.0), (30.0, 0.0, 1.0)])
+def test_board_not_whole_in_view_is_nowhere(centre):
+    """Partly outside the image, behind the camera, far outside the field of view."""
+    R, t = _board(centre, yaw_deg=0.0)
+    assert board_regions(CAMERA, [[(np.zeros(6), _lidar_view(R, t, np.random.default_rng(1)))]], BOARD) == [NOWHERE]
+
+
+def test_no_lidar_view_no_prediction():
+    assert board_regions(CAMERA, [[]], BOARD) == [None]
+
+
+def _small_board_image():
+    """A board at 12 m (squares of ~5.8 px) that the first pass misses, and its true corners."""
+    from tests.test_camera_board import render
+
+    r, t = np.array([0.1, -0.2, 0.05]), np.array([-0.3, -0.5, 12.0])
+    return render(r, t, seed=3)
+
+
+def test_retry_in_a_region_finds_a_small_board_in_image_pixels():
+    img, q = _small_board_image()
+    d = BoardDetection([Image("cam", 0, img, "mono8")], DetectionOptions(), BOARD)
+    assert d.missed == [0]  # the case: too small for the first pass
+    box = Region(q[:, 0].min() - 40, q[:, 1].min() - 30, q[:, 0].max() + 25, q[:, 1].max() + 35, square_px=5.8)
+    found = d.retry([box])[0]
+    assert isinstance(found, np.ndarray), found
+    err = found - q
+    assert np.sqrt(np.mean(np.sum(err**2, axis=1))) < 0.3
+    assert np.all(np.abs(err.mean(axis=0)) < 0.1)  # the crop's offset and the 2x scale undone exactly
+
+
+def test_nowhere_skips_the_retry():
+    img, _ = _small_board_image()
+    d = BoardDetection([Image("cam", 0, img, "mono8")], DetectionOptions(), BOARD)
+    assert not isinstance(d.retry([NOWHERE])[0], np.ndarray)
+    d = BoardDetection([Image("cam", 0, img, "mono8")], DetectionOptions(), BOARD)
+    assert isinstance(d.retry([None])[0], np.ndarray)  # the whole image, as without a prediction
