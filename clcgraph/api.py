@@ -178,6 +178,7 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
         snaps, rejected = assemble_snapshots(paths, lidar_topics, camera_topics, cfg.snapshots,
                                              progress=lambda it: progress(it, desc="reading bags", unit="bag"))
     rejected = list(rejected)
+    excluded = {r.snapshot for r in rejected if r.snapshot is not None}  # emptied by exclude_bag
     if not snaps:
         raise DataError(f"no usable snapshot in {len(paths)} bag(s): "
                         + (rejected[0].reason if rejected else "no messages on the topics"))
@@ -228,7 +229,7 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
     lonely = {k for k, n in seen.items() if n < 2}
     for k in sorted(lonely):
         rejected.append(Rejected("board seen by only one sensor", "snapshot", snapshot=k))
-    for k in sorted({s.index for s in snaps} - set(seen)):
+    for k in sorted({s.index for s in snaps} - set(seen) - excluded):
         rejected.append(Rejected("board seen by no sensor", "snapshot", snapshot=k))
     lidar_obs = [o for o in lidar_obs if o.snapshot not in lonely]
     camera_obs = [o for o in camera_obs if o.snapshot not in lonely]
@@ -257,6 +258,7 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
         rejected=tuple(rejected),
         priors=priors,
         lidar_visibility_points=visibility,
+        snapshot_bags=tuple(s.bag for s in snaps),
     )
 
 
@@ -400,29 +402,42 @@ def check_out_dir(out, *, kind: str = "results", force: bool = False) -> None:
 
 
 def summary_table(result: Result) -> str:
-    """The final table `clcgraph solve` prints: pose, 1-sigma, observations and RMS per sensor."""
-    from .geometry import R_from_r, pose_stdevs
+    """The final table `clcgraph solve` prints: pose, per-axis 1-sigmas, observations and RMS per
+    sensor, then the unused snapshots by bag name. Rotations as geometry.RPY_LABEL says."""
+    from .geometry import RPY_LABEL, pose_stdevs, rpy_deg_from_rt
 
-    rows = [("sensor", "kind", "x [m]", "y [m]", "z [m]", "roll/pitch/yaw [deg]", "1-sigma [mm, deg]", "obs")]
+    rows = [("sensor", "kind", "x, y, z [m]", RPY_LABEL, "1-sigma x, y, z [mm]",
+             "1-sigma about own x, y, z [deg]", "obs")]
     p = result.problem
     nobs = np.zeros(len(p.sensors), int)
     for o in [*p.lidar_observations, *p.camera_observations]:
         nobs[o.sensor] += 1
     for i, s in enumerate(p.sensors):
         rt = np.asarray(result.rt_lidar0_sensor[i], float)
-        ypr = _rpy_deg(R_from_r(rt[:3]))
-        sd_rot, sd_pos = pose_stdevs(rt, result.covariance_block(i))  # the largest per-axis sigma of each
-        sigma = "reference" if i == p.reference else f"{1e3 * np.max(sd_pos):.2f}, {np.degrees(np.max(sd_rot)):.3f}"
-        rows.append((s.topic, s.kind, *(f"{v:+.4f}" for v in rt[3:]), " ".join(f"{v:+.3f}" for v in ypr),
-                     sigma, str(nobs[i])))
+        sd_rot, sd_pos = pose_stdevs(rt, result.covariance_block(i))
+        if i == p.reference:
+            sig_pos, sig_rot = "reference", ""
+        else:
+            sig_pos = " ".join(f"{v:.2f}" for v in 1e3 * sd_pos)
+            sig_rot = " ".join(f"{v:.3f}" for v in np.degrees(sd_rot))
+        rows.append((s.topic, s.kind, " ".join(f"{v:+.4f}" for v in rt[3:]),
+                     " ".join(f"{v:+.3f}" for v in rpy_deg_from_rt(rt)), sig_pos, sig_rot, str(nobs[i])))
     widths = [max(len(r[k]) for r in rows) for k in range(len(rows[0]))]
     lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
+    lines.append("(x, y, z and their sigmas along lidar0's axes; rotation sigmas about the sensor's own axes)")
     rms, noise = result.rms, result.noise
     lines.append(f"RMS: normalized {rms.get('normalized', float('nan')):.3f}, LIDAR {1e3 * rms.get('lidar_m', float('nan')):.1f} mm, "
                  f"camera {rms.get('camera_px', float('nan')):.3f} px; re-estimated noise: LIDAR "
                  f"{1e3 * noise.get('lidar_m', float('nan')):.1f} mm, camera {noise.get('camera_px', float('nan')):.3f} px")
-    used = int(np.sum(np.all(np.isfinite(result.rt_lidar0_board), axis=1)))
-    lines.append(f"{used} of {p.n_snapshots} snapshots used; {len(result.rejected)} rejections (see calibration.yaml)")
+    used = np.all(np.isfinite(np.asarray(result.rt_lidar0_board, float).reshape(-1, 6)), axis=1)
+    lines.append(f"{int(used.sum())} of {p.n_snapshots} snapshots used; {len(result.rejected)} rejections (see calibration.yaml)")
+    why: dict[int, str] = {}
+    for r in sorted(result.rejected, key=lambda r: r.sensor is not None):  # snapshot-level reasons first
+        if r.snapshot is not None:
+            why.setdefault(int(r.snapshot), r.reason if r.sensor is None else f"{p.sensors[r.sensor].topic}: {r.reason}")
+    unused = [k for k in range(p.n_snapshots) if not used[k]]
+    if unused:
+        lines.append("unused: " + "; ".join(f"{p.snapshot_label(k)}: {why.get(k, 'no board pose')}" for k in unused))
     conv = result.stats.get("convergence") or {}
     if conv and not conv.get("converged"):
         lines.append("NOT CONVERGED: " + "; ".join(conv.get("warnings", ())))
@@ -431,13 +446,6 @@ def summary_table(result: Result) -> str:
         why = (verdict.get("failures") or verdict.get("unverifiable") or ["?"])[0]
         lines.append(f"NOT SELF-CONSISTENT (see calibration.yaml consistency:): {why}")
     return "\n".join(lines)
-
-
-def _rpy_deg(R: np.ndarray) -> np.ndarray:
-    """Roll, pitch, yaw (ZYX, degrees) of a rotation, for printing."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(R).as_euler("ZYX", degrees=True)[::-1]
 
 
 # ---------------------------------------------------------------- the rest of the public API

@@ -131,7 +131,8 @@ def _add_replay(sub):
     p.add_argument("dump", help="problem.npz written with a calibration")
     p.add_argument("--inject-noise", action="store_true", help="re-noise the observations around the solve, re-solve")
     p.add_argument("--fit-seed", action="store_true", help="stop after the seed (initial estimate)")
-    p.add_argument("--exclude", default="", help="comma-separated snapshot indices to leave out")
+    p.add_argument("--exclude", default="", metavar="K,BAG,...",
+                   help="snapshots to leave out, comma-separated: indices or bag names (as calibration.yaml lists them)")
     p.add_argument("--seed", type=int, default=0, help="rng seed for --inject-noise")
 
     def run(args):
@@ -141,10 +142,7 @@ def _add_replay(sub):
         from .outputs.dump import replay
 
         _in_range(args.seed, "--seed", 0, 2**63 - 1)
-        try:
-            exclude = [int(k) for k in args.exclude.split(",") if k.strip()]
-        except ValueError:
-            raise InputError(f"--exclude: expected comma-separated integers, got '{args.exclude}'") from None
+        exclude = [k.strip() for k in args.exclude.split(",") if k.strip()]  # indices or bag names
         res = replay(args.dump, inject_noise=args.inject_noise, fit_seed=args.fit_seed, exclude=exclude, seed=args.seed)
         for i, s in enumerate(res.problem.sensors):
             sd = res.stdev_rt(i) if np.all(np.isfinite(res.covariance_rt)) else np.full(6, np.nan)
@@ -519,7 +517,9 @@ def _add_solve(sub):
     p.add_argument("--out", required=True, metavar="DIR", help="output directory: new, empty or an earlier output of this command (replaced whole)")
     _add_force(p)
     _config_args(p)
-    p.add_argument("--exclude-bag", default=None, metavar="REGEX", help="skip bags whose path matches")
+    p.add_argument("--exclude-bag", default=None, metavar="BAG,K,...|REGEX",
+                   help="leave out snapshots: comma-separated bag names and snapshot indices (as calibration.yaml "
+                   "lists them; indices do not shift), or a regex: bags whose path matches are not read")
     p.add_argument("--decimation-period", type=float, default=None, metavar="S",
                    help="continuous bags: one snapshot per this many seconds")
     p.add_argument("--after", default=None, help="start time: s or ns since epoch, or a date")

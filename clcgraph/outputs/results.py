@@ -92,6 +92,7 @@ def calibration_dict(result: Result) -> dict:
     rejected = [
         {
             "index": None if r.snapshot is None else int(r.snapshot),
+            "bag": None if r.snapshot is None else problem.snapshot_bag(int(r.snapshot)),
             "sensor": None if r.sensor is None else problem.sensors[r.sensor].topic,
             "stage": r.stage,
             "reason": r.reason,
@@ -99,6 +100,7 @@ def calibration_dict(result: Result) -> dict:
         for r in result.rejected
     ]
     used = np.flatnonzero(np.all(np.isfinite(np.asarray(result.rt_lidar0_board, float).reshape(-1, 6)), axis=1))
+    used_set = set(used.tolist())
     return {
         "clcgraph_version": __version__,
         "reference": problem.sensors[ref].topic,
@@ -110,7 +112,11 @@ def calibration_dict(result: Result) -> dict:
         "rms": {k: _scalar(result.rms.get(k)) for k in ("normalized", "lidar_m", "camera_px")},
         "noise": {k: _scalar(result.noise.get(k)) for k in ("lidar_m", "camera_px")},
         "snapshots": {"used": int(len(used)), "used_indices": [int(k) for k in used],
-                      "total": int(problem.n_snapshots), "rejected": rejected},
+                      "total": int(problem.n_snapshots),
+                      # every snapshot: its index (what --exclude and the plots use), bag and stamp
+                      "list": [{"index": k, "bag": problem.snapshot_bag(k), "stamp_ns": int(problem.snapshot_stamps_ns[k]),
+                                "used": bool(k in used_set)} for k in range(problem.n_snapshots)],
+                      "rejected": rejected},
         "sectors": sectors_dict(result),
         "convergence": dict(result.stats.get("convergence") or {}),
         "coordinates": COORDINATES,
