@@ -599,28 +599,48 @@ def _add_config(sub):
 @_command
 def _add_format_for_ros(sub):
     p = sub.add_parser("format-for-ros", help="base_link-relative transforms of a calibration, for ROS (YAML, URDF, launch)")
-    p.add_argument("bag", help="a bag with /tf_static (the vehicle's frames) and the sensor topics")
+    p.add_argument("bag", help="a bag with the sensor topics (their frame_ids) and, unless base_link <- lidar0 "
+                               "comes from elsewhere, /tf_static")
     p.add_argument("--calibration", required=True, metavar="DIR", help="the --out directory of clcgraph solve or targetless")
     p.add_argument("--base-frame", default="base_link", help="parent frame of the published transforms")
-    p.add_argument("--out", default=None, metavar="DIR", help="write ros.yaml, URDF and launch snippets here")
+    p.add_argument("--rt-vehicle-lidar0", default=None, metavar="r0,r1,r2,t0,t1,t2",
+                   help="base_link <- lidar0 as mrcal rt (Rodrigues [rad], then translation [m]); the default is "
+                        "the calibration's own (targetless ground plane, solve's --rt-vehicle-lidar0), else /tf_static")
+    p.add_argument("--base-source", default="auto", choices=["auto", "rt-vehicle-lidar0", "calibration", "tf-static"],
+                   help="where base_link <- lidar0 comes from (auto: the first available, in that order)")
+    p.add_argument("--full-urdf", action="store_true", help="also write sensors.urdf, a whole <robot> of these frames")
+    p.add_argument("--out", default=None, metavar="DIR", help="write ros-transforms.yaml, URDF and launch snippets here")
     _add_force(p)
 
     def run(args):
         from pathlib import Path
+
+        import yaml
 
         from .frontend.bag import frame_id, read_tf_static
         from .outputs.results import load_result
         from .outputs.ros import format_for_ros, infer_frames, ros_files, ros_yaml
 
         cal = load_result(args.calibration)
+        rt_given = None if args.rt_vehicle_lidar0 is None else _floats(args.rt_vehicle_lidar0, 6, "--rt-vehicle-lidar0")
+        resolved = Path(args.calibration) / "config.resolved.yaml"  # the solve's own rt_vehicle_lidar0, if any
+        solve_rt = ((yaml.safe_load(resolved.read_text()) or {}).get("sectors") or {}).get("rt_vehicle_lidar0") \
+            if resolved.is_file() else None
         tf = read_tf_static(args.bag)
         topics = [s["topic"] for s in cal["sensors"]]
-        frames = infer_frames(topics, tf.frames, frame_ids={t: frame_id(args.bag, t) for t in topics})
-        ros = format_for_ros(cal, tf, base_frame=args.base_frame, frames=frames)
+        frames = infer_frames(topics, tf.frames, frame_ids={t: frame_id(args.bag, t) for t in topics},
+                              need_tf=args.base_source != "tf-static" and (rt_given is not None or solve_rt is not None
+                                                                          or bool(cal.get("base_link"))))
+        ros = format_for_ros(cal, tf, base_frame=args.base_frame, frames=frames, rt_vehicle_lidar0=rt_given,
+                             solve_rt_vehicle_lidar0=solve_rt, base_source=args.base_source, tf_name=str(args.bag))
+        b = ros["base"]
+        print(f"{b['parent_frame']} <- {b['child_frame']} from {b['source']}", file=sys.stderr if not args.out else sys.stdout)
+        for note in ros["notes"]:
+            print(f"note: {note}", file=sys.stderr)
         if args.out:
             from .outputs.atomic import atomic_dir
 
-            files = ros_files(ros)
+            files = ros_files(ros, full_urdf=args.full_urdf)
             with atomic_dir(args.out, kind="ros", force=args.force) as tmp:
                 for name, text in files.items():
                     (tmp / name).write_text(text)
