@@ -655,11 +655,20 @@ def _add_format_for_ros(sub):
 
 @_command
 def _add_show_aligned(sub):
-    p = sub.add_parser("show-aligned", help="LIDAR clouds of a bag aligned by a calibration, rendered to PNG")
-    p.add_argument("bag", help="the bag to show (its first scan of each LIDAR)")
+    p = sub.add_parser("show-aligned", help="LIDAR clouds of a bag aligned by a calibration: a PNG, or an MCAP "
+                                            "file for Foxglove / RViz")
+    p.add_argument("bags", nargs="+", metavar="BAG", help="the bag to show (its first scan of each LIDAR); with --mcap, "
+                                                          "bag files, globs or directories to take --snapshots from")
     p.add_argument("--calibration", required=True, metavar="DIR", help="the --out directory of clcgraph solve or targetless")
-    p.add_argument("--topics", default=None, help="comma-separated LIDAR topics (default: every LIDAR of the calibration)")
-    p.add_argument("--png", default="aligned.png", help="output picture")
+    p.add_argument("--topics", default=None, help="comma-separated LIDAR topics (default: every LIDAR of the calibration; "
+                                                  "with --mcap every sensor)")
+    p.add_argument("--png", default=None, help="output picture (default aligned.png unless --mcap)")
+    p.add_argument("--mcap", default=None, metavar="FILE.mcap",
+                   help="write /tf_static from the calibration and the clouds and images of --snapshots (ROS 2 "
+                        "messages, each in its sensor's frame) for Foxglove or `ros2 bag play` + RViz")
+    p.add_argument("--snapshots", default=None, metavar="K,BAG,...",
+                   help="with --mcap: snapshot indices (as calibration.yaml lists them) or bag names (default: every bag)")
+    _add_force(p)
     p.add_argument("--threshold-range", type=float, default=None, metavar="M", help="drop points farther than this")
     p.add_argument("--viewer", action="store_true", help="also open the Open3D viewer (needs a display)")
 
@@ -675,6 +684,24 @@ def _add_show_aligned(sub):
 
         if args.threshold_range is not None:
             _in_range(args.threshold_range, "--threshold-range", 0, 1e5, low_open=True)
+        if args.mcap:
+            from .export_mcap import write_aligned_mcap
+
+            info = write_aligned_mcap(args.bags, args.calibration, args.mcap, force=args.force,
+                                      snapshots=[k for k in (args.snapshots or "").split(",") if k.strip()],
+                                      topics=[t for t in (args.topics or "").split(",") if t] or None)
+            print(f"/tf_static: {info['base_source']}")
+            print(f"wrote {args.mcap}: {len(info['snapshots'])} snapshot(s) ("
+                  f"{', '.join(s['bag'] for s in info['snapshots'][:5])}{', ...' if len(info['snapshots']) > 5 else ''}), "
+                  f"/tf_static with {len(info['tf'])} transforms")
+            if not args.png:
+                return 0
+        elif args.snapshots:
+            raise InputError("--snapshots chooses what goes into --mcap; give --mcap FILE.mcap")
+        if len(args.bags) > 1:
+            raise InputError(f"the PNG shows one bag, {len(args.bags)} given: give one (or --mcap for several)")
+        args.bag = args.bags[0]
+        args.png = args.png or "aligned.png"
         cal = load_result(args.calibration)
         by_topic = {s["topic"]: s for s in cal["sensors"]}
         topics = [t for t in args.topics.split(",") if t] if args.topics else \

@@ -114,7 +114,7 @@ def choose_base(calibration: dict, tf, *, base_frame: str, ref_frame: str, rt_ve
             f"/tf_static has no transform {base_frame} <- {ref_frame} (reference {ref}): "
             f"{str(e).splitlines()[0] if str(e) else type(e).__name__}; give --rt-vehicle-lidar0"
         ) from None
-    return T, (f"/tf_static of {tf_name} (nominal: its error is in every transform below; give "
+    return T, (f"/tf_static of {tf_name} (nominal: its error goes into every sensor's transform; give "
                "--rt-vehicle-lidar0 for a measured one)")
 
 
