@@ -100,7 +100,8 @@ def _bag_previews(bags, out_dir) -> None:
 @_command
 def _add_targetless(sub):
     p = sub.add_parser("targetless", help="targetless LIDAR-LIDAR (and base_link-LIDAR) calibration from a drive")
-    p.add_argument("--bag", action="append", required=True, metavar="BAG", help="bag file/dir (repeatable)")
+    p.add_argument("--bag", action="extend", nargs="+", required=True, metavar="BAG",
+                   help="bag files/dirs or globs (repeatable; an unquoted glob the shell expanded works too)")
     p.add_argument("--mapping-topic", required=True, help="the mapping LIDAR (reference, lidar0)")
     p.add_argument("--calibration-topics", required=True, help="comma-separated LIDAR topics to calibrate")
     p.add_argument("--base-frame", default=None, help="also calibrate base_link-LIDAR roll/pitch/z from the ground")
@@ -404,6 +405,22 @@ def _lidar_scans(bags, topic: str, *, every: bool = False, limit: int | None = N
     return scans
 
 
+def _bags_and_models(bags: list[str], models: list[str]) -> tuple[list[str], list[str]]:
+    """`--bag a.bag b.bag cam.cameramodel` (an unquoted glob, expanded by the shell, before the
+    models): --bag takes every word up to the next option, so the .cameramodel files among them
+    are models (in order, before the later ones); a bag among the models is an InputError hint."""
+    from .errors import InputError
+
+    is_model = [str(b).endswith(".cameramodel") for b in bags]
+    models = [b for b, m in zip(bags, is_model) if m] + list(models)
+    bags = [b for b, m in zip(bags, is_model) if not m]
+    stray = [m for m in models if str(m).endswith((".bag", ".mcap", ".db3"))]
+    if stray:
+        raise InputError(f"{stray[0]} is a bag, given where the camera models go: put every bag after --bag "
+                         "(or quote the glob: --bag 'capture/*.bag')")
+    return bags, models
+
+
 def _config_args(p, config_help: str = "settings (see `clcgraph config dump`)") -> None:
     """--config FILE and --set SECTION.KEY=VALUE, the same on every command that has a config
     (read by ``_load_config``)."""
@@ -511,8 +528,9 @@ def _add_solve(sub):
                        description="Calibrate LIDARs and cameras from bags of a moving chessboard. "
                        "Writes calibration.yaml, one .cameramodel per sensor, report.html and a replayable dump.")
     p.add_argument("models", nargs="*", metavar="MODEL.cameramodel", help="one per camera topic, in --topics order")
-    p.add_argument("--bag", action="append", required=True, metavar="GLOB",
-                   help="bag file/dir, glob, or directory of bags (repeatable)")
+    p.add_argument("--bag", action="extend", nargs="+", required=True, metavar="GLOB",
+                   help="bag files/dirs, globs, or directories of bags (repeatable; an unquoted glob the shell "
+                        "expanded works too)")
     p.add_argument("--topics", required=True, help="comma-separated LIDAR and camera topics; the first LIDAR is lidar0")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory: new, empty or an earlier output of this command (replaced whole)")
     _add_force(p)
@@ -571,7 +589,8 @@ def _add_solve(sub):
 
         cfg = _load_config(args)
         topics = [t for t in args.topics.split(",") if t.strip()]
-        result = api.calibrate_bags(args.bag, topics, args.models, out=args.out, config=cfg, force=args.force)
+        bags, models = _bags_and_models(args.bag, args.models)
+        result = api.calibrate_bags(bags, topics, models, out=args.out, config=cfg, force=args.force)
         print(api.summary_table(result))
         print(f"wrote {args.out}/calibration.yaml and report.html")
         return 0
