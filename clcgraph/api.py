@@ -317,7 +317,42 @@ def calibrate(problem: Problem, config=None, *, timings: dict | None = None) -> 
         result = solve(problem, cfg.solve)
     with clock("uncertainty"):
         sectors = sector_report(result, cfg.sectors)
-    return dataclasses.replace(result, sectors=sectors)
+    return dataclasses.replace(result, sectors=sectors, rejected=explain_not_found(result))
+
+
+def explain_not_found(result: Result) -> tuple[Rejected, ...]:
+    """``result.rejected`` with each camera's bare "no full chessboard found" replaced by what it
+    saw, where the solve placed the board (frontend.camera_board.not_found_reason): the board's
+    points as the LIDARs saw them (the in-plane position of a LIDAR-only board pose is a guess),
+    else the physical board's outline from the solved board pose."""
+    from . import cameras
+    from .frontend.camera_board import not_found_reason, not_found_text
+    from .geometry import invert_rt, transform
+
+    p = result.problem
+    generic = not_found_text(p.board)
+    lidar_points: dict[int, list] = {}
+    for o in p.lidar_observations:
+        lidar_points.setdefault(o.snapshot, []).append(transform(result.rt_lidar0_sensor[o.sensor], o.points))
+    x0, x1, y0, y1 = p.board.extent()
+    outline = np.array([[x, y, 0.0] for x in np.linspace(x0, x1, 5) for y in np.linspace(y0, y1, 5)])
+    out = []
+    for r in result.rejected:
+        k, i = r.snapshot, r.sensor
+        board = None if k is None else np.asarray(result.rt_lidar0_board[k], float)
+        if r.stage != "detection" or r.reason != generic or i is None or not np.all(np.isfinite(board)):
+            out.append(r)
+            continue
+        if k in lidar_points:
+            pts, what = np.concatenate(lidar_points[k]), "its LIDAR points"
+        else:
+            pts, what = transform(board, outline), "its outline"
+        s = p.sensors[i]
+        p_cam = transform(invert_rt(result.rt_lidar0_sensor[i]), pts)
+        q = cameras.project(p_cam, s.lensmodel, s.intrinsics)
+        q[p_cam[:, 2] <= 0] = np.nan  # behind the camera
+        out.append(dataclasses.replace(r, reason=not_found_reason(q, s.imagersize, p.board, what=what)))
+    return tuple(out)
 
 
 def write_outputs(result: Result, out_dir, config=None, *, force: bool = False) -> dict[str, Path]:
