@@ -303,10 +303,12 @@ def _add_demo(sub):
         result, errors = api.run_demo(args.out, config=_load_config(args), force=args.force)
         print(api.summary_table(result))
         print(f"\nagainst the simulator's truth ({DEMO_DIR}/truth.yaml):")
-        print(f"{'sensor':34s} {'rotation [deg]':>15s} {'1-sigma':>8s} {'translation [mm]':>17s} {'1-sigma':>8s}")
+        # errors as one angle and one distance; their sigmas root-sum-square over the three axes
+        print(f"{'sensor':34s} {'rotation error [deg]':>21s} {'1-sigma rss':>12s} {'translation error [mm]':>23s} "
+              f"{'1-sigma rss':>12s}")
         for e in errors:
-            print(f"{e['topic']:34s} {e['rotation_deg']:15.3f} {e['sigma_deg']:8.3f} {e['translation_mm']:17.1f} "
-                  f"{e['sigma_mm']:8.1f}")
+            print(f"{e['topic']:34s} {e['rotation_deg']:21.3f} {e['sigma_deg']:12.3f} {e['translation_mm']:23.1f} "
+                  f"{e['sigma_mm']:12.1f}")
         print(f"wrote {args.out or DEMO_DIR.parent / 'demo-out'}/calibration.yaml and report.html")
         return 0
 

@@ -237,23 +237,26 @@ def calibration_dict(res: TargetlessResult) -> dict:
 
 
 def summary_table(res: TargetlessResult) -> str:
-    """The table `clcgraph targetless` prints: pose and 1-sigma per LIDAR, then base_link poses."""
-    from scipy.spatial.transform import Rotation
-
+    """The table `clcgraph targetless` prints: pose and per-axis 1-sigmas per LIDAR, then base_link
+    poses. Rotations as geometry.RPY_LABEL says."""
     def rpy(T):
-        return Rotation.from_matrix(np.asarray(T)[:3, :3]).as_euler("ZYX", degrees=True)[::-1]
+        return np.degrees(geo.rpy_from_R(np.asarray(T)[:3, :3]))
 
-    rows = [("sensor", "x [m]", "y [m]", "z [m]", "roll/pitch/yaw [deg]", "1-sigma [mm, deg]", "frames")]
+    rows = [("sensor", "x [m]", "y [m]", "z [m]", geo.RPY_LABEL, "1-sigma x, y, z [mm]",
+             "1-sigma about own x, y, z [deg]", "frames")]
     for t, T in res.T_lidar0_sensor.items():
         sd_rot, sd_pos = geo.pose_stdevs(res.rt_lidar0_sensor(t), res.covariance_rt[t])
-        sigma = "reference" if t == res.mapping_topic else f"{1e3 * sd_pos.max():.2f}, {np.degrees(sd_rot.max()):.4f}"
-        rows.append((t, *(f"{v:+.4f}" for v in np.asarray(T)[:3, 3]), " ".join(f"{v:+.3f}" for v in rpy(T)), sigma,
+        ref = t == res.mapping_topic
+        rows.append((t, *(f"{v:+.4f}" for v in np.asarray(T)[:3, 3]), " ".join(f"{v:+.3f}" for v in rpy(T)),
+                     "reference" if ref else " ".join(f"{v:.2f}" for v in 1e3 * sd_pos),
+                     "" if ref else " ".join(f"{v:.4f}" for v in np.degrees(sd_rot)),
                      str(res.graph.get(t, {}).get("frames", "-"))))
     for t, T in res.T_base_sensor.items():
         rows.append((f"{res.base_frame} <- {t}", *(f"{v:+.4f}" for v in np.asarray(T)[:3, 3]),
-                     " ".join(f"{v:+.3f}" for v in rpy(T)), "ground plane", "-"))
+                     " ".join(f"{v:+.3f}" for v in rpy(T)), "ground plane", "", "-"))
     widths = [max(len(r[k]) for r in rows) for k in range(len(rows[0]))]
     lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
+    lines.append("(x, y, z and their sigmas along the mapping LIDAR's axes; rotation sigmas about the sensor's own axes)")
     return "\n".join(lines + list(res.notes))
 
 
