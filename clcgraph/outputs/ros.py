@@ -208,7 +208,7 @@ def _xyz_rpy(entry: dict) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _f(v) -> str:
-    return " ".join(f"{x:.9g}" for x in v)
+    return " ".join(f"{x + 0.0:.9g}" for x in v)  # + 0.0: no "-0"
 
 
 def _joints(ros: dict) -> list[str]:
@@ -227,9 +227,10 @@ def _joints(ros: dict) -> list[str]:
 
 def _header(ros: dict) -> str:
     b = ros["base"]
-    source = b["source"].replace("--", "")  # "--" may not appear inside an XML comment
-    return (f"<!-- clcgraph extrinsics. {b['parent_frame']} <- {b['child_frame']} from {source}."
-            " rpy: roll, pitch, yaw [rad] about fixed x-y-z (URDF) -->")
+    text = (f"clcgraph extrinsics. {b['parent_frame']} <- {b['child_frame']} from {b['source']}. "
+            "rpy: roll, pitch, yaw [rad] about fixed x-y-z (URDF)")
+    lines = [text, *(f"note: {n}" for n in ros.get("notes", ()))]
+    return "\n".join(f"<!-- {line.replace('--', '')} -->" for line in lines)  # "--" may not appear in an XML comment
 
 
 def urdf_joints(ros: dict) -> str:
@@ -335,7 +336,8 @@ def ros_yaml(ros: dict) -> str:
             "base": {k: ros["base"][k] for k in ("parent_frame", "child_frame", "source")},
             "transforms": {f: {k: e[k] for k in keep if k in e} for f, e in ros["transforms"].items()}}
     b = ros["base"]
-    return (_YAML_HEADER.format(base=b["parent_frame"], child=b["child_frame"], source=b["source"])
+    notes = "".join(f"# note: {n}\n" for n in ros.get("notes", ()))
+    return (_YAML_HEADER.format(base=b["parent_frame"], child=b["child_frame"], source=b["source"]) + notes
             + yaml.safe_dump(slim, sort_keys=False, width=200, default_flow_style=None))
 
 
