@@ -472,7 +472,9 @@ def summary_table(result: Result) -> str:
             why.setdefault(int(r.snapshot), r.reason if r.sensor is None else f"{p.sensors[r.sensor].topic}: {r.reason}")
     unused = [k for k in range(p.n_snapshots) if not used[k]]
     if unused:
-        lines.append("unused: " + "; ".join(f"{p.snapshot_label(k)}: {why.get(k, 'no board pose')}" for k in unused))
+        more = f"; ... {len(unused) - 10} more in calibration.yaml" if len(unused) > 10 else ""
+        lines.append("unused: " + "; ".join(f"{p.snapshot_label(k)}: {why.get(k, 'no board pose')}"
+                                            for k in unused[:10]) + more)
     conv = result.stats.get("convergence") or {}
     if conv and not conv.get("converged"):
         lines.append("NOT CONVERGED: " + "; ".join(conv.get("warnings", ())))

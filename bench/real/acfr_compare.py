@@ -28,10 +28,10 @@ def _T(rt: np.ndarray) -> np.ndarray:
 
 
 def _rpy_deg(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
+    """Roll, pitch, yaw [deg] about fixed x-y-z (clcgraph.geometry.RPY_LABEL)."""
+    from clcgraph.geometry import rpy_from_R
 
-    yaw, pitch, roll = Rotation.from_matrix(R).as_euler("ZYX", degrees=True)
-    return np.array([roll, pitch, yaw])
+    return np.degrees(rpy_from_R(R))
 
 
 def _angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
@@ -75,9 +75,9 @@ def main(argv=None) -> int:
         sd = np.sqrt(np.diag(cov))
         print(f"run{k}: {len(used)} boards used (snapshots {used})")
         print(f"  clcgraph T_lidar_camera: t = {np.round(T[:3, 3] * 1e3, 1)} mm  1-sigma {np.round(sd[3:] * 1e3, 2)} mm; "
-              f"roll/pitch/yaw = {np.round(_rpy_deg(T[:3, :3]), 3)} deg  1-sigma(r) {np.round(np.degrees(sd[:3]), 3)} deg")
+              f"roll, pitch, yaw (fixed x-y-z) = {np.round(_rpy_deg(T[:3, :3]), 3)} deg  1-sigma(r) {np.round(np.degrees(sd[:3]), 3)} deg")
         print(f"  ACFR (mean of 50):       t = {np.round(Ta[:3, 3] * 1e3, 1)} mm  std {np.round(sa[3:] * 1e3, 1)} mm; "
-              f"roll/pitch/yaw = {np.round(_rpy_deg(Ta[:3, :3]), 3)} deg  std {np.round(np.degrees(sa[:3]), 3)} deg")
+              f"roll, pitch, yaw (fixed x-y-z) = {np.round(_rpy_deg(Ta[:3, :3]), 3)} deg  std {np.round(np.degrees(sa[:3]), 3)} deg")
         dt = T[:3, 3] - Ta[:3, 3]
         print(f"  difference: rotation {_angle_deg(T[:3, :3], Ta[:3, :3]):.3f} deg, translation "
               f"{np.round(dt * 1e3, 1)} mm (|dt| {np.linalg.norm(dt) * 1e3:.1f} mm)")
