@@ -185,14 +185,15 @@ def _add_detect(sub):
         if outdir:
             outdir.mkdir(parents=True, exist_ok=True)
         nfound = ntotal = 0
-        for k, (im, res) in enumerate(detect_in_bags(expand_bags(args.bags), args.topic, cfg.detection,
-                                                     board_geometry(cfg), every=args.every)):
+        for k, (im, res, bag) in enumerate(detect_in_bags(expand_bags(args.bags), args.topic, cfg.detection,
+                                                          board_geometry(cfg), every=args.every, with_bag=True)):
             ntotal += 1
+            where = f"{os.path.basename(str(bag).rstrip('/'))} {im.stamp_ns * 1e-9:.6f}"
             if isinstance(res, np.ndarray):
                 nfound += 1
-                print(f"{im.stamp_ns * 1e-9:.6f} found {len(res)} corners")
+                print(f"{where} found {len(res)} corners")
             else:
-                print(f"{im.stamp_ns * 1e-9:.6f} rejected: {res.reason}")
+                print(f"{where} rejected: {res.reason}")
             if outdir:
                 cv2.imwrite(str(outdir / f"{k:05d}_{im.stamp_ns}.png"), draw_detection(im, res))
         print(f"{nfound}/{ntotal} images with a chessboard")
@@ -229,7 +230,8 @@ def _add_segment(sub):
         from .types import LidarBoardObservation
 
         cfg = _load_config(args)
-        scans = _lidar_scans(args.bags, args.topic, every=args.every)
+        bag_names: list = []
+        scans = _lidar_scans(args.bags, args.topic, every=args.every, names=bag_names)
         board = board_geometry(cfg)
         outdir = Path(args.png) if args.png else None
         if outdir:
@@ -238,7 +240,7 @@ def _add_segment(sub):
         results = segment_many(scans, cfg.segmentation, cfg.lidar, board, debug=debugs)
         dump, nfound = {}, 0
         for k, (scan, r, dbg) in enumerate(zip(scans, results, debugs)):
-            t = f"{scan.stamp_ns * 1e-9:.6f}"
+            t = f"{bag_names[k]} {scan.stamp_ns * 1e-9:.6f}"
             if isinstance(r, LidarBoardObservation):
                 nfound += 1
                 c = r.points.mean(axis=0)
@@ -386,9 +388,9 @@ def _add_simulate_drive(sub):
     p.set_defaults(func=run)
 
 
-def _lidar_scans(bags, topic: str, *, every: bool = False, limit: int | None = None) -> list:
+def _lidar_scans(bags, topic: str, *, every: bool = False, limit: int | None = None, names: list | None = None) -> list:
     """The scans of a PointCloud2 topic: the first of each bag (or every one); InputError if the
-    topic holds something else."""
+    topic holds something else. ``names``: if given, filled with each scan's bag file name."""
     from .api import expand_bags
     from .errors import InputError
     from .frontend.bag import first_messages, read_messages
@@ -396,9 +398,12 @@ def _lidar_scans(bags, topic: str, *, every: bool = False, limit: int | None = N
 
     paths = expand_bags(bags)[:limit]
     if every:
-        scans = [m.data for m in read_messages(paths, [topic])]
+        msgs = list(read_messages(paths, [topic]))
+        scans, where = [m.data for m in msgs], [m.path for m in msgs]
     else:
-        scans = [first_messages(b, [topic]).get(topic) for b in paths]
+        scans, where = [first_messages(b, [topic]).get(topic) for b in paths], paths
+    if names is not None:
+        names[:] = [os.path.basename(str(b).rstrip("/")) for b in where]
     bad = next((i for i, x in enumerate(scans) if not isinstance(x, LidarScan)), None)
     if bad is not None:
         where = paths[bad] if not every else ", ".join(map(str, paths))

@@ -387,8 +387,10 @@ def not_found_reason(q_px: np.ndarray, imagersize: tuple[int, int], board: Board
             f"{board.corners_x}x{board.corners_y} chessboard found: blurred, badly lit or partly hidden?")
 
 
-def detect_in_bags(bags, topic: str, options, board: BoardGeometry, *, every: bool = False, batch: int = 32):
-    """Yield (Image, corners (N,2) | Rejected) for the images of ``topic`` in ``bags``.
+def detect_in_bags(bags, topic: str, options, board: BoardGeometry, *, every: bool = False, batch: int = 32,
+                   with_bag: bool = False):
+    """Yield (Image, corners (N,2) | Rejected) for the images of ``topic`` in ``bags``
+    (``with_bag``: (Image, result, the bag's path)).
 
     Default: the first image of each bag (one snapshot per bag); ``every``: all images,
     streamed and detected in batches of ``batch``.
@@ -398,23 +400,27 @@ def detect_in_bags(bags, topic: str, options, board: BoardGeometry, *, every: bo
     def images():
         if every:
             for m in read_messages(list(bags), [topic]):
-                yield m.data
+                yield m.path, m.data
         else:
             for b in bags:
                 first = first_messages(b, [topic])
                 if topic in first:
-                    yield first[topic]
+                    yield b, first[topic]
 
-    buf: list[Image] = []
-    for im in images():
+    def done(buf):
+        found = detect_corners([im for _, im in buf], options, board)
+        return [(im, r, b) if with_bag else (im, r) for (b, im), r in zip(buf, found)]
+
+    buf: list = []
+    for b, im in images():
         if not isinstance(im, Image):
             raise InputError(f"topic {topic} is not an image topic")
-        buf.append(im)
+        buf.append((b, im))
         if len(buf) == batch:
-            yield from zip(buf, detect_corners(buf, options, board))
+            yield from done(buf)
             buf = []
     if buf:
-        yield from zip(buf, detect_corners(buf, options, board))
+        yield from done(buf)
 
 
 def draw_detection(image: Image, result) -> np.ndarray:
