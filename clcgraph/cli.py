@@ -654,9 +654,10 @@ def _add_format_for_ros(sub):
             if resolved.is_file() else None
         tf = read_tf_static(args.bag)
         topics = [s["topic"] for s in cal["sensors"]]
+        # the messages' own frame_ids need not be in /tf_static when base_link <- lidar0 comes from elsewhere
+        elsewhere = rt_given is not None or any(solve_rt or ()) or bool(cal.get("base_link"))
         frames = infer_frames(topics, tf.frames, frame_ids={t: frame_id(args.bag, t) for t in topics},
-                              need_tf=args.base_source != "tf-static" and (rt_given is not None or solve_rt is not None
-                                                                          or bool(cal.get("base_link"))))
+                              need_tf=args.base_source == "tf-static" or not elsewhere)
         ros = format_for_ros(cal, tf, base_frame=args.base_frame, frames=frames, rt_vehicle_lidar0=rt_given,
                              solve_rt_vehicle_lidar0=solve_rt, base_source=args.base_source, tf_name=str(args.bag))
         b = ros["base"]

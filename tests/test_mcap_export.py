@@ -11,6 +11,7 @@ from clcgraph.errors import InputError
 from clcgraph.export_mcap import write_aligned_mcap
 from clcgraph.geometry import T_from_rt
 from clcgraph.outputs.results import write_results
+from clcgraph.outputs.ros import T_from_ros_entry
 from clcgraph.sim.bag_writer import BagWriter
 from clcgraph.types import Image, LidarScan
 from test_outputs import make_result
@@ -154,3 +155,27 @@ def test_mcap_bad_input_is_one_line(capture, capsys, tmp_path):
                  "--snapshots", "0"]) == 0
     out = capsys.readouterr().out
     assert "/tf_static: /tf_static of" in out and "1 snapshot(s) (pose000.bag)" in out and (tmp_path / "c.mcap").is_file()
+
+
+def test_format_for_ros_cli_states_its_base(capture, capsys, tmp_path):
+    """The bag's /tf_static knows only base_link -> lidar_front: with /tf_static as the base the other
+    sensors' frames cannot be told (one line naming the topic); with --rt-vehicle-lidar0 the messages'
+    own frame_ids serve, and the source is printed and written."""
+    import yaml
+
+    tmp, result, _ = capture
+    bag, calib = str(tmp / "pose000.bag"), str(tmp / "calib")
+    assert main(["-q", "format-for-ros", bag, "--calibration", calib]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "/lidar/rear/points" in err[0], err
+    rt = "0.01,0.02,-0.3,1.0,-0.1,1.8"
+    assert main(["-q", "format-for-ros", bag, "--calibration", calib, "--rt-vehicle-lidar0", rt,
+                 "--out", str(tmp_path / "ros")]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("base_link <- lidar_front from --rt-vehicle-lidar0"), out
+    d = yaml.safe_load((tmp_path / "ros" / "ros-transforms.yaml").read_text())
+    assert d["base"]["source"].startswith("--rt-vehicle-lidar0") and set(d["transforms"]) == \
+        {"lidar_front", "lidar_rear", "cam", "cam_optical"}
+    T = T_from_ros_entry(d["transforms"]["lidar_rear"])
+    want = T_from_rt(np.array(rt.split(","), float)) @ T_from_rt(result.rt_lidar0_sensor[1])
+    np.testing.assert_allclose(T, want, atol=1e-9)
