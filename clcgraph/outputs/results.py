@@ -54,6 +54,8 @@ def _scalar(v):
 
 # What each uncertainty field means (written into calibration.yaml as `coordinates`).
 COORDINATES = {
+    "rt_lidar0_sensor": "mrcal rt of the sensor in lidar0: Rodrigues r [rad] (axis * angle), then t [m]; "
+    "T_lidar0_sensor is the same as a 4x4",
     "covariance_rt_lidar0_sensor": "joint covariance of rt_lidar0_sensor (mrcal rt: Rodrigues r [rad], then t [m]) "
     "over the non-reference sensors in sensor order; for machines (mrcal, uncertainty propagation)",
     "stdev_rt": "sqrt of the diagonal of that covariance: rt coordinates, NOT per-axis angles (the Rodrigues "
@@ -203,7 +205,9 @@ def write_results(
     names: dict[str, Path] = {}
     with atomic_dir(out_dir, force=force) as tmp:
         (tmp / CALIBRATION_FILE).write_text(
-            "# clcgraph calibration: rt_a_b maps points in frame b into frame a (mrcal rt: Rodrigues r, then t)\n"
+            "# clcgraph calibration: rt_a_b maps points in frame b into frame a: x_a = R x_b + t, as mrcal's rt\n"
+            "# (Rodrigues rotation vector r = axis * angle [rad], then translation t [m]); for people, the summary\n"
+            "# table and the report give roll, pitch, yaw [deg] about fixed x-y-z (R = Rz(yaw) Ry(pitch) Rx(roll))\n"
             + yaml.safe_dump(calibration_dict(result), sort_keys=False, default_flow_style=None, width=200)
         )
         names[CALIBRATION_FILE] = out_dir / CALIBRATION_FILE
