@@ -81,6 +81,20 @@ def expand_bags(patterns: Sequence[str | Path]) -> list[Path]:
     return out
 
 
+def bags_and_models(bags: Sequence[str], models: Sequence[str]) -> tuple[list[str], list[str]]:
+    """`--bag a.bag b.bag cam.cameramodel` (an unquoted glob, expanded by the shell, before the
+    models): --bag takes every word up to the next option, so the .cameramodel files among them
+    are models (in order, before the later ones); a bag among the models is an InputError hint."""
+    is_model = [str(b).endswith(".cameramodel") for b in bags]
+    models = [b for b, m in zip(bags, is_model) if m] + list(models)
+    bags = [b for b, m in zip(bags, is_model) if not m]
+    stray = [m for m in models if str(m).endswith((".bag", ".mcap", ".db3"))]
+    if stray:
+        raise InputError(f"{stray[0]} is a bag, given where the camera models go: put every bag after --bag "
+                         "(or quote the glob: --bag 'capture/*.bag')")
+    return bags, models
+
+
 def board_geometry(config=None) -> BoardGeometry:
     """The physical board of the config's ``board`` section."""
     return BoardGeometry.from_spec(**dataclasses.asdict(_config(config).board))
@@ -194,6 +208,7 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
         snaps, rejected = assemble_snapshots(paths, lidar_topics, camera_topics, cfg.snapshots,
                                              progress=lambda it: progress(it, desc="reading bags", unit="bag"))
     rejected = list(rejected)
+    excluded = {r.snapshot for r in rejected if r.snapshot is not None}  # emptied by exclude_bag
     if not snaps:
         raise DataError(f"no usable snapshot in {len(paths)} bag(s): "
                         + (rejected[0].reason if rejected else "no messages on the topics"))
@@ -257,7 +272,7 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
     lonely = {k for k, n in seen.items() if n < 2}
     for k in sorted(lonely):
         rejected.append(Rejected("board seen by only one sensor", "snapshot", snapshot=k))
-    for k in sorted({s.index for s in snaps} - set(seen)):
+    for k in sorted({s.index for s in snaps} - set(seen) - excluded):
         rejected.append(Rejected("board seen by no sensor", "snapshot", snapshot=k))
     lidar_obs = [o for o in lidar_obs if o.snapshot not in lonely]
     camera_obs = [o for o in camera_obs if o.snapshot not in lonely]
@@ -290,6 +305,7 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
         rejected=tuple(rejected),
         priors=priors,
         lidar_visibility_points=visibility,
+        snapshot_bags=tuple(s.bag for s in snaps),
     )
 
 
@@ -416,7 +432,42 @@ def calibrate(problem: Problem, config=None, *, timings: dict | None = None) -> 
         result = solve(problem, cfg.solve)
     with clock("uncertainty"):
         sectors = sector_report(result, cfg.sectors)
-    return dataclasses.replace(result, sectors=sectors)
+    return dataclasses.replace(result, sectors=sectors, rejected=explain_not_found(result))
+
+
+def explain_not_found(result: Result) -> tuple[Rejected, ...]:
+    """``result.rejected`` with each camera's bare "no full chessboard found" replaced by what it
+    saw, where the solve placed the board (frontend.camera_board.not_found_reason): the board's
+    points as the LIDARs saw them (the in-plane position of a LIDAR-only board pose is a guess),
+    else the physical board's outline from the solved board pose."""
+    from . import cameras
+    from .frontend.camera_board import not_found_reason, not_found_text
+    from .geometry import invert_rt, transform
+
+    p = result.problem
+    generic = not_found_text(p.board)
+    lidar_points: dict[int, list] = {}
+    for o in p.lidar_observations:
+        lidar_points.setdefault(o.snapshot, []).append(transform(result.rt_lidar0_sensor[o.sensor], o.points))
+    x0, x1, y0, y1 = p.board.extent()
+    outline = np.array([[x, y, 0.0] for x in np.linspace(x0, x1, 5) for y in np.linspace(y0, y1, 5)])
+    out = []
+    for r in result.rejected:
+        k, i = r.snapshot, r.sensor
+        board = None if k is None else np.asarray(result.rt_lidar0_board[k], float)
+        if r.stage != "detection" or r.reason != generic or i is None or not np.all(np.isfinite(board)):
+            out.append(r)
+            continue
+        if k in lidar_points:
+            pts, what = np.concatenate(lidar_points[k]), "its LIDAR points"
+        else:
+            pts, what = transform(board, outline), "its outline"
+        s = p.sensors[i]
+        p_cam = transform(invert_rt(result.rt_lidar0_sensor[i]), pts)
+        q = cameras.project(p_cam, s.lensmodel, s.intrinsics)
+        q[p_cam[:, 2] <= 0] = np.nan  # behind the camera
+        out.append(dataclasses.replace(r, reason=not_found_reason(q, s.imagersize, p.board, what=what)))
+    return tuple(out)
 
 
 def write_outputs(result: Result, out_dir, config=None, *, force: bool = False, report_inputs=None) -> dict[str, Path]:
@@ -668,23 +719,32 @@ def load_result(out_dir):
 # ---------------------------------------------------------------- the commands' wiring (cli/ only parses and prints)
 
 
-def lidar_scans(bags, topic: str, *, every: bool = False, limit: int | None = None) -> list:
+def lidar_scans(bags, topic: str, *, every: bool = False, limit: int | None = None,
+                names: list | None = None) -> list:
     """The scans of a PointCloud2 topic: the first of each bag (or every one); InputError if the
-    topic holds something else."""
+    topic holds something else. ``names``: if given, filled with each scan's bag file name."""
     from .frontend.bag import first_messages, read_messages
     from .types import LidarScan
 
     paths = expand_bags(bags)[:limit]
     if every:
-        scans = [m.data for m in read_messages(paths, [topic])]
+        msgs = list(read_messages(paths, [topic]))
+        scans, where = [m.data for m in msgs], [m.path for m in msgs]
     else:
-        scans = [first_messages(b, [topic]).get(topic) for b in paths]
+        scans, where = [first_messages(b, [topic]).get(topic) for b in paths], paths
+    if names is not None:
+        names[:] = [_bag_name(b) for b in where]
     bad = next((i for i, x in enumerate(scans) if not isinstance(x, LidarScan)), None)
     if bad is not None:
         where = paths[bad] if not every else ", ".join(map(str, paths))
         what = "no message" if scans[bad] is None else type(scans[bad]).__name__
         raise InputError(f"{where}: topic {topic} holds {what}, not sensor_msgs/PointCloud2")
     return scans
+
+
+def _bag_name(path) -> str:
+    """A bag file's (or ROS 2 bag directory's) own name, for people."""
+    return Path(str(path).rstrip("/")).name
 
 
 def bag_summaries(paths) -> list:
@@ -719,14 +779,15 @@ def write_bag_previews(paths, out_dir) -> list[Path]:
 
 
 def segment_bags(bags, topic: str, *, every: bool = False, config=None, dump=None, png=None) -> list:
-    """`clcgraph segment`: (scan, LidarBoardObservation | Rejected) per scan; ``dump``: an npz of
-    the intermediate stages; ``png``: a directory for a picture of each scan's segmentation."""
+    """`clcgraph segment`: (scan, LidarBoardObservation | Rejected, bag name) per scan; ``dump``: an
+    npz of the intermediate stages; ``png``: a directory for a picture of each scan's segmentation."""
     from .frontend.lidar_board import Debug, segment_many
     from .outputs.debug import write_segmentation_dump
     from .outputs.plots import plot_segmentation
 
     cfg = _config(config)
-    scans = lidar_scans(bags, topic, every=every)
+    names: list = []
+    scans = lidar_scans(bags, topic, every=every, names=names)
     debugs = [Debug() for _ in scans]
     results = segment_many(scans, cfg.segmentation, cfg.lidar, board_geometry(cfg), debug=debugs)
     if dump:
@@ -735,12 +796,12 @@ def segment_bags(bags, topic: str, *, every: bool = False, config=None, dump=Non
         Path(png).mkdir(parents=True, exist_ok=True)
         for k, (scan, r, dbg) in enumerate(zip(scans, results, debugs)):
             plot_segmentation(scan, dbg, r, Path(png) / f"{k:05d}_{scan.stamp_ns}.png")
-    return list(zip(scans, results))
+    return list(zip(scans, results, names))
 
 
 def detect_bags(bags, topic: str, *, every: bool = False, config=None, png=None) -> list:
-    """`clcgraph detect`: (image, (N,2) corners | Rejected) per image (the first of each bag unless
-    ``every``); ``png``: a directory for an annotated picture of each."""
+    """`clcgraph detect`: (image, (N,2) corners | Rejected, bag name) per image (the first of each
+    bag unless ``every``); ``png``: a directory for an annotated picture of each."""
     from .frontend.camera_board import detect_in_bags, draw_detection
 
     cfg = _config(config)
@@ -749,9 +810,9 @@ def detect_bags(bags, topic: str, *, every: bool = False, config=None, png=None)
 
         Path(png).mkdir(parents=True, exist_ok=True)
     out = []
-    for k, (im, res) in enumerate(detect_in_bags(expand_bags(bags), topic, cfg.detection, board_geometry(cfg),
-                                                 every=every)):
-        out.append((im, res))
+    for k, (im, res, bag) in enumerate(detect_in_bags(expand_bags(bags), topic, cfg.detection, board_geometry(cfg),
+                                                      every=every, with_bag=True)):
+        out.append((im, res, _bag_name(bag)))
         if png:
             cv2.imwrite(str(Path(png) / f"{k:05d}_{im.stamp_ns}.png"), draw_detection(im, res))
     return out
@@ -764,26 +825,47 @@ def infer_lidar_spacing(bags, topic: str) -> tuple[int, int]:
     return _infer(lidar_scans(bags, topic, limit=5))
 
 
-def format_for_ros(bag, calibration, *, base_frame: str = "base_link", out=None, force: bool = False):
-    """`clcgraph format-for-ros`: (the transforms under ``base_frame``, the files written into
-    ``out`` (none without it)); frames from the bag's header frame_ids and /tf_static."""
+def format_for_ros(bag, calibration, *, base_frame: str = "base_link", rt_vehicle_lidar0=None,
+                   base_source: str = "auto", full_urdf: bool = False, out=None, force: bool = False):
+    """`clcgraph format-for-ros`: (the transforms under ``base_frame``, with ``base`` (where
+    base_frame <- lidar0 came from, see outputs.ros.choose_base) and ``notes``; the files written
+    into ``out`` (none without it)). Frames from the bag's header frame_ids and /tf_static; the
+    frame_ids need not be in /tf_static when base_frame <- lidar0 comes from elsewhere
+    (``rt_vehicle_lidar0``, mrcal rt; the calibration's ground plane or the solve's own
+    sectors.rt_vehicle_lidar0)."""
+    import yaml
+
     from .frontend.bag import frame_id, read_tf_static
     from .outputs.ros import format_for_ros as _format
     from .outputs.ros import infer_frames, ros_files
 
     cal = load_result(calibration)
+    resolved = Path(calibration) / "config.resolved.yaml"  # the solve's own rt_vehicle_lidar0, if any
+    solve_rt = ((yaml.safe_load(resolved.read_text()) or {}).get("sectors") or {}).get("rt_vehicle_lidar0") \
+        if resolved.is_file() else None
     tf = read_tf_static(bag)
-    frames = infer_frames(cal.topics, tf.frames, frame_ids={t: frame_id(bag, t) for t in cal.topics})
-    ros = _format(cal, tf, base_frame=base_frame, frames=frames)
+    elsewhere = rt_vehicle_lidar0 is not None or any(solve_rt or ()) or bool(cal.get("base_link"))
+    frames = infer_frames(cal.topics, tf.frames, frame_ids={t: frame_id(bag, t) for t in cal.topics},
+                          need_tf=base_source == "tf-static" or not elsewhere)
+    ros = _format(cal, tf, base_frame=base_frame, frames=frames, rt_vehicle_lidar0=rt_vehicle_lidar0,
+                  solve_rt_vehicle_lidar0=solve_rt, base_source=base_source, tf_name=str(bag))
     if not out:
         return ros, []
     from .outputs.atomic import atomic_dir
 
-    files = ros_files(ros)
+    files = ros_files(ros, full_urdf=full_urdf)
     with atomic_dir(out, kind="ros", force=force) as tmp:
         for name, text in files.items():
             (tmp / name).write_text(text)
     return ros, [Path(out) / name for name in files]
+
+
+def write_aligned_mcap(bags, calibration, out, **kwargs) -> dict:
+    """`clcgraph show-aligned --mcap`: /tf_static from the calibration and the clouds and images of
+    chosen snapshots as one MCAP file (see clcgraph.export_mcap.write_aligned_mcap)."""
+    from .export_mcap import write_aligned_mcap as _write
+
+    return _write(bags, calibration, out, **kwargs)
 
 
 def show_aligned(bag, calibration, *, topics=None, png, threshold_range: float | None = None) -> dict:

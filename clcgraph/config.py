@@ -44,7 +44,9 @@ class SnapshotOptions:
     before: str | None = None
     # Periods to skip: list of [start, end] in the same formats.
     exclude_time_periods: list = field(default_factory=list)
-    # Bags whose path matches this regex are skipped.
+    # Snapshots to leave out: comma-separated bag names (path, file name or stem) and snapshot
+    # indices (as calibration.yaml's snapshots.list numbers them; indices do not shift), or a regex:
+    # bags whose path matches it are not read.
     exclude_bag: str | None = None
     # Continuous bags: drop a period whose board moved (LIDAR board points shift more than this).
     max_board_motion_m: float = 0.03

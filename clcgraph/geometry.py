@@ -132,24 +132,44 @@ def invert_T(T: np.ndarray) -> np.ndarray:
     return Ti
 
 
-def rpy_from_R(R: np.ndarray) -> np.ndarray:
-    """Roll, pitch, yaw [rad] of a rotation, R = Rz(yaw) Ry(pitch) Rx(roll): rotations about the
-    fixed x, then y, then z axes (extrinsic x-y-z; URDF's rpy, tf's static_transform_publisher)."""
-    from scipy.spatial.transform import Rotation
+# The one rotation format for people (tables, reports, the README): roll, pitch, yaw about the
+# fixed (extrinsic) axes x, then y, then z, so R = Rz(yaw) Ry(pitch) Rx(roll): URDF's <origin rpy>
+# and ROS tf's convention. Machine files keep mrcal's Rodrigues rt.
+RPY_LABEL = "roll, pitch, yaw [deg] (fixed axes x-y-z)"
 
-    return Rotation.from_matrix(np.asarray(R, dtype=float)).as_euler("xyz")
+
+def rpy_from_R(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices (...,3,3) -> (roll, pitch, yaw) (...,3) in rad, fixed axes x-y-z:
+    R = Rz(yaw) Ry(pitch) Rx(roll); pitch in [-pi/2, pi/2]. At pitch = +-pi/2 (gimbal lock)
+    roll is set to 0 and yaw carries the whole rotation about z."""
+    R = np.asarray(R, dtype=float)
+    pitch = np.arctan2(-R[..., 2, 0], np.hypot(R[..., 0, 0], R[..., 1, 0]))
+    locked = np.hypot(R[..., 0, 0], R[..., 1, 0]) < 1e-9
+    roll = np.where(locked, 0.0, np.arctan2(R[..., 2, 1], R[..., 2, 2]))
+    yaw = np.where(locked, np.arctan2(-R[..., 0, 1], R[..., 1, 1]), np.arctan2(R[..., 1, 0], R[..., 0, 0]))
+    return np.stack([roll, pitch, yaw], axis=-1)
 
 
 def R_from_rpy(rpy: np.ndarray) -> np.ndarray:
-    """(3,3) R = Rz(yaw) Ry(pitch) Rx(roll) from roll, pitch, yaw [rad] (see rpy_from_R)."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_euler("xyz", np.asarray(rpy, dtype=float)).as_matrix()
+    """(roll, pitch, yaw) (...,3) in rad, fixed axes x-y-z -> R = Rz(yaw) Ry(pitch) Rx(roll) (...,3,3)."""
+    rpy = np.asarray(rpy, dtype=float)
+    cr, cp, cy = np.cos(rpy[..., 0]), np.cos(rpy[..., 1]), np.cos(rpy[..., 2])
+    sr, sp, sy = np.sin(rpy[..., 0]), np.sin(rpy[..., 1]), np.sin(rpy[..., 2])
+    return np.stack([
+        np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),
+        np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1),
+        np.stack([-sp, cp * sr, cp * cr], -1),
+    ], -2)
 
 
 def rpy_deg_from_R(R: np.ndarray) -> np.ndarray:
     """rpy_from_R in degrees, for printing."""
     return np.degrees(rpy_from_R(R))
+
+
+def rpy_deg_from_rt(rt: np.ndarray) -> np.ndarray:
+    """rt (...,6) or r (...,3) -> roll, pitch, yaw [deg] of its rotation (RPY_LABEL's convention)."""
+    return rpy_deg_from_R(R_from_r(np.asarray(rt, dtype=float)[..., :3]))
 
 
 def T_from_xyz_rpy(xyz, rpy_deg) -> np.ndarray:
@@ -264,3 +284,4 @@ def pose_difference(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     c = np.clip(0.5 * (np.trace(E[:3, :3]) - 1.0), -1.0, 1.0)
     s = 0.5 * np.linalg.norm([E[2, 1] - E[1, 2], E[0, 2] - E[2, 0], E[1, 0] - E[0, 1]])
     return float(np.arctan2(s, c)), float(np.linalg.norm(E[:3, 3]))
+

@@ -75,6 +75,7 @@ class Snapshot:
     source: str  # bag path, plus the period for decimated continuous bags
     scans: Mapping[str, LidarScan] = field(default_factory=dict)
     images: Mapping[str, Image] = field(default_factory=dict)
+    bag: str = ""  # the bag's path alone
 
 
 @dataclass(frozen=True)
@@ -210,6 +211,8 @@ class Problem:
     priors: tuple[PosePrior, ...] = ()
     # sensor index -> (K,3) sample of far points in that LIDAR's frame (sector visibility)
     lidar_visibility_points: Mapping[int, np.ndarray] = field(default_factory=dict)
+    # (Nsnapshots,) the bag each snapshot came from (path as given); () when unknown (old dumps)
+    snapshot_bags: tuple[str, ...] = ()
 
     @property
     def reference(self) -> int:
@@ -225,6 +228,19 @@ class Problem:
 
     def sensor_name(self, i: int) -> str:
         return f"{self.sensors[i].kind} {self.sensors[i].topic}"
+
+    def snapshot_bag(self, k: int) -> str | None:
+        """The file (or ROS2 bag directory) name snapshot k came from, or None if unknown."""
+        if not 0 <= k < len(self.snapshot_bags):
+            return None
+        return self.snapshot_bags[k].rstrip("/").rsplit("/", 1)[-1]
+
+    def snapshot_label(self, k: int) -> str:
+        """'snapshot 7 (0007.bag @1700000012.345 s)': the index with its bag and stamp, for people."""
+        where = [self.snapshot_bag(k) or ""]
+        if 0 <= k < self.n_snapshots:
+            where.append(f"@{int(self.snapshot_stamps_ns[k]) * 1e-9:.3f} s")
+        return f"snapshot {k} ({' '.join(w for w in where if w)})"
 
 
 @dataclass(frozen=True, eq=False)

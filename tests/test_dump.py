@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from clcgraph.config import Config
-from clcgraph.errors import DataError
+from clcgraph.errors import DataError, InputError
 from clcgraph.backend.replay import exclude_snapshots, renoise_problem
 from clcgraph.outputs.dump import load_problem, save_problem
 from clcgraph.geometry import compose_rt, invert_rt, transform
@@ -29,6 +29,7 @@ def _problem():
         rejected=(Rejected("no board", "segmentation", 1, 2), Rejected("blurry", "snapshot")),
         priors=(PosePrior(1, rng.normal(size=6), np.full(6, 0.1)),),
         lidar_visibility_points={0: rng.normal(size=(100, 3)), 1: np.zeros((0, 3))},
+        snapshot_bags=("/cap/a.bag", "/cap/b.bag", "/cap/ros2bag/"),
     )
 
 
@@ -66,6 +67,7 @@ def test_round_trip_exact(tmp_path):
     assert sorted(q.lidar_visibility_points) == [0, 1]
     for k in (0, 1):
         _same(p.lidar_visibility_points[k], q.lidar_visibility_points[k])
+    assert q.snapshot_bags == p.snapshot_bags and q.snapshot_bag(2) == "ros2bag"
 
 
 def test_no_pickle_and_versioning(tmp_path):
@@ -119,6 +121,17 @@ def test_exclude_snapshots_keeps_indices():
     assert {o.snapshot for o in q.lidar_observations} == {0}
     assert {o.snapshot for o in q.camera_observations} == {0}
     assert q.n_snapshots == 3 and q.rejected[-1].snapshot == 2
+    # by bag name (file name, stem or path) as well as by index; an unknown name is one line naming it
+    for name in ("ros2bag", "/cap/ros2bag", "b.bag,2", "b"):
+        q = exclude_snapshots(_problem(), name.split(","))
+        want = {2} if name != "b" else {1}
+        if name == "b.bag,2":
+            want = {1, 2}
+        assert {r.snapshot for r in q.rejected if r.reason == "excluded by the user"} == want, name
+    with pytest.raises(InputError, match="'c.bag' is neither a snapshot index .* nor a bag of this problem .*a.bag"):
+        exclude_snapshots(_problem(), ["c.bag"])
+    with pytest.raises(InputError, match="no snapshot 3"):
+        exclude_snapshots(_problem(), ["3"])
 
 
 def test_renoise_puts_points_on_the_plane():

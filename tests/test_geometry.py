@@ -65,3 +65,22 @@ def test_drt_dxi_matches_finite_differences():
         np.testing.assert_allclose(
             pose.retract(d).translation(), pose.translation() + pose.rotation().matrix() @ d[3:], atol=1e-12
         )
+
+
+def test_rpy_is_urdf_fixed_axes_and_round_trips():
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(3)
+    rpy = np.c_[rng.uniform(-np.pi, np.pi, 200), rng.uniform(-1.5, 1.5, 200), rng.uniform(-np.pi, np.pi, 200)]
+    R = g.R_from_rpy(rpy)
+    # URDF: R = Rz(yaw) Ry(pitch) Rx(roll), composed from elementary rotations independently of our code
+    want = np.stack([Rotation.from_euler("z", y).as_matrix() @ Rotation.from_euler("y", p).as_matrix()
+                     @ Rotation.from_euler("x", r).as_matrix() for r, p, y in rpy])
+    np.testing.assert_allclose(R, want, atol=1e-12)
+    np.testing.assert_allclose(g.rpy_from_R(R), rpy, atol=1e-9)
+    # a pure yaw of 30 deg reads as (0, 0, 30); the label says which convention
+    np.testing.assert_allclose(g.rpy_deg_from_rt(np.r_[0, 0, np.radians(30), 1, 2, 3]), [0, 0, 30], atol=1e-12)
+    assert "fixed axes x-y-z" in g.RPY_LABEL
+    # gimbal lock: pitch +90 deg still reproduces the rotation
+    R_lock = g.R_from_rpy(np.r_[0.3, np.pi / 2, -0.2])
+    np.testing.assert_allclose(g.R_from_rpy(g.rpy_from_R(R_lock)), R_lock, atol=1e-9)

@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "clcgraph"
-_LIBRARY = ("clcgraph.api", "clcgraph.cli", "clcgraph.fleet")  # the orchestration layer: nothing below imports it
+_LIBRARY = ("clcgraph.api", "clcgraph.cli", "clcgraph.fleet", "clcgraph.export_mcap")  # the orchestration layer: nothing below imports it
 
 # module-name prefix -> (import prefixes it must not use)
 RULES: dict[str, tuple[str, ...]] = {

@@ -53,7 +53,8 @@ def make_result(seed: int = 0, *, n_snapshots: int = 8) -> Result:
         cam_obs.append(CameraBoardObservation(2, k, q))
     problem = Problem(sensors, board, tuple(lidar_obs), tuple(cam_obs),
                       np.arange(n_snapshots, dtype=np.int64) * 10**9,
-                      rejected=(Rejected("board not found", "segmentation", 1, 3),))
+                      rejected=(Rejected("board not found", "segmentation", 1, 3),),
+                      snapshot_bags=tuple(f"/data/capture/pose{k:03d}.bag" for k in range(n_snapshots)))
     A = rng.normal(size=(12, 12)) * 1e-3
     cov = A @ A.T + np.eye(12) * 1e-6
     nl, nc = 4000, 3000
@@ -117,7 +118,13 @@ def test_calibration_yaml_schema(written):
     assert d["noise"] == {"lidar_m": 0.012, "camera_px": 0.4}
     assert d["snapshots"]["used"] == 7
     rej = d["snapshots"]["rejected"]
-    assert {"index": 3, "sensor": "/lidar/rear/points", "stage": "segmentation", "reason": "board not found"} in rej
+    assert {"index": 3, "bag": "pose003.bag", "sensor": "/lidar/rear/points", "stage": "segmentation",
+            "reason": "board not found"} in rej
+    # every snapshot by index, bag and stamp; the unused one (3) marked
+    listed = d["snapshots"]["list"]
+    assert [e["bag"] for e in listed] == [f"pose{k:03d}.bag" for k in range(8)]
+    assert [e["stamp_ns"] for e in listed] == [k * 10**9 for k in range(8)]
+    assert [e["index"] for e in listed if not e["used"]] == [3]
     assert rej[1]["index"] == 5 and rej[1]["sensor"] == "/cam/image"
     assert d["sectors"]["n_sectors"] == 12 and len(d["sectors"]["stdev_worst_per_sector_m"]) == 12
     assert d["sectors"]["isector_of_last_snapshot"] == 1
@@ -291,3 +298,21 @@ def test_calibrate_bags_refuses_a_foreign_out_before_reading_any_bag(tmp_path):
     with pytest.raises(InputError, match="no such bag"):  # force passes the check; the work then fails
         calibrate_bags([missing], ["/l0", "/l1"], out=out, force=True)
     assert [p.name for p in out.iterdir()] == ["note.txt"] and (out / "note.txt").read_text() == "mine"
+
+
+def test_summary_table_says_its_conventions_and_names_bags():
+    from clcgraph.api import summary_table
+    from clcgraph.geometry import pose_stdevs, rpy_deg_from_rt
+
+    result = make_result()
+    text = summary_table(result)
+    header, *rows = text.splitlines()
+    assert "roll, pitch, yaw [deg] (fixed axes x-y-z)" in header
+    assert "1-sigma x, y, z [mm]" in header and "1-sigma about own x, y, z [deg]" in header
+    cam = next(r for r in rows if r.startswith("/cam/image"))
+    # every axis's number, not the worst one alone
+    sd_rot, sd_pos = pose_stdevs(CAMERA_RT, result.covariance_block(2))
+    assert " ".join(f"{v:.2f}" for v in 1e3 * sd_pos) in cam
+    assert " ".join(f"{v:.3f}" for v in np.degrees(sd_rot)) in cam
+    assert " ".join(f"{v:+.3f}" for v in rpy_deg_from_rt(CAMERA_RT)) in cam
+    assert "snapshot 3 (pose003.bag @3.000 s): /lidar/rear/points: board not found" in text

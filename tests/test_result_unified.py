@@ -113,7 +113,9 @@ def test_targetless_ros_files_are_under_the_ground_planes_base_link(outputs):
 def test_one_summary_table(outputs):
     _, target, targetless = outputs
     a, b = summary_table(target).splitlines(), summary_table(targetless).splitlines()
-    assert a[0].split()[:3] == b[0].split()[:3] == ["sensor", "kind", "x"]
+    assert a[0].split()[:3] == b[0].split()[:3] == ["sensor", "kind", "x,"]
+    assert geo.RPY_LABEL in a[0] and geo.RPY_LABEL in b[0]  # one rotation format for both methods
+    assert "1-sigma about own x, y, z [deg]" in a[0] and "1-sigma about own x, y, z [deg]" in b[0]
     side = next(ln for ln in b if ln.startswith(SIDE)).split()
     np.testing.assert_allclose([float(v) for v in side[2:5]], RT_SIDE[3:], atol=1e-4)
     assert side[-1] == "6"  # calibration frames

@@ -1,6 +1,7 @@
 """Snapshots: time parsing, filters, per-bag and continuous-bag assembly, board-motion rejection."""
 
 import datetime as dt
+from pathlib import Path
 from dataclasses import replace
 
 import numpy as np
@@ -204,7 +205,7 @@ def test_bag_per_pose(tmp_path):
                 w.write_image("/cam0", Image("/cam0", t + int(cam_dt * 1e9) + k * 10**8,
                                              np.zeros((8, 8), np.uint8), "mono8"), frame_id="cam0")
         paths.append(p)
-    o = SnapshotOptions(max_time_spread_s=0.1, exclude_bag=r"pose3")
+    o = SnapshotOptions(max_time_spread_s=0.1, exclude_bag=r"pose[3]")  # a regex: the bag is not read
     snaps, rej = assemble_snapshots(paths, ["/lidar0"], ["/cam0"], o)
     assert [s.source for s in snaps] == [str(paths[0]), str(paths[1])]
     assert snaps[1].scans["/lidar0"].stamp_ns == T0 + 10 * 10**9  # first message
@@ -214,6 +215,14 @@ def test_bag_per_pose(tmp_path):
     snaps, rej = assemble_snapshots(paths, ["/lidar0"], ["/cam0"],
                                     replace(o, exclude_bag=None, after=T0 + 5 * 10**9))
     assert [s.source for s in snaps] == [str(paths[1]), str(paths[3])]
+    # bag names and snapshot indices: read, then emptied, every index kept (pose2 is rejected for
+    # its spread, so pose3 is snapshot 2)
+    snaps, rej = assemble_snapshots(paths, ["/lidar0"], ["/cam0"], replace(o, exclude_bag="pose0.bag,2"))
+    assert [(s.index, Path(s.bag).name, bool(s.scans)) for s in snaps] == \
+        [(0, "pose0.bag", False), (1, "pose1.bag", True), (2, "pose3.bag", False)]
+    assert sorted(r.snapshot for r in rej if "excluded by the user" in r.reason) == [0, 2]
+    with pytest.raises(InputError, match="no snapshot 5"):
+        assemble_snapshots(paths, ["/lidar0"], ["/cam0"], replace(o, exclude_bag="pose1,5"))
 
 
 # ---------------------------------------------------------------- bags as drivers log them

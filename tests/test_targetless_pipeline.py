@@ -107,7 +107,7 @@ def test_cli_targetless_prints_the_table_and_writes_outputs(drive, tmp_path, cap
     out = capsys.readouterr().out
     assert rc == 0, out
     lines = out.splitlines()
-    assert lines[0].split()[:3] == ["sensor", "kind", "x"] and any(ln.startswith(SIDE) for ln in lines)
+    assert lines[0].split()[:3] == ["sensor", "kind", "x,"] and any(ln.startswith(SIDE) for ln in lines)
     assert any(ln.startswith(f"base_link <- {TOP}") for ln in lines) and "report.html" in lines[-1]
     side = next(ln for ln in lines if ln.startswith(SIDE)).split()
     T_true = drive.T_lidar0_lidar(SIDE, TOP)

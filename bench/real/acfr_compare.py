@@ -70,9 +70,9 @@ def main(argv=None) -> int:
         sd = np.sqrt(np.diag(cov))
         print(f"run{k}: {len(used)} boards used (snapshots {used})")
         print(f"  clcgraph T_lidar_camera: t = {np.round(T[:3, 3] * 1e3, 1)} mm  1-sigma {np.round(sd[3:] * 1e3, 2)} mm; "
-              f"roll/pitch/yaw = {np.round(rpy_deg_from_R(T[:3, :3]), 3)} deg  1-sigma(r) {np.round(np.degrees(sd[:3]), 3)} deg")
+              f"roll, pitch, yaw (fixed x-y-z) = {np.round(rpy_deg_from_R(T[:3, :3]), 3)} deg  1-sigma(r) {np.round(np.degrees(sd[:3]), 3)} deg")
         print(f"  ACFR (mean of 50):       t = {np.round(Ta[:3, 3] * 1e3, 1)} mm  std {np.round(sa[3:] * 1e3, 1)} mm; "
-              f"roll/pitch/yaw = {np.round(rpy_deg_from_R(Ta[:3, :3]), 3)} deg  std {np.round(np.degrees(sa[:3]), 3)} deg")
+              f"roll, pitch, yaw (fixed x-y-z) = {np.round(rpy_deg_from_R(Ta[:3, :3]), 3)} deg  std {np.round(np.degrees(sa[:3]), 3)} deg")
         dt = T[:3, 3] - Ta[:3, 3]
         print(f"  difference: rotation {_angle_deg(T[:3, :3], Ta[:3, :3]):.3f} deg, translation "
               f"{np.round(dt * 1e3, 1)} mm (|dt| {np.linalg.norm(dt) * 1e3:.1f} mm)")

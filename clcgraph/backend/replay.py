@@ -68,26 +68,48 @@ def renoise_problem(
         q[~np.all(np.isfinite(o.corners_px), axis=1)] = np.nan  # keep the same missing corners
         camera.append(CameraBoardObservation(o.sensor, o.snapshot, q))
     return Problem(problem.sensors, problem.board, tuple(lidar), tuple(camera), problem.snapshot_stamps_ns,
-                   problem.rejected, problem.priors, problem.lidar_visibility_points)
+                   problem.rejected, problem.priors, problem.lidar_visibility_points, problem.snapshot_bags)
+
+
+def snapshot_indices(problem: Problem, items, *, flag: str = "--exclude") -> list[int]:
+    """Snapshot indices named by ``items``: each an index (int or digits) or a bag's file name or
+    path (every snapshot of that bag). InputError naming an item that matches nothing."""
+    from pathlib import PurePath
+
+    out: set[int] = set()
+    for item in items:
+        text = str(item).strip()
+        if isinstance(item, (int, np.integer)) or text.isdigit():
+            k = int(text)
+            if not 0 <= k < problem.n_snapshots:
+                raise InputError(f"{flag}: no snapshot {k} (the problem has {problem.n_snapshots})")
+            out.add(k)
+            continue
+        hits = [k for k, b in enumerate(problem.snapshot_bags)
+                if text in (b, PurePath(b).name, PurePath(b).stem) or PurePath(b) == PurePath(text)]
+        if not hits:
+            known = ", ".join(sorted({problem.snapshot_bag(k) for k in range(len(problem.snapshot_bags))})[:5])
+            raise InputError(f"{flag}: {text!r} is neither a snapshot index (0..{problem.n_snapshots - 1}) nor a bag "
+                             f"of this problem ({known or 'the dump names no bags'}{', ...' if len(problem.snapshot_bags) > 5 else ''})")
+        out.update(hits)
+    return sorted(out)
 
 
 def exclude_snapshots(problem: Problem, exclude) -> Problem:
-    """A copy of ``problem`` without the observations of the snapshot indices in ``exclude``.
+    """A copy of ``problem`` without the observations of the snapshots in ``exclude`` (indices or
+    bag names, see snapshot_indices).
 
     Snapshot indices are kept (not renumbered), so results stay comparable with the full solve;
     the excluded snapshots get NaN board poses.
     """
-    ex = {int(k) for k in exclude}
-    bad = ex - set(range(problem.n_snapshots))
-    if bad:
-        raise InputError(f"--exclude: no snapshot {min(bad)} (the problem has {problem.n_snapshots})")
+    ex = set(snapshot_indices(problem, exclude))
     return Problem(
         problem.sensors, problem.board,
         tuple(o for o in problem.lidar_observations if o.snapshot not in ex),
         tuple(o for o in problem.camera_observations if o.snapshot not in ex),
         problem.snapshot_stamps_ns,
         problem.rejected + tuple(Rejected("excluded by the user", "snapshot", None, k) for k in sorted(ex)),
-        problem.priors, problem.lidar_visibility_points,
+        problem.priors, problem.lidar_visibility_points, problem.snapshot_bags,
     )
 
 
@@ -102,7 +124,7 @@ def replay_problem(
 ) -> Result:
     """Re-solve a (loaded) problem dump, like the seed's fit-from-inputs-dump -> types.Result.
 
-    - ``exclude``: snapshot indices to drop (the seed's --exclude); indices are not renumbered.
+    - ``exclude``: snapshots to drop (the seed's --exclude): indices or bag names; indices are not renumbered.
     - ``inject_noise``: solve once, then replace the observations by what that solution predicts
       plus fresh noise with the re-estimated sigmas (``renoise_problem``, rng seeded by ``seed``)
       and solve again: one Monte-Carlo sample for checking the reported uncertainty.

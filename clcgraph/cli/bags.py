@@ -29,11 +29,11 @@ def add_show_bag(sub):
 
 
 def _print_found(found: list, line, what: str) -> int:
-    """One line per (item, result), then how many found something."""
+    """One line per (item, result, bag name), then how many found something."""
     from ..outputs.tables import found_count
 
-    for item, r in found:
-        print(line(item, r))
+    for item, r, bag in found:
+        print(line(item, r, bag))
     print(found_count(found, what))
     return 0
 

@@ -17,7 +17,8 @@ def _print_result(result, out) -> int:
 def _solve(args) -> int:
     from .. import api
 
-    result = api.calibrate_bags(args.bag, topics_list(args.topics), args.models, out=args.out,
+    bags, models = api.bags_and_models(args.bag, args.models)
+    result = api.calibrate_bags(bags, topics_list(args.topics), models, out=args.out,
                                 config=load_config(args), force=args.force)
     return _print_result(result, args.out)
 
@@ -55,13 +56,16 @@ def add_solve(sub):
                     description="Calibrate LIDARs and cameras from bags of a moving chessboard. "
                     "Writes calibration.yaml, one .cameramodel per sensor, report.html and a replayable dump.")
     p.add_argument("models", nargs="*", metavar="MODEL.cameramodel", help="one per camera topic, in --topics order")
-    p.add_argument("--bag", action="append", required=True, metavar="GLOB",
-                   help="bag file/dir, glob, or directory of bags (repeatable)")
+    p.add_argument("--bag", action="extend", nargs="+", required=True, metavar="GLOB",
+                   help="bag files/dirs, globs, or directories of bags (repeatable; an unquoted glob the shell "
+                        "expanded works too)")
     p.add_argument("--topics", required=True, help="comma-separated LIDAR and camera topics; the first LIDAR is lidar0")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory: new, empty or an earlier output of this command (replaced whole)")
     add_force(p)
     config_args(p)
-    p.add_argument("--exclude-bag", default=None, metavar="REGEX", help="skip bags whose path matches")
+    p.add_argument("--exclude-bag", default=None, metavar="BAG,K,...|REGEX",
+                   help="leave out snapshots: comma-separated bag names and snapshot indices (as calibration.yaml "
+                   "lists them; indices do not shift), or a regex: bags whose path matches are not read")
     p.add_argument("--decimation-period", type=float, default=None, metavar="S",
                    help="continuous bags: one snapshot per this many seconds")
     p.add_argument("--after", default=None, help="start time: s or ns since epoch, or a date")
@@ -98,7 +102,8 @@ def _targetless(args) -> int:
 def add_targetless(sub):
     p = add_command(sub, "targetless", run=_targetless,
                     help="targetless LIDAR-LIDAR (and base_link-LIDAR) calibration from a drive")
-    p.add_argument("--bag", action="append", required=True, metavar="BAG", help="bag file/dir (repeatable)")
+    p.add_argument("--bag", action="extend", nargs="+", required=True, metavar="BAG",
+                   help="bag files/dirs or globs (repeatable; an unquoted glob the shell expanded works too)")
     p.add_argument("--mapping-topic", required=True, help="the mapping LIDAR (reference, lidar0)")
     p.add_argument("--calibration-topics", required=True, help="comma-separated LIDAR topics to calibrate")
     p.add_argument("--base-frame", default=None, help="also calibrate base_link-LIDAR roll/pitch/z from the ground")
@@ -109,14 +114,10 @@ def add_targetless(sub):
 
 def _replay(args) -> int:
     from ..api import replay
-    from ..errors import InputError
     from ..outputs.tables import replay_lines
 
     in_range(args.seed, "--seed", 0, 2**63 - 1)
-    try:
-        exclude = [int(k) for k in args.exclude.split(",") if k.strip()]
-    except ValueError:
-        raise InputError(f"--exclude: expected comma-separated integers, got '{args.exclude}'") from None
+    exclude = [k.strip() for k in args.exclude.split(",") if k.strip()]  # indices or bag names
     print(replay_lines(replay(args.dump, inject_noise=args.inject_noise, fit_seed=args.fit_seed, exclude=exclude,
                               seed=args.seed)))
     return 0
@@ -128,7 +129,8 @@ def add_replay(sub):
     p.add_argument("dump", help="problem.npz written with a calibration (or its --out directory)")
     p.add_argument("--inject-noise", action="store_true", help="re-noise the observations around the solve, re-solve")
     p.add_argument("--fit-seed", action="store_true", help="stop after the seed (initial estimate)")
-    p.add_argument("--exclude", default="", help="comma-separated snapshot indices to leave out")
+    p.add_argument("--exclude", default="", metavar="K,BAG,...",
+                   help="snapshots to leave out, comma-separated: indices or bag names (as calibration.yaml lists them)")
     p.add_argument("--seed", type=int, default=0, help="rng seed for --inject-noise")
 
 

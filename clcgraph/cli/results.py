@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from .common import add_command, add_force, config_args, in_range, load_config, topics_list
+from .common import add_command, add_force, config_args, floats, in_range, load_config, topics_list
+
 
 
 def _bag_and_calibration(p, bag_help: str) -> None:
@@ -11,11 +12,19 @@ def _bag_and_calibration(p, bag_help: str) -> None:
 
 
 def _format_for_ros(args) -> int:
+    import sys
+
     from .. import api
     from ..outputs.ros import ros_yaml
 
-    ros, written = api.format_for_ros(args.bag, args.calibration, base_frame=args.base_frame, out=args.out,
+    rt = None if args.rt_vehicle_lidar0 is None else floats(args.rt_vehicle_lidar0, 6, "--rt-vehicle-lidar0")
+    ros, written = api.format_for_ros(args.bag, args.calibration, base_frame=args.base_frame, rt_vehicle_lidar0=rt,
+                                      base_source=args.base_source, full_urdf=args.full_urdf, out=args.out,
                                       force=args.force)
+    b = ros["base"]  # where base_link <- lidar0 came from: on stdout unless stdout is the YAML
+    print(f"{b['parent_frame']} <- {b['child_frame']} from {b['source']}", file=sys.stdout if args.out else sys.stderr)
+    for note in ros["notes"]:
+        print(f"note: {note}", file=sys.stderr)
     for path in written:
         print(f"wrote {path}")
     if not args.out:
@@ -24,33 +33,71 @@ def _format_for_ros(args) -> int:
 
 
 def add_format_for_ros(sub):
+    from ..outputs.ros import BASE_SOURCES
+
     p = add_command(sub, "format-for-ros", run=_format_for_ros,
                     help="base_link-relative transforms of a calibration, for ROS (YAML, URDF, launch)")
-    _bag_and_calibration(p, "a bag with /tf_static (the vehicle's frames) and the sensor topics")
+    _bag_and_calibration(p, "a bag with the sensor topics (their frame_ids) and, unless base_link <- lidar0 "
+                            "comes from elsewhere, /tf_static")
     p.add_argument("--base-frame", default="base_link", help="parent frame of the published transforms")
-    p.add_argument("--out", default=None, metavar="DIR", help="write ros.yaml, URDF and launch snippets here")
+    p.add_argument("--rt-vehicle-lidar0", default=None, metavar="r0,r1,r2,t0,t1,t2",
+                   help="base_link <- lidar0 as mrcal rt (Rodrigues [rad], then translation [m]); the default is "
+                        "the calibration's own (targetless ground plane, solve's --rt-vehicle-lidar0), else /tf_static")
+    p.add_argument("--base-source", default="auto", choices=list(BASE_SOURCES),
+                   help="where base_link <- lidar0 comes from (auto: the first available, in that order)")
+    p.add_argument("--full-urdf", action="store_true", help="also write sensors.urdf, a whole <robot> of these frames")
+    p.add_argument("--out", default=None, metavar="DIR", help="write ros-transforms.yaml, URDF and launch snippets here")
     add_force(p)
 
 
 def _show_aligned(args) -> int:
     from .. import api
+    from ..errors import InputError
 
     if args.threshold_range is not None:
         in_range(args.threshold_range, "--threshold-range", 0, 1e5, low_open=True)
-    aligned = api.show_aligned(args.bag, args.calibration, topics=topics_list(args.topics) if args.topics else None,
-                               png=args.png, threshold_range=args.threshold_range)
-    print(f"wrote {args.png}")
+    if args.mcap:
+        _write_mcap(args)
+        if not args.png:
+            return 0
+    elif args.snapshots:
+        raise InputError("--snapshots chooses what goes into --mcap; give --mcap FILE.mcap")
+    if len(args.bags) > 1:
+        raise InputError(f"the PNG shows one bag, {len(args.bags)} given: give one (or --mcap for several)")
+    png = args.png or "aligned.png"
+    aligned = api.show_aligned(args.bags[0], args.calibration, topics=topics_list(args.topics) if args.topics else None,
+                               png=png, threshold_range=args.threshold_range)
+    print(f"wrote {png}")
     if args.viewer:  # after the PNG is written and reported: a missing display fails only the viewer
         api.view_clouds(aligned, title="clcgraph show-aligned")
     return 0
 
 
+def _write_mcap(args) -> None:
+    from .. import api
+    from ..outputs.tables import mcap_lines
+
+    info = api.write_aligned_mcap(args.bags, args.calibration, args.mcap, force=args.force,
+                                  snapshots=[k for k in (args.snapshots or "").split(",") if k.strip()],
+                                  topics=topics_list(args.topics) if args.topics else None)
+    print(mcap_lines(info))
+
+
 def add_show_aligned(sub):
     p = add_command(sub, "show-aligned", run=_show_aligned,
-                    help="LIDAR clouds of a bag aligned by a calibration, rendered to PNG")
-    _bag_and_calibration(p, "the bag to show (its first scan of each LIDAR)")
-    p.add_argument("--topics", default=None, help="comma-separated LIDAR topics (default: every LIDAR of the calibration)")
-    p.add_argument("--png", default="aligned.png", help="output picture")
+                    help="LIDAR clouds of a bag aligned by a calibration: a PNG, or an MCAP file for Foxglove / RViz")
+    p.add_argument("bags", nargs="+", metavar="BAG", help="the bag to show (its first scan of each LIDAR); with --mcap, "
+                                                          "bag files, globs or directories to take --snapshots from")
+    p.add_argument("--calibration", required=True, metavar="DIR", help="the --out directory of clcgraph solve or targetless")
+    p.add_argument("--topics", default=None, help="comma-separated LIDAR topics (default: every LIDAR of the calibration; "
+                                                  "with --mcap every sensor)")
+    p.add_argument("--png", default=None, help="output picture (default aligned.png unless --mcap)")
+    p.add_argument("--mcap", default=None, metavar="FILE.mcap",
+                   help="write /tf_static from the calibration and the clouds and images of --snapshots (ROS 2 "
+                        "messages, each in its sensor's frame) for Foxglove or `ros2 bag play` + RViz")
+    p.add_argument("--snapshots", default=None, metavar="K,BAG,...",
+                   help="with --mcap: snapshot indices (as calibration.yaml lists them) or bag names (default: every bag)")
+    add_force(p)
     p.add_argument("--threshold-range", type=float, default=None, metavar="M", help="drop points farther than this")
     p.add_argument("--viewer", action="store_true", help="also open the Open3D viewer (needs a display)")
 

@@ -314,6 +314,11 @@ def _run_opencv(grays: list[np.ndarray], nx: int, ny: int, jobs: int) -> list[np
         return list(ex.map(_opencv_one, args, chunksize=max(1, len(args) // (4 * jobs))))
 
 
+def not_found_text(board: BoardGeometry) -> str:
+    """The detector's own reason when it finds no grid (api.explain_not_found says more after a solve)."""
+    return f"no full {board.corners_x}x{board.corners_y} chessboard found"
+
+
 # Added to the detectors' output to get mrcal's convention (measured against rendered
 # truth in tests/test_camera_board.py).
 _OFFSET_PX = {"mrgingham": np.zeros(2), "opencv": np.zeros(2)}
@@ -363,7 +368,7 @@ class BoardDetection:
 
     def _validated(self, k: int, corners: np.ndarray | None) -> np.ndarray | Rejected:
         nx, ny = self.board.corners_x, self.board.corners_y
-        r = _validate(corners, self.grays[k], nx, ny, self.options, f"no full {nx}x{ny} chessboard found")
+        r = _validate(corners, self.grays[k], nx, ny, self.options, not_found_text(self.board))
         if isinstance(r, Rejected):
             log.debug("%s @%d: %s", self.images[k].topic, self.images[k].stamp_ns, r.reason)
         return r
@@ -498,8 +503,37 @@ def board_regions(camera, views, board: BoardGeometry) -> list:
     return out
 
 
-def detect_in_bags(bags, topic: str, options, board: BoardGeometry, *, every: bool = False, batch: int = 32):
-    """Yield (Image, corners (N,2) | Rejected) for the images of ``topic`` in ``bags``.
+# Squares smaller than this (px) are often missed even in the 2x upsampled image (see detect_corners)
+SMALL_SQUARE_PX = 5.0
+
+
+def not_found_reason(q_px: np.ndarray, imagersize: tuple[int, int], board: BoardGeometry, *, what: str) -> str:
+    """What a camera saw where it found no chessboard, from where the solved poses put the board:
+    ``q_px`` (N,2) are the board's points (``what``: e.g. "its LIDAR points") projected into the
+    image, NaN where behind the camera. "no board in view", "board partly outside the image (..)",
+    "board 60 px wide: too small (..)", or in full view and still not found."""
+    w, h = imagersize
+    q = np.asarray(q_px, float).reshape(-1, 2)
+    ok = np.all(np.isfinite(q), axis=1)
+    inside = ok & (q[:, 0] >= -0.5) & (q[:, 1] >= -0.5) & (q[:, 0] <= w - 0.5) & (q[:, 1] <= h - 0.5)
+    n = len(q)
+    if not inside.any():
+        return f"no board in view ({what} project outside the image, by the solved poses)"
+    if not inside.all():
+        return (f"board partly outside the image ({100 * inside.mean():.0f} % of {what} inside, "
+                "by the solved poses)")
+    width = float(np.max(np.ptp(q, axis=0)))
+    square = width * board.square_m / max(board.width_m, board.height_m)
+    if square < SMALL_SQUARE_PX:
+        return f"board {width:.0f} px wide: too small (squares ~{square:.1f} px, by the solved poses)"
+    return (f"board in view, {width:.0f} px wide (squares ~{square:.0f} px, by the solved poses), but no full "
+            f"{board.corners_x}x{board.corners_y} chessboard found: blurred, badly lit or partly hidden?")
+
+
+def detect_in_bags(bags, topic: str, options, board: BoardGeometry, *, every: bool = False, batch: int = 32,
+                   with_bag: bool = False):
+    """Yield (Image, corners (N,2) | Rejected) for the images of ``topic`` in ``bags``
+    (``with_bag``: (Image, result, the bag's path)).
 
     Default: the first image of each bag (one snapshot per bag); ``every``: all images,
     streamed and detected in batches of ``batch``.
@@ -509,23 +543,27 @@ def detect_in_bags(bags, topic: str, options, board: BoardGeometry, *, every: bo
     def images():
         if every:
             for m in read_messages(list(bags), [topic]):
-                yield m.data
+                yield m.path, m.data
         else:
             for b in bags:
                 first = first_messages(b, [topic])
                 if topic in first:
-                    yield first[topic]
+                    yield b, first[topic]
 
-    buf: list[Image] = []
-    for im in images():
+    def done(buf):
+        found = detect_corners([im for _, im in buf], options, board)
+        return [(im, r, b) if with_bag else (im, r) for (b, im), r in zip(buf, found)]
+
+    buf: list = []
+    for b, im in images():
         if not isinstance(im, Image):
             raise InputError(f"topic {topic} is not an image topic")
-        buf.append(im)
+        buf.append((b, im))
         if len(buf) == batch:
-            yield from zip(buf, detect_corners(buf, options, board))
+            yield from done(buf)
             buf = []
     if buf:
-        yield from zip(buf, detect_corners(buf, options, board))
+        yield from done(buf)
 
 
 def draw_detection(image: Image, result) -> np.ndarray:

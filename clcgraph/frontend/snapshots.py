@@ -225,8 +225,43 @@ def motion_between(image_a, image_b, *, threshold_m: float, min_cells: int) -> t
 # ---------------------------------------------------------------- assembly
 
 
-def _excluded_bag(path: Path, options) -> bool:
-    return bool(options.exclude_bag) and re.search(options.exclude_bag, str(path)) is not None
+def parse_exclude_bag(spec: str | None, bags: Sequence[Path]) -> tuple[set[Path], set[Path], set[int]]:
+    """``snapshots.exclude_bag`` -> (bags not to read, bags whose snapshots to drop, snapshot indices to drop).
+
+    Comma-separated items, each a bag (its path, file name or stem) or a snapshot index: those
+    snapshots are read and then dropped, keeping every index as calibration.yaml's
+    ``snapshots.list`` numbers them without the exclusion (like ``replay --exclude``). If some
+    item is neither, the whole text is a regex searched in each bag's path, and the matching
+    bags are not read at all (clc's --exclude-bag).
+    """
+    if not spec:
+        return set(), set(), set()
+    bags = [Path(b) for b in bags]
+    items = [x.strip() for x in spec.split(",") if x.strip()]
+
+    def named(item: str) -> list[Path]:
+        return [b for b in bags if item in (str(b), b.name, b.stem) or Path(item) == b]
+
+    if items and all(named(x) or x.isdigit() for x in items):
+        return set(), {b for x in items for b in named(x)}, {int(x) for x in items if not named(x)}
+    return {b for b in bags if re.search(spec, str(b)) is not None}, set(), set()
+
+
+def drop_excluded(snaps: list[Snapshot], spec: str | None, bags: Sequence[Path]) -> tuple[list[Snapshot], list[Rejected]]:
+    """The snapshots with those that ``spec`` names by bag or index emptied (no scans, no images:
+    indices and stamps stay), and a Rejected per dropped snapshot. InputError for an index
+    beyond the snapshots."""
+    _, drop_bags, drop_idx = parse_exclude_bag(spec, bags)
+    bad = sorted(k for k in drop_idx if k >= len(snaps))
+    if bad:
+        raise InputError(f"--exclude-bag {spec!r}: no snapshot {bad[0]} (the bags give {len(snaps)}, 0..{len(snaps) - 1})")
+    out, rejected = [], []
+    for s in snaps:
+        if s.index in drop_idx or Path(s.bag) in drop_bags:
+            rejected.append(Rejected(f"excluded by the user (exclude_bag {spec!r})", "snapshot", snapshot=s.index))
+            s = Snapshot(index=s.index, stamp_ns=s.stamp_ns, source=s.source, bag=s.bag)
+        out.append(s)
+    return out, rejected
 
 
 @dataclass
@@ -281,7 +316,7 @@ def _finish_period(period: _Period, lidar_topics, camera_topics, options, source
         t, st = outside[0]
         return Rejected(f"{where}: {t} has no message while the LIDARs saw the scene still "
                         f"({still_from * 1e-9:.3f}-{still_to * 1e-9:.3f}s; nearest {st * 1e-9:.3f}s)", "snapshot")
-    return _snapshot(index, chosen, where, lidar_topics, camera_topics)
+    return _snapshot(index, chosen, where, lidar_topics, camera_topics, bag=source)
 
 
 def _spread_rejection(chosen, options) -> str | None:
@@ -294,9 +329,9 @@ def _spread_rejection(chosen, options) -> str | None:
     return None
 
 
-def _snapshot(index: int, chosen: dict, source: str, lidar_topics, camera_topics) -> Snapshot:
+def _snapshot(index: int, chosen: dict, source: str, lidar_topics, camera_topics, *, bag: str | None = None) -> Snapshot:
     stamps = [m.stamp_ns for m in chosen.values()]
-    return Snapshot(index=index, stamp_ns=int(np.mean(stamps)), source=source,
+    return Snapshot(index=index, stamp_ns=int(np.mean(stamps)), source=source, bag=source if bag is None else bag,
                     scans={t: chosen[t].data for t in lidar_topics if t in chosen},
                     images={t: chosen[t].data for t in camera_topics if t in chosen})
 
@@ -332,7 +367,9 @@ def group_periods(messages: Iterator, topics: Sequence[str], *, period_s: float,
 def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
                        camera_topics: Sequence[str], options, *,
                        progress=None) -> tuple[list[Snapshot], list[Rejected]]:
-    """Snapshots from bags, and the candidate snapshots dropped (with reasons).
+    """Snapshots from bags, and the candidate snapshots dropped (with reasons). Snapshots that
+    ``exclude_bag`` names by bag or index come back empty (no scans or images), each with a
+    Rejected carrying its index (see parse_exclude_bag).
 
     options: ``config.SnapshotOptions``. Without ``decimation_period_s``, one snapshot
     per bag from the first message of each topic; with it, one per period of the
@@ -346,8 +383,9 @@ def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
     topics = lidar_topics + camera_topics
     rejected: list[Rejected] = []
     kept_bags = []
+    skip_bags = parse_exclude_bag(options.exclude_bag, [Path(b) for b in bags])[0]
     for b in map(Path, bags):
-        if _excluded_bag(b, options):
+        if b in skip_bags:
             rejected.append(Rejected(f"{b}: excluded by exclude_bag {options.exclude_bag!r}", "snapshot"))
         else:
             kept_bags.append(b)
@@ -388,7 +426,9 @@ def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
                 r = _finish_period(per, lidar_topics, camera_topics, options, str(b), len(snaps),
                                    tfilter)
                 (rejected if isinstance(r, Rejected) else snaps).append(r)
-    log.info("%d snapshots kept, %d rejected", len(snaps), len(rejected))
+    snaps, dropped = drop_excluded(snaps, options.exclude_bag, bags)
+    rejected += dropped
+    log.info("%d snapshots kept, %d rejected", len(snaps) - len(dropped), len(rejected))
     return snaps, rejected
 
 

@@ -95,6 +95,7 @@ def save_problem(path: str | Path, problem: Problem, config: Config | None = Non
                   for r in problem.rejected],
         lidar_has_indices=has_idx,
         visibility_sensors=vis_keys,
+        snapshot_bags=[str(b) for b in problem.snapshot_bags],
     )
     arrays["meta"] = np.array(json.dumps(meta))
     path = Path(path)
@@ -320,6 +321,7 @@ def load_problem(path: str | Path) -> tuple[Problem, Config]:
             rejected=tuple(Rejected(**r) for r in meta["rejected"]),
             priors=priors,
             lidar_visibility_points={k: a[f"visibility_{k}"] for k in meta["visibility_sensors"]},
+            snapshot_bags=tuple(str(b) for b in meta.get("snapshot_bags", ())),  # older dumps have none
         )
         config = Config.from_dict(meta["config"])
     except ConfigError as e:

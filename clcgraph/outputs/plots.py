@@ -177,7 +177,10 @@ def plot_residuals_per_snapshot(result: Result, path) -> Path:
         ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
         if not plotted:
             ax.text(0.5, 0.5, f"no {kind} residuals", ha="center", va="center", transform=ax.transAxes)
-    axes[1].set_xlabel("snapshot index")
+    ks = range(result.problem.n_snapshots)
+    if result.problem.snapshot_bags and result.problem.n_snapshots <= 60:  # the bags by name, while they fit
+        axes[1].set_xticks(list(ks), [f"{k} {result.problem.snapshot_bag(k)}" for k in ks], rotation=90, fontsize=6)
+    axes[1].set_xlabel("snapshot (index, bag)")
     axes[0].set_title("residual RMS per snapshot and sensor")
     return _save(fig, path)
 

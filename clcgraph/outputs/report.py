@@ -135,7 +135,7 @@ def _rejections(result: Result) -> str:
     rows = []
     for r in result.rejected[:500]:
         sensor = "–" if r.sensor is None else html.escape(result.problem.sensors[r.sensor].topic)
-        snap = "–" if r.snapshot is None else r.snapshot
+        snap = "–" if r.snapshot is None else html.escape(result.problem.snapshot_label(r.snapshot))
         rows.append(f"<tr><td>{snap}</td><td>{sensor}</td><td>{html.escape(r.stage)}</td><td>{html.escape(r.reason)}</td></tr>")
     more = f"<p>… and {len(result.rejected) - 500} more (all in calibration.yaml).</p>" if len(result.rejected) > 500 else ""
     return (f"<table><tr><th>stage</th><th>reason</th><th>count</th></tr>{summary}</table>"
@@ -193,6 +193,11 @@ _HEADINGS = {
 }
 
 
+def _snapshot(result: Result, k) -> str:
+    """'snapshot 7 (pose007.bag @... s)', or '-' when there is none."""
+    return "snapshot -" if k is None else html.escape(result.problem.snapshot_label(int(k)))
+
+
 def _consistency(result: Result) -> str:
     """The self-consistency verdict (backend/consistency.py) as a paragraph and tables."""
     v = result.stats.get("consistency")
@@ -201,7 +206,7 @@ def _consistency(result: Result) -> str:
     snaps = v.get("snapshots", {})
     parts = [f"<p>Verdict: <b>{'self-consistent' if v.get('passed') else 'NOT self-consistent'}</b> "
              f"({v.get('n_checks', 0)} checks, refused below p = {_fmt(v.get('p_limit'))}). "
-             f"Worst leave-one-snapshot-out: snapshot {snaps.get('worst', '-')}, {_fmt(snaps.get('worst_sigma'))} sigma "
+             f"Worst leave-one-snapshot-out: {_snapshot(result, snaps.get('worst'))}, {_fmt(snaps.get('worst_sigma'))} sigma "
              f"({html.escape(str(snaps.get('worst_direction', '-')))}); largest single-snapshot share of the "
              f"information: {_fmt(snaps.get('max_leverage'))}.</p>"]
     for why in [*v.get("failures", []), *v.get("unverifiable", [])]:

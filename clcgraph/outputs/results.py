@@ -61,6 +61,8 @@ def _scalar(v):
 
 # What each uncertainty field means (written into calibration.yaml as `coordinates`).
 COORDINATES = {
+    "rt_lidar0_sensor": "mrcal rt of the sensor in lidar0: Rodrigues r [rad] (axis * angle), then t [m]; "
+    "T_lidar0_sensor is the same as a 4x4",
     "covariance_rt_lidar0_sensor": "joint covariance of rt_lidar0_sensor (mrcal rt: Rodrigues r [rad], then t [m]) "
     "over the non-reference sensors in sensor order; for machines (mrcal, uncertainty propagation)",
     "stdev_rt": "sqrt of the diagonal of that covariance: rt coordinates, NOT per-axis angles (the Rodrigues "
@@ -117,6 +119,7 @@ def _target_sections(result: Result) -> dict:
     rejected = [
         {
             "index": None if r.snapshot is None else int(r.snapshot),
+            "bag": None if r.snapshot is None else problem.snapshot_bag(int(r.snapshot)),
             "sensor": None if r.sensor is None else problem.sensors[r.sensor].topic,
             "stage": r.stage,
             "reason": r.reason,
@@ -124,13 +127,18 @@ def _target_sections(result: Result) -> dict:
         for r in result.rejected
     ]
     used = np.flatnonzero(np.all(np.isfinite(np.asarray(result.rt_lidar0_board, float).reshape(-1, 6)), axis=1))
+    used_set = set(used.tolist())
     return {
         # the chessboard as configured (inner corners, square, physical size, pattern offset)
         "board": problem.board.spec(),
         "rms": {k: _scalar(result.rms.get(k)) for k in ("normalized", "lidar_m", "camera_px")},
         "noise": {k: _scalar(result.noise.get(k)) for k in ("lidar_m", "camera_px")},
         "snapshots": {"used": int(len(used)), "used_indices": [int(k) for k in used],
-                      "total": int(problem.n_snapshots), "rejected": rejected},
+                      "total": int(problem.n_snapshots),
+                      # every snapshot: its index (what --exclude and the plots use), bag and stamp
+                      "list": [{"index": k, "bag": problem.snapshot_bag(k), "stamp_ns": int(problem.snapshot_stamps_ns[k]),
+                                "used": bool(k in used_set)} for k in range(problem.n_snapshots)],
+                      "rejected": rejected},
         "sectors": sectors_dict(result),
         "convergence": dict(result.stats.get("convergence") or {}),
         # the self-consistency verdict (backend/consistency.py): the checks and their numbers
@@ -273,7 +281,9 @@ def write_results(
     with atomic_dir(out_dir, force=force) as tmp:
         cal = calibration_dict(result)
         (tmp / CALIBRATION_FILE).write_text(
-            "# clcgraph calibration: rt_a_b maps points in frame b into frame a (mrcal rt: Rodrigues r, then t)\n"
+            "# clcgraph calibration: rt_a_b maps points in frame b into frame a: x_a = R x_b + t, as mrcal's rt\n"
+            "# (Rodrigues rotation vector r = axis * angle [rad], then translation t [m]); for people, the summary\n"
+            "# table and the report give roll, pitch, yaw [deg] about fixed x-y-z (R = Rz(yaw) Ry(pitch) Rx(roll))\n"
             + yaml.safe_dump(cal, sort_keys=False, default_flow_style=None, width=200)
         )
         names[CALIBRATION_FILE] = out_dir / CALIBRATION_FILE
@@ -302,16 +312,6 @@ def write_results(
     return names
 
 
-class _OneFrame:
-    """A tf tree of one frame (``lookup(f, f)`` is the identity): the ROS files of a result whose
-    poses are all in the reference's frame."""
-
-    def lookup(self, target: str, source: str) -> np.ndarray:
-        if target != source:
-            raise InputError(f"no transform {target} <- {source}")
-        return np.eye(4)
-
-
 def ros_tf_files(result: Result, cal: dict) -> dict[str, str]:
     """{"ros/<name>": text}: tf, URDF and launch files (outputs/ros.py) under base_link when the
     result has base_link <- reference, else under the reference's frame; {} unless every sensor's
@@ -323,7 +323,7 @@ def ros_tf_files(result: Result, cal: dict) -> dict[str, str]:
         return {}
     ref = topics[result.problem.reference]
     parent = result.base_frame if ref in result.T_base_sensor else result.frames[ref]
-    ros = format_for_ros(cal, _OneFrame(), base_frame=parent, frames=dict(result.frames))
+    ros = format_for_ros(cal, None, base_frame=parent, frames=dict(result.frames))
     ros["transforms"] = {f: e for f, e in ros["transforms"].items() if f != parent}  # no parent <- parent
     return {f"ros/{name}": text for name, text in ros_files(ros).items()}
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import pose_stdevs, rpy_deg_from_R, R_from_r
+from ..geometry import RPY_LABEL, pose_stdevs, rpy_deg_from_R, rpy_deg_from_rt
 from ..types import Rejected, Result
 
 
@@ -34,30 +34,37 @@ def _observations(result: Result) -> list[str]:
 
 
 def summary_table(result: Result) -> str:
-    """The final table `clcgraph solve` and `clcgraph targetless` print: pose, 1-sigma and
-    observations per sensor, then base_link poses (if any), then the fit's verdicts."""
-    rows = [("sensor", "kind", "x [m]", "y [m]", "z [m]", "roll/pitch/yaw [deg]", "1-sigma [mm, deg]",
-             "frames" if result.method == "targetless" else "obs")]
+    """The final table `clcgraph solve` and `clcgraph targetless` print: pose, per-axis 1-sigmas
+    and observations per sensor, then base_link poses (if any), then the fit's verdicts and the
+    unused snapshots by bag. Rotations as geometry.RPY_LABEL says."""
+    targetless = result.method == "targetless"
+    rows = [("sensor", "kind", "x, y, z [m]", RPY_LABEL, "1-sigma x, y, z [mm]", "1-sigma about own x, y, z [deg]",
+             "frames" if targetless else "obs")]
     p = result.problem
     for i, (s, n) in enumerate(zip(p.sensors, _observations(result))):
         rt = np.asarray(result.rt_lidar0_sensor[i], float)
-        sd_rot, sd_pos = pose_stdevs(rt, result.covariance_block(i))  # the largest per-axis sigma of each
-        sigma = "reference" if i == p.reference else f"{1e3 * np.max(sd_pos):.2f}, {np.degrees(np.max(sd_rot)):.3f}"
-        rows.append((s.topic, s.kind, *(f"{v:+.4f}" for v in rt[3:]),
-                     " ".join(f"{v:+.3f}" for v in rpy_deg_from_R(R_from_r(rt[:3]))), sigma, n))
+        sd_rot, sd_pos = pose_stdevs(rt, result.covariance_block(i))
+        ref = i == p.reference
+        rows.append((s.topic, s.kind, " ".join(f"{v:+.4f}" for v in rt[3:]),
+                     " ".join(f"{v:+.3f}" for v in rpy_deg_from_rt(rt)),
+                     "reference" if ref else " ".join(f"{v:.2f}" for v in 1e3 * sd_pos),
+                     "" if ref else " ".join(f"{v:.3f}" for v in np.degrees(sd_rot)), n))
     for t, T in result.T_base_sensor.items():
         T = np.asarray(T, float)
-        rows.append((f"{result.base_frame} <- {t}", "lidar", *(f"{v:+.4f}" for v in T[:3, 3]),
-                     " ".join(f"{v:+.3f}" for v in rpy_deg_from_R(T[:3, :3])), "ground plane", "-"))
+        rows.append((f"{result.base_frame} <- {t}", "lidar", " ".join(f"{v:+.4f}" for v in T[:3, 3]),
+                     " ".join(f"{v:+.3f}" for v in rpy_deg_from_R(T[:3, :3])), "ground plane", "", "-"))
     lines = _columns(rows)
-    if result.method == "targetless":
+    lines.append(f"(x, y, z and their sigmas along {'the mapping LIDAR' if targetless else 'lidar0'}'s axes; "
+                 "rotation sigmas about the sensor's own axes)")
+    if targetless:
         return "\n".join(lines + list(result.targetless.notes))
     rms, noise = result.rms, result.noise
     lines.append(f"RMS: normalized {rms.get('normalized', float('nan')):.3f}, LIDAR {1e3 * rms.get('lidar_m', float('nan')):.1f} mm, "
                  f"camera {rms.get('camera_px', float('nan')):.3f} px; re-estimated noise: LIDAR "
                  f"{1e3 * noise.get('lidar_m', float('nan')):.1f} mm, camera {noise.get('camera_px', float('nan')):.3f} px")
-    used = int(np.sum(np.all(np.isfinite(result.rt_lidar0_board), axis=1)))
-    lines.append(f"{used} of {p.n_snapshots} snapshots used; {len(result.rejected)} rejections (see calibration.yaml)")
+    used = np.all(np.isfinite(np.asarray(result.rt_lidar0_board, float).reshape(-1, 6)), axis=1)
+    lines.append(f"{int(used.sum())} of {p.n_snapshots} snapshots used; {len(result.rejected)} rejections (see calibration.yaml)")
+    lines += _unused_line(result, used)
     conv = result.stats.get("convergence") or {}
     if conv and not conv.get("converged"):
         lines.append("NOT CONVERGED: " + "; ".join(conv.get("warnings", ())))
@@ -66,6 +73,20 @@ def summary_table(result: Result) -> str:
         why = (verdict.get("failures") or verdict.get("unverifiable") or ["?"])[0]
         lines.append(f"NOT SELF-CONSISTENT (see calibration.yaml consistency:): {why}")
     return "\n".join(lines)
+
+
+def _unused_line(result: Result, used: np.ndarray) -> list[str]:
+    """'unused: snapshot 3 (pose003.bag @3.000 s): why; ...' for the first 10 unused snapshots."""
+    p = result.problem
+    why: dict[int, str] = {}
+    for r in sorted(result.rejected, key=lambda r: r.sensor is not None):  # snapshot-level reasons first
+        if r.snapshot is not None:
+            why.setdefault(int(r.snapshot), r.reason if r.sensor is None else f"{p.sensors[r.sensor].topic}: {r.reason}")
+    unused = [k for k in range(p.n_snapshots) if not used[k]]
+    if not unused:
+        return []
+    more = f"; ... {len(unused) - 10} more in calibration.yaml" if len(unused) > 10 else ""
+    return ["unused: " + "; ".join(f"{p.snapshot_label(k)}: {why.get(k, 'no board pose')}" for k in unused[:10]) + more]
 
 
 def replay_lines(result: Result) -> str:
@@ -86,11 +107,13 @@ def replay_lines(result: Result) -> str:
 
 def truth_table(errors: list[dict], truth_path) -> str:
     """`clcgraph demo`: rotation and translation errors against the simulator's truth, with 1-sigmas."""
+    # errors as one angle and one distance; their sigmas root-sum-square over the three axes
     out = [f"\nagainst the simulator's truth ({truth_path}):",
-           f"{'sensor':34s} {'rotation [deg]':>15s} {'1-sigma':>8s} {'translation [mm]':>17s} {'1-sigma':>8s}"]
+           f"{'sensor':34s} {'rotation error [deg]':>21s} {'1-sigma rss':>12s} {'translation error [mm]':>23s} "
+           f"{'1-sigma rss':>12s}"]
     for e in errors:
-        out.append(f"{e['topic']:34s} {e['rotation_deg']:15.3f} {e['sigma_deg']:8.3f} {e['translation_mm']:17.1f} "
-                   f"{e['sigma_mm']:8.1f}")
+        out.append(f"{e['topic']:34s} {e['rotation_deg']:21.3f} {e['sigma_deg']:12.3f} {e['translation_mm']:23.1f} "
+                   f"{e['sigma_mm']:12.1f}")
     return "\n".join(out)
 
 
@@ -118,24 +141,34 @@ def bag_table(info, clouds: dict) -> str:
     return "\n".join(out) + "\n"
 
 
-def segmentation_line(scan, r) -> str:
-    """`clcgraph segment`: one scan's board (points, distance, normal, RMS) or why not."""
-    t = f"{scan.stamp_ns * 1e-9:.6f}"
+def segmentation_line(scan, r, bag: str = "") -> str:
+    """`clcgraph segment`: one scan's board (points, distance, normal, RMS) or why not, after its
+    bag's name and stamp."""
+    t = f"{bag} {scan.stamp_ns * 1e-9:.6f}".lstrip()
     if isinstance(r, Rejected):
         return f"{t} rejected: {r.reason}"
     return (f"{t} board: {len(r.indices)} points at {np.linalg.norm(r.points.mean(axis=0)):.2f} m, normal "
             f"{np.round(r.plane[:3], 3).tolist()}, RMS {r.rms_m * 1e3:.1f} mm")
 
 
-def detection_line(image, r) -> str:
-    """`clcgraph detect`: one image's corners found, or why not."""
-    t = f"{image.stamp_ns * 1e-9:.6f}"
+def detection_line(image, r, bag: str = "") -> str:
+    """`clcgraph detect`: one image's corners found, or why not, after its bag's name and stamp."""
+    t = f"{bag} {image.stamp_ns * 1e-9:.6f}".lstrip()
     return f"{t} rejected: {r.reason}" if isinstance(r, Rejected) else f"{t} found {len(r)} corners"
 
 
 def found_count(found: list, what: str) -> str:
-    """'3/5 scans with a board': how many of (item, result) pairs found something."""
-    return f"{sum(not isinstance(r, Rejected) for _, r in found)}/{len(found)} {what}"
+    """'3/5 scans with a board': how many of (item, result, ...) tuples found something."""
+    return f"{sum(not isinstance(f[1], Rejected) for f in found)}/{len(found)} {what}"
+
+
+def mcap_lines(info: dict) -> str:
+    """`clcgraph show-aligned --mcap`: where /tf_static's base came from, what went into the file."""
+    snaps = info["snapshots"]
+    return (f"/tf_static: {info['base_source']}\n"
+            f"wrote {info['path']}: {len(snaps)} snapshot(s) ({', '.join(s['bag'] for s in snaps[:5])}"
+            f"{', ...' if len(snaps) > 5 else ''}), /tf_static with {len(info['tf'])} transforms")
+
 
 
 def comparison_table(c) -> str:

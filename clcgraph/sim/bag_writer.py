@@ -86,6 +86,17 @@ def _quaternion_xyzw(R: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(R).as_quat()
 
 
+def _latched_qos():
+    """ROS 2's /tf_static QoS: reliable, transient local, keep last 1."""
+    from rosbags.rosbag2.metadata import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+
+    forever = QosTime(sec=0, nsec=0)
+    return Qos(history=QosHistory.KEEP_LAST, depth=1, reliability=QosReliability.RELIABLE,
+               durability=QosDurability.TRANSIENT_LOCAL, deadline=forever, lifespan=forever,
+               liveliness=QosLiveliness.AUTOMATIC, liveliness_lease_duration=forever,
+               avoid_ros_namespace_conventions=False)
+
+
 class BagWriter:
     """A context manager writing one bag: ``format`` is "ros1", "ros2-sqlite3" or "ros2-mcap".
 
@@ -138,7 +149,9 @@ class BagWriter:
     # helpers ------------------------------------------------------------------------
     def _conn(self, topic: str, msgtype: str):
         if topic not in self._connections:
-            extra = {"latching": 1} if self._ros1 and topic == "/tf_static" else {}  # as tf2 does
+            extra = {}
+            if topic == "/tf_static":  # latched, as tf2 publishes it, so a late subscriber (RViz) still gets it
+                extra = {"latching": 1} if self._ros1 else {"offered_qos_profiles": [_latched_qos()]}
             self._connections[topic] = self._writer.add_connection(
                 topic, msgtype, typestore=self.typestore, **extra
             )

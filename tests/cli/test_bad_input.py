@@ -141,3 +141,22 @@ def test_internal_error_exit_1_and_verbose_traceback(capsys, caplog, monkeypatch
     assert rc == 1 and "kaboom" in capsys.readouterr().err
     assert "Traceback" in caplog.text  # logged with the stack only under --verbose
 
+
+
+def test_unquoted_bag_glob(capsys, tmp_path, good, model):
+    """`--bag capture/*.bag cam.cameramodel`, the glob expanded by the shell: the bags are bags and
+    the models models (here one model too many, so it stops at the count, before any solve); a bag
+    where the models go is a one-line hint, not "unrecognized arguments"."""
+    from clcgraph.api import bags_and_models
+    from clcgraph.cli import build_parser
+
+    out = tmp_path / "out"
+    args = build_parser().parse_args(["solve", "--bag", "a.bag", "b.bag", "m.cameramodel", "--topics", "/l,/c",
+                                      "--out", str(out), "n.cameramodel"])
+    assert bags_and_models(args.bag, args.models) == (["a.bag", "b.bag"], ["m.cameramodel", "n.cameramodel"])
+    _run(capsys, ["solve", "--bag", str(good), str(good), str(model), str(model), "--topics", "/lidar0,/lidar1,/cam0",
+                  "--out", str(out)], "2 camera model", "/cam0")
+    line = _run(capsys, ["solve", "--bag", str(good), "--topics", "/lidar0,/lidar1,/cam0", "--out", str(out),
+                         str(model), str(good)], str(good))
+    assert "put every bag after --bag" in line and "quote the glob" in line
+    assert not out.exists()

@@ -172,6 +172,8 @@ def test_lidar_tools(session, capsys, tmp_path):
                        "--dump", tmp_path / "seg.npz"])
     found = int(out.splitlines()[-1].split("/")[0])
     assert found >= 6 and out.splitlines()[-1].endswith("/8 scans with a board"), out
+    names = [b.name for b in sorted(bags.glob("*.bag"))]
+    assert [line.split()[0] for line in out.splitlines()[:-1]] == names  # each scan named by its bag
     assert len(list((tmp_path / "seg").glob("*.png"))) == 8 and "scan0_segments" in np.load(tmp_path / "seg.npz")
 
 
@@ -182,6 +184,7 @@ def test_detect(session, capsys, tmp_path):
     seen = sum("/cam/front" in s["corners_px"] for s in truth["snapshots"])  # the board in the image
     assert out.splitlines()[-1] == f"{out.count('found 100 corners')}/8 images with a chessboard"
     assert out.count("found 100 corners") >= seen - 1 >= 1, out
+    assert [line.split()[0] for line in out.splitlines()[:-1]] == [b.name for b in sorted(bags.glob("*.bag"))]
     assert len(list((tmp_path / "det").glob("*.png"))) == 8
 
 
