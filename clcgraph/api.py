@@ -32,6 +32,7 @@ from typing import Sequence
 import numpy as np
 
 from .config import Config, ConfigError
+from .determinism import single_threaded_blas
 from .errors import DataError, DegenerateError, InputError
 from .progress import progress
 from .timing import StageClock
@@ -421,6 +422,7 @@ def detect(images, *, config=None, board: BoardGeometry | None = None) -> list:
 # ---------------------------------------------------------------- solve
 
 
+@single_threaded_blas()
 def calibrate(problem: Problem, config=None, *, timings: dict | None = None) -> Result:
     """Solve a Problem: seed, staged LM, noise re-estimation, outliers, covariance, sectors."""
     from .backend.sectors import sector_report
@@ -603,6 +605,7 @@ def calibrate_targetless(bags, *, mapping_topic: str, calibration_topics, base_f
     return result
 
 
+@single_threaded_blas()
 def replay(dump, *, inject_noise: bool = False, fit_seed: bool = False, exclude=(), seed: int = 0) -> Result:
     """Re-solve a problem dump (problem.npz, or the --out directory holding it) with the dump's
     settings: `clcgraph replay` (backend/replay.py). A targetless output has no dump: InputError."""

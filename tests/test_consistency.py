@@ -253,5 +253,5 @@ def test_verdict_is_written_to_calibration_yaml_and_report():
     w = d["weakest"]["/lidar1"]
     assert w["weakest_translation_stdev_mm"] == pytest.approx(1e3 * np.sqrt(np.linalg.eigvalsh(
         r.covariance_block(1)[3:, 3:])[-1]), rel=0.05)  # rt and tangent translations agree to first order
-    html = report_html(r, {})
+    html = report_html(r)
     assert "<h2>Consistency</h2>" in html and "self-consistent" in html

@@ -105,7 +105,7 @@ def test_max_iterations_1_warns_once_and_is_in_the_yaml_and_report(tmp_path, cap
     assert "max_iterations=1" in first["reason"]
     # the final LM stopped early, but its last step is a tiny part of the sigma: the result stands
     assert conv["final_step_sigma"] < 0.1
-    html = report_html(res, {})
+    html = report_html(res)
     assert "<h2>Convergence</h2>" in html and "max_iterations=1" in html and "class='warn'" in html
 
 

@@ -42,6 +42,7 @@ RULES: dict[str, tuple[str, ...]] = {
                      "clcgraph.targetless"),
     "clcgraph.progress": ("clcgraph",),
     "clcgraph.timing": ("clcgraph",),
+    "clcgraph.determinism": ("clcgraph",),
 }
 # types, geometry, config import nothing of ours; errors (which imports nothing) is allowed.
 LEAVES = ("clcgraph.types", "clcgraph.geometry", "clcgraph.config", "clcgraph.errors")

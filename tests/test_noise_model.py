@@ -199,7 +199,7 @@ def test_calibration_yaml_and_report_carry_the_check(independent, tmp_path):
     import yaml
 
     yaml.safe_dump(d)  # plain types only
-    page = report_html(res, {})
+    page = report_html(res)
     assert "Uncertainty check" in page and f"Snapshot {w['snapshot']} moves" in page
 
 

@@ -19,7 +19,7 @@ def _corner_of_a_room(rng, n, sigma):
 
 
 def _pose(omega, v):
-    from clcgraph.targetless.deskew import exp
+    from clcgraph.geometry import T_exp as exp
 
     return exp(np.r_[omega, v])
 

@@ -96,9 +96,14 @@ def replay_lines(result: Result) -> str:
         sd = result.stdev_rt(i) if np.all(np.isfinite(result.covariance_rt)) else np.full(6, np.nan)
         out.append(f"{s.topic}: rt_lidar0_sensor {np.array2string(result.rt_lidar0_sensor[i], precision=6, max_line_width=10**4)}"
                    f"  stdev {np.array2string(sd, precision=6, max_line_width=10**4)}")
+    def value(v):  # a sigma, or {component: sigma} (observation_effects)
+        return ", ".join(f"{c} {x:.4g}" for c, x in v.items()) if isinstance(v, dict) else f"{v:.4g}"
+
     for k, v in result.noise.items():
-        if isinstance(v, dict):  # per sensor: {sensor index: sigma}
-            out.append(f"noise {k}: " + ", ".join(f"{result.problem.sensor_name(int(i))} {s:.4g}" for i, s in v.items()))
+        if isinstance(v, dict):  # per sensor: {sensor index: sigma or {component: sigma}}
+            if v:
+                out.append(f"noise {k}: " + "; ".join(f"{result.problem.sensor_name(int(i))} {value(s)}"
+                                                     for i, s in v.items()))
         else:
             out.append(f"noise {k}: {v:.4g}")
     out.append(f"{len(result.rejected)} rejected")

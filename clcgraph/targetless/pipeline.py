@@ -25,11 +25,11 @@ import numpy as np
 
 from .. import geometry as geo
 from ..config import Config
+from ..determinism import single_threaded_blas
 from ..errors import DegenerateError, InputError
 from ..timing import StageClock
 from ..types import Problem, Result, Sensor, TargetlessRun
 from .calibration_frames import make_calibration_frames, nearest_to_keyframes
-from .determinism import single_threaded_blas
 from .keyframe_graph import fuse
 from .mapping import build_map
 from .registration import deskew_sources, ensemble, keyframe_edges, prepare_frames, refine_per_frame, score
