@@ -391,7 +391,7 @@ class Config:
         try:
             if path.stat().st_size > _MAX_YAML_BYTES:
                 raise ConfigError(f"{path}: config file larger than {_MAX_YAML_BYTES // 1024} KiB; not a settings file?")
-            d = yaml.load(path.read_text(), Loader=_SafeNoCollectionAliases)
+            d = yaml.load(path.read_text(), Loader=SafeLoaderNoCollectionAliases)
         except UnicodeDecodeError:
             raise ConfigError(f"{path}: not a text (UTF-8) config file") from None
         except OSError as e:
@@ -739,7 +739,7 @@ def _check_ranges(cfg) -> None:
                 raise _range_error(key, f"'{key}' is not a valid regular expression ({e}): {v!r}") from None
 
 
-class _SafeNoCollectionAliases(yaml.SafeLoader):
+class SafeLoaderNoCollectionAliases(yaml.SafeLoader):
     """safe_load that refuses aliases of mappings and lists: nested ones expand exponentially
     when the settings are copied (the "billion laughs" bomb); aliases of scalars are harmless."""
 

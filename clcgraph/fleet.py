@@ -81,9 +81,9 @@ class _LineDict(dict):
 
 
 def _line_loader():
-    import yaml
+    from .config import SafeLoaderNoCollectionAliases
 
-    class Loader(yaml.SafeLoader):
+    class Loader(SafeLoaderNoCollectionAliases):  # a manifest is user input: no alias bombs
         pass
 
     def mapping(loader, node):

@@ -48,7 +48,7 @@ import numpy as np
 import yaml
 
 from .. import cameras
-from ..config import Config, ConfigError
+from ..config import Config, ConfigError, SafeLoaderNoCollectionAliases
 from ..errors import InputError
 from ..geometry import T_from_xyz_rpy
 from ..types import BoardGeometry, Sensor
@@ -127,7 +127,7 @@ def load_rig(path) -> Rig:
     """Parse and validate a rig YAML (module docstring)."""
     path = Path(path)
     try:
-        d = yaml.safe_load(path.read_text())
+        d = yaml.load(path.read_text(), Loader=SafeLoaderNoCollectionAliases)  # no alias bombs
     except OSError as e:
         raise InputError(f"{path}: cannot read the rig file ({e.strerror})") from None
     except yaml.YAMLError as e:

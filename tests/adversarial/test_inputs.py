@@ -501,3 +501,19 @@ def test_genuine_dump_replays(capfd, dump):
     """The control: the untampered dump replays with exit 0 (the harness can tell)."""
     assert main(["replay", str(dump), "--fit-seed"]) == 0
     assert capfd.readouterr().err == ""
+
+
+def test_fleet_manifest_and_rig_file_refuse_alias_bombs(tmp_path):
+    """The fleet manifest and the simulator's rig file are user YAML too: the config's loader refuses
+    aliases of lists and mappings (nested ones expand exponentially) there as well."""
+    from clcgraph.errors import InputError
+    from clcgraph.fleet import Manifest
+    from clcgraph.sim.rig import load_rig
+
+    bomb = "a: &a [x, x]\nb: &b [*a, *a]\nc: &c [*b, *b]\n"
+    (tmp_path / "m.yaml").write_text(bomb + "vehicles: []\n")
+    (tmp_path / "r.yaml").write_text(bomb)
+    for path, load in ((tmp_path / "m.yaml", Manifest.load), (tmp_path / "r.yaml", load_rig)):
+        with pytest.raises(InputError, match=r"alias \*a of a mapping or list") as e:
+            load(path)
+        assert str(path) in str(e.value) and "\n" not in str(e.value)
