@@ -27,8 +27,10 @@ line naming the bag, the topic and the message index. No rosbags traceback escap
 
 from __future__ import annotations
 
+import functools
 import heapq
 import logging
+import threading
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
@@ -189,18 +191,57 @@ def _bag_root(path) -> Path:
     return p
 
 
+# (ROS2?, the bag's message definitions) -> the rosbags typestore built from them
+_TYPESTORES: dict[tuple, object] = {}
+_TYPESTORES_LOCK = threading.Lock()
+_DEFAULT_TYPESTORES: dict[bool, object] = {}
+
+
+@functools.cache
+def _reader_class():
+    """rosbags' AnyReader, sharing one typestore among bags with the same message definitions.
+
+    Opening a bag parses the message definitions it carries and compiles a deserializer per type
+    (~40 ms of CPU per bag, more than reading a small bag's messages); the bags of one capture
+    carry the same definitions, so they are parsed and compiled once per process. A bag with new
+    definitions (or digests) is opened the stock way first, which also checks its digests.
+    """
+    from rosbags.highlevel import AnyReader
+
+    class SharedTypesReader(AnyReader):
+        def _open(self) -> None:
+            for reader in self.readers:
+                self.stack.enter_context(reader)
+            connections = [c for r in self.readers for c in r.connections]
+            key = (self.is2, tuple(sorted({(c.msgtype, c.msgdef, c.digest) for c in connections},
+                                          key=repr)))
+            with _TYPESTORES_LOCK:
+                typestore = _TYPESTORES.get(key)
+            if typestore is None:
+                with AnyReader(self.paths, default_typestore=self.default_typestore) as stock:
+                    typestore = stock.typestore
+                with _TYPESTORES_LOCK:
+                    if len(_TYPESTORES) >= 64:  # a fleet of differently recorded bags: stay bounded
+                        _TYPESTORES.clear()
+                    _TYPESTORES[key] = typestore
+            self.connections = connections
+            self.typestore = typestore
+
+    return SharedTypesReader
+
+
 class _Bag:
     """An open AnyReader over one bag, with errors turned into one-line DataErrors."""
 
     def __init__(self, path):
         self.path = _bag_root(path)
-        from rosbags.highlevel import AnyReader
         from rosbags.typesys import Stores, get_typestore
 
         ros1 = self.path.is_file()
-        store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+        if ros1 not in _DEFAULT_TYPESTORES:  # for bags without message definitions
+            _DEFAULT_TYPESTORES[ros1] = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
         try:
-            self.reader = AnyReader([self.path], default_typestore=store)
+            self.reader = _reader_class()([self.path], default_typestore=_DEFAULT_TYPESTORES[ros1])
             self.reader.open()
         except Exception as e:  # rosbags raises many kinds on broken files
             raise DataError(f"{self.path}: cannot read bag ({_one_line(e)}); is it truncated or not a bag?") from None

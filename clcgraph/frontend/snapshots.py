@@ -393,7 +393,8 @@ def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
     bag_iter = progress(kept_bags) if progress else kept_bags
     if options.decimation_period_s is None:
         for b in bag_iter:
-            still, moving_s = still_intervals(b, lidar_topics, options, tfilter)
+            still, moving_s = (still_intervals(b, lidar_topics, options, tfilter)
+                               if _may_hold_two_still_intervals(b, lidar_topics) else ([], 0.0))
             # the board stopped more than once: a continuous bag, a snapshot per still interval (a
             # bag per pose in which something moved, e.g. a passer-by, keeps its first messages)
             if moving_s > 0 and len(still) >= 2:
@@ -430,6 +431,15 @@ def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
     rejected += dropped
     log.info("%d snapshots kept, %d rejected", len(snaps) - len(dropped), len(rejected))
     return snaps, rejected
+
+
+def _may_hold_two_still_intervals(bag: Path, lidar_topics: Sequence[str]) -> bool:
+    """Whether ``still_intervals`` can find two still intervals in ``bag``: each needs >= 2 scans of
+    every LIDAR seen, so a bag with fewer than 4 scans of each LIDAR (a bag per pose) cannot, and its
+    scans need not be decoded and compared (from the bag's index: nothing is read)."""
+    from clcgraph.frontend.bag import message_count
+
+    return any(message_count(bag, t) >= 4 for t in lidar_topics)
 
 
 def still_intervals(bag: Path, lidar_topics: Sequence[str], options,
