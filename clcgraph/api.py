@@ -357,6 +357,9 @@ def _board_regions(sensors, lidar_obs, cam_images, detection, cfg, board, n_snap
     regions: list = [None] * len(cam_images)
     for cam in sorted({cam_images[k][0] for k in missed}):
         mine = [k for k, (i, _, _) in enumerate(cam_images) if i == cam]
+        todo = [k for k in mine if k in missed]
+        if not any(cam_images[k][1] in by_snapshot for k in todo):
+            continue  # no LIDAR saw any of its missed boards: nothing to predict them from (searched whole)
         c = len(lidars)  # the camera's index in a problem of the LIDARs and this camera
         obs = tuple(CameraBoardObservation(sensor=c, snapshot=cam_images[k][1],
                                            corners_px=np.asarray(detection.results[k], float))
@@ -371,7 +374,6 @@ def _board_regions(sensors, lidar_obs, cam_images, detection, cfg, board, n_snap
                       sensors[cam].topic, e)
             continue
         rt_camera_lidar = {i: compose_rt(invert_rt(rt_lidar0[c]), rt_lidar0[n]) for n, i in enumerate(lidars)}
-        todo = [k for k in mine if k in missed]
         views = [[(rt_camera_lidar[o.sensor], o) for o in by_snapshot.get(cam_images[k][1], ())] for k in todo]
         for k, box in zip(todo, board_regions(sensors[cam], views, board)):
             regions[k] = box

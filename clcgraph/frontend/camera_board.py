@@ -467,11 +467,20 @@ def board_regions(camera, views, board: BoardGeometry) -> list:
     w, h = camera.imagersize
     slack = float(np.mean(np.asarray(camera.intrinsics[:2], float))) * np.tan(_REGION_MARGIN_RAD)
 
-    def project(p):  # pixels, and whether each is a true projection (in front, not folded back by the lens)
+    def in_image(q):
+        return np.all((q >= -slack) & (q <= np.array([w - 1, h - 1]) + slack), axis=1)
+
+    def project(p, *, give_up_outside=False):
+        """Pixels, and whether each is a true projection (in front, not folded back by the lens);
+        ``give_up_outside``: None when a point is behind the camera or outside the image (checking
+        the fold-back, an iterative unprojection, is most of the cost)."""
         q = cameras.project(p, camera.lensmodel, camera.intrinsics)
+        ok = (p[:, 2] > 0) & np.all(np.isfinite(q), axis=1)
+        if give_up_outside and not np.all(ok & in_image(q)):
+            return None
         back = cameras.unproject(q, camera.lensmodel, camera.intrinsics)
         ray = p / np.linalg.norm(p, axis=1)[:, None]
-        ok = (p[:, 2] > 0) & np.all(np.isfinite(q), axis=1) & (np.einsum("ij,ij->i", back, ray) > np.cos(np.radians(1.0)))
+        ok &= np.einsum("ij,ij->i", back, ray) > np.cos(np.radians(1.0))
         return q, ok
 
     out = []
@@ -489,11 +498,11 @@ def board_regions(camera, views, board: BoardGeometry) -> list:
             on_board.append(transform(np.asarray(rt_camera_lidar, float), p))
             discs.append(transform(np.asarray(rt_camera_lidar, float),
                                    p.mean(axis=0) + radius * (np.cos(a)[:, None] * u + np.sin(a)[:, None] * v)))
-        q, ok = project(np.concatenate(on_board))
-        inside = ok & np.all((q >= -slack) & (q <= np.array([w - 1, h - 1]) + slack), axis=1)
-        if not np.all(inside):
+        projected = project(np.concatenate(on_board), give_up_outside=True)
+        if projected is None or not np.all(projected[1]):
             out.append(NOWHERE)
             continue
+        q = projected[0]
         qd, okd = project(np.concatenate(discs))
         # the disc's projected diameter is the board's diagonal: squares are that over diagonal / square
         square = float(np.max(np.ptp(qd[okd], axis=0))) * board.square_m / (2 * radius) if okd.sum() > 2 else None
