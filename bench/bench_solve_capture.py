@@ -6,7 +6,7 @@ bench/capture/rig.yaml, a 32-ring and a 16-ring LIDAR, two 1024x768 mono cameras
 colour camera, the board in and out of the cameras' views.
 
 Figures, each with what it is measured against:
-- solve: whole-process `clcgraph solve` wall time, median of 3, vs the floor = reading every
+- solve: whole-process `clcgraph solve` wall time (and CPU time), median of 3, vs the floor = reading every
   message of the same bags with rosbags (raw, warm cache) + the `mrgingham` command on the
   same images (the first of each camera in each bag, as solve uses; uncompressed PGM,
   ``--jobs 2``). Goal: <= 2x.
@@ -55,27 +55,40 @@ def _truth():
 
 
 def _topics_models():
-    truth = _truth()
-    topics = [s["topic"] for s in truth["sensors"]]
-    models = [str(RIG.parent / s["model"]) for s in truth["sensors"] if s["kind"] == "camera"]
+    """The topics (lidar0 first) and the cameras' models, from the rig (the capture's truth.yaml
+    holds the model paths of the checkout that simulated it)."""
+    import yaml
+
+    rig = yaml.safe_load(RIG.read_text())
+    topics = [s["topic"] for s in rig["lidars"] + rig["cameras"]]
+    models = [str((RIG.parent / s["model"]).resolve()) for s in rig["cameras"]]
     return topics, models
 
 
-def read_floor(bags) -> float:
-    """Seconds to read every message of the bags with rosbags (raw bytes, no decoding)."""
+def _cpu_s() -> float:
+    """CPU seconds of this process and its waited-for children so far (the figures to compare on a
+    loaded machine: wall time there measures the other users too)."""
+    import resource
+
+    return sum(getattr(resource.getrusage(who), f) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
+               for f in ("ru_utime", "ru_stime"))
+
+
+def read_floor(bags) -> tuple[float, float]:
+    """(wall, CPU) seconds to read every message of the bags with rosbags (raw bytes, no decoding)."""
     from rosbags.highlevel import AnyReader
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), _cpu_s()
     n = 0
     with AnyReader([Path(b) for b in bags]) as reader:
         for _, _, raw in reader.messages():
             n += len(raw)
-    return time.perf_counter() - t0
+    return time.perf_counter() - t0, _cpu_s() - c0
 
 
-def detector_floor(bags, camera_topics) -> tuple[float, int]:
-    """(seconds, images): the bare `mrgingham --jobs 2` on the first image of each camera in
-    each bag, written once as uncompressed PGM (writing not timed)."""
+def detector_floor(bags, camera_topics) -> tuple[float, float, int]:
+    """(wall, CPU seconds, images): the bare `mrgingham --jobs 2` on the first image of each camera
+    in each bag, written once as uncompressed PGM (writing not timed)."""
     import cv2
 
     from clcgraph.frontend.bag import first_messages
@@ -89,22 +102,22 @@ def detector_floor(bags, camera_topics) -> tuple[float, int]:
                 if t in first:
                     cv2.imwrite(os.path.join(tmp, f"{n:04d}.pgm"), to_gray8(first[t].pixels))
                     n += 1
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), _cpu_s()
         subprocess.run(["mrgingham", "--jobs", "2", "--gridn", "10", os.path.join(tmp, "*.pgm")],
                        check=True, capture_output=True)
-        return time.perf_counter() - t0, n
+        return time.perf_counter() - t0, _cpu_s() - c0, n
 
 
-def solve_process(bags_glob: str, topics, models) -> float:
-    """Wall seconds of one whole `clcgraph solve` process (imports, reading, ..., the report)."""
+def solve_process(bags_glob: str, topics, models) -> tuple[float, float]:
+    """(wall, CPU) seconds of one whole `clcgraph solve` process (imports, reading, ..., the report)."""
     exe = Path(sys.executable).with_name("clcgraph")
     cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "clcgraph"]
     with tempfile.TemporaryDirectory(prefix="clcgraph-bench-") as tmp:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), _cpu_s()
         subprocess.run([*cmd, "solve", "--bag", bags_glob, "--topics", ",".join(topics), *models,
                         "--out", f"{tmp}/out"], check=True, capture_output=True,
                        env={**os.environ, "PYTHONPATH": _package_root()})
-        return time.perf_counter() - t0
+        return time.perf_counter() - t0, _cpu_s() - c0
 
 
 def _package_root() -> str:
@@ -123,6 +136,42 @@ def solve_in_process(bags_glob: str, topics, models) -> tuple[dict, list[dict]]:
     return dict(result.stats["stage_time_s"]), api.compare_to_truth(result, _truth())
 
 
+def frontend_cpu(bags_glob: str, topics, models) -> dict[str, float]:
+    """CPU seconds (this process + its children: mrgingham) of each frontend stage run on its own, in
+    the order calibrate_bags runs them: read (snapshot assembly), the first detection pass,
+    segmentation, the board regions of the missed images (seeds), the retries."""
+    from clcgraph import api, cameras
+    from clcgraph.frontend.camera_board import BoardDetection
+    from clcgraph.frontend.snapshots import assemble_snapshots
+    from clcgraph.types import LidarBoardObservation, Sensor
+
+    cfg = api._config(None)
+    paths = api.expand_bags([bags_glob])
+    lidar_topics, camera_topics = api.classify_topics(paths, topics)
+    board = api.board_geometry(cfg)
+    out: dict[str, float] = {}
+
+    def timed(name, fn):
+        c0 = _cpu_s()
+        r = fn()
+        out[name] = _cpu_s() - c0
+        return r
+
+    snaps, _ = timed("read", lambda: assemble_snapshots(paths, lidar_topics, camera_topics, cfg.snapshots))
+    cam_images = [(len(lidar_topics) + j, s.index, s.images[t]) for j, t in enumerate(camera_topics)
+                  for s in snaps if t in s.images]
+    detection = timed("detect: first pass", lambda: BoardDetection([im for *_, im in cam_images], cfg.detection, board))
+    lidar_obs = timed("segment", lambda: [o for i, t in enumerate(lidar_topics) for o in api.segment(
+        [s.scans[t] for s in snaps if t in s.scans], config=cfg, sensor=i, board=board,
+        snapshots=[s.index for s in snaps if t in s.scans]) if isinstance(o, LidarBoardObservation)])
+    sensors = [Sensor(topic=t, kind="lidar") for t in lidar_topics]
+    sensors += [cameras.load_camera(t, m) for t, m in zip(camera_topics, models)]
+    regions = timed("detect: regions", lambda: api._board_regions(sensors, lidar_obs, cam_images, detection, cfg,
+                                                                   board, len(snaps)))
+    timed("detect: retries", lambda: detection.retry(regions))
+    return out
+
+
 def main() -> str:
     capture_dir()
     topics, models = _topics_models()
@@ -131,11 +180,17 @@ def main() -> str:
     bags_glob = str(CAPTURE / "*.bag")
     read_floor(bags)  # warm the page cache, as the solve runs find it
     reads, dets, solves, stages = [], [], [], []
+    cpu = {"read": [], "mrgingham": [], "solve": []}
     for _ in range(RUNS):  # interleaved, so the floor and the figures see the same machine load
-        reads.append(read_floor(bags))
-        dt, n_images = detector_floor(bags, cams)
+        wall, c = read_floor(bags)
+        reads.append(wall)
+        cpu["read"].append(c)
+        dt, c, n_images = detector_floor(bags, cams)
         dets.append(dt)
-        solves.append(solve_process(bags_glob, topics, models))
+        cpu["mrgingham"].append(c)
+        wall, c = solve_process(bags_glob, topics, models)
+        solves.append(wall)
+        cpu["solve"].append(c)
         st, errors = solve_in_process(bags_glob, topics, models)
         stages.append(st)
     med = statistics.median
@@ -153,7 +208,13 @@ def main() -> str:
         ratio = v / ref
         out.append(f"{name:28s} {v:9.2f} {ref:11.2f} {what:24s} {ratio:6.2f} {'<= ' + format(goal, 'g'):>6s}"
                    f"{'' if ratio <= goal else '  MISSED'}")
+    c_read, c_det, c_solve = (med(cpu[k]) for k in ("read", "mrgingham", "solve"))
+    out.append(f"{'solve, whole process (CPU s)':28s} {c_solve:9.2f} {c_read + c_det:11.2f} {'read + mrgingham, CPU':24s} "
+               f"{c_solve / (c_read + c_det):6.2f}   (CPU: what a loaded machine does not distort)")
     out.append("in-process stages (s): " + ", ".join(f"{k} {v:.2f}" for k, v in stage.items()))
+    fe = frontend_cpu(bags_glob, topics, models)
+    out.append("frontend stages alone, CPU s (incl. mrgingham): " + ", ".join(f"{k} {v:.2f}" for k, v in fe.items())
+               + f"; mrgingham floor {c_det:.2f}")
     worst = max(errors, key=lambda e: e["rotation_deg"])
     out.append(f"accuracy: worst {worst['rotation_deg']:.3f} deg ({worst['topic']}), "
                f"{max(e['translation_mm'] for e in errors):.1f} mm")
