@@ -321,3 +321,41 @@ def test_single_continuous_bag_without_a_period_is_cut_at_the_motion(continuous_
         assert abs(t_scan - (a + min(b, 11.9)) / 2) < 0.5, t_scan
     assert any("scene moved" in r.reason for r in rej)
     assert [s.index for s in snaps] == [0, 1, 2]
+
+
+def _moving_board_bag(path, n_scans, rng):
+    """A bag whose board stands still for ``n_scans // 2`` scans, jumps 1 m, and stands still again."""
+    with BagWriter(path) as w:
+        for k in range(n_scans):
+            c = np.array([4.0, -0.5 if k < n_scans // 2 else 0.5, 0.0])
+            w.write_pointcloud("/lidar0", cast(c, rng=rng, stamp_ns=T0 + k * 10**8), frame_id="lidar0",
+                               layout="velodyne")
+            w.write_image("/cam0", Image("/cam0", T0 + k * 10**8 + 10**7, np.full((8, 8), k, np.uint8), "mono8"),
+                          frame_id="cam0")
+    return path
+
+
+def test_a_bag_too_short_for_two_still_intervals_is_not_decoded_for_them(tmp_path, monkeypatch):
+    """Two still intervals need >= 2 scans of every LIDAR each: a bag of 3 scans (the board moved
+    between them) is a bag per pose without its scans decoded and compared, and gives what the full
+    still-interval search gives; one of 6 scans is searched and cut in two."""
+    import clcgraph.frontend.snapshots as snapshots
+
+    rng = np.random.default_rng(5)
+    short = _moving_board_bag(tmp_path / "short.bag", 3, rng)
+    long = _moving_board_bag(tmp_path / "long.bag", 6, rng)
+    o = SnapshotOptions(motion_window_s=0.05)
+    calls = []
+    search = snapshots.still_intervals
+    monkeypatch.setattr(snapshots, "still_intervals", lambda b, *a, **k: calls.append(Path(b).name) or search(b, *a, **k))
+    snaps, _ = assemble_snapshots([short, long], ["/lidar0"], ["/cam0"], o)
+    assert calls == ["long.bag"]
+    assert [s.source.split(" ")[0] for s in snaps] == [str(short), str(long), str(long)]
+    assert snaps[0].scans["/lidar0"].stamp_ns == T0 and snaps[0].images["/cam0"].stamp_ns == T0 + 10**7
+    # the full search on the short bag: it cannot find two still intervals, so the same snapshot
+    monkeypatch.setattr(snapshots, "_may_hold_two_still_intervals", lambda *a: True)
+    still, _ = search(short, ["/lidar0"], o)
+    assert len(still) < 2
+    full, _ = assemble_snapshots([short], ["/lidar0"], ["/cam0"], o)
+    assert [(s.source, s.stamp_ns) for s in full] == [(snaps[0].source, snaps[0].stamp_ns)]
+    assert np.array_equal(full[0].scans["/lidar0"].points, snaps[0].scans["/lidar0"].points)

@@ -308,3 +308,35 @@ def test_drivers_log_times_are_read_in_stamp_order(tmp_path, fmt):
     assert [s for _, s in logged] != sorted(s for _, s in logged)
     read = [(m.topic, m.stamp_ns) for m in bag.read_messages(path, ["/lidar", "/cam"])]
     assert [s for _, s in read] == sorted(s for _, s in logged) and sorted(read) == sorted(logged)
+
+
+def test_bags_with_the_same_message_definitions_share_one_typestore(written, tmp_path, monkeypatch):
+    """Parsing a bag's message definitions and compiling their deserializers costs more than reading
+    a small bag: bags that carry the same ones (every bag of a capture) share one typestore, parsed
+    once; a bag with other definitions gets its own, built (and its digests checked) the stock way."""
+    import rosbags.highlevel.anyreader as anyreader
+
+    parsed = []
+    real = anyreader.get_types_from_msg
+    monkeypatch.setattr(anyreader, "get_types_from_msg", lambda text, name: parsed.append(name) or real(text, name))
+    monkeypatch.setattr(bag, "_TYPESTORES", {})
+    a, b = tmp_path / "a.bag", tmp_path / "b.bag"
+    rng = np.random.default_rng(3)
+    for p in (a, b):
+        with BagWriter(p) as w:
+            w.write_pointcloud("/velo", _scan(rng, T0, "/velo"), frame_id="lidar0", layout="velodyne")
+    with bag._Bag(a) as ba, bag._Bag(b) as bb:
+        assert ba.reader.typestore is bb.reader.typestore
+        assert parsed == ["sensor_msgs/msg/PointCloud2"]  # once, for both bags
+        with bag._Bag(written[0][("ros1", False)]) as other:  # more topics: other definitions
+            assert other.reader.typestore is not ba.reader.typestore
+            assert len(parsed) > 1
+    # what the shared typestore decodes is what rosbags' own reader decodes
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([b]) as stock:
+        conn, _, raw = next(stock.messages())
+        want = stock.deserialize(raw, conn.msgtype)
+    got = bag.first_raw_message(b, "/velo")
+    assert bytes(got.data) == bytes(want.data) and got.header.stamp == want.header.stamp
+    assert [f.name for f in got.fields] == [f.name for f in want.fields]

@@ -57,10 +57,20 @@ def test_region_holds_the_board_and_its_square_size(centre):
 
 
 @pytest.mark.parametrize("centre", [(3.3, 0.0, 5.0), (0.0, 0.0, -5.0), (30.0, 0.0, 1.0)])
-def test_board_not_whole_in_view_is_nowhere(centre):
-    """Partly outside the image, behind the camera, far outside the field of view."""
+def test_board_not_whole_in_view_is_nowhere(centre, monkeypatch):
+    """Partly outside the image, behind the camera, far outside the field of view: told from the
+    projections alone, without the lens fold-back check (an iterative unprojection of every point)."""
+    from clcgraph import cameras
+
+    unprojected = []
+    real = cameras.unproject
+    monkeypatch.setattr(cameras, "unproject", lambda q, *a, **k: unprojected.append(len(q)) or real(q, *a, **k))
     R, t = _board(centre, yaw_deg=0.0)
     assert board_regions(CAMERA, [[(np.zeros(6), _lidar_view(R, t, np.random.default_rng(1)))]], BOARD) == [NOWHERE]
+    assert unprojected == []
+    R, t = _board((0.0, 0.0, 5.0))  # in full view: checked
+    board_regions(CAMERA, [[(np.zeros(6), _lidar_view(R, t, np.random.default_rng(1)))]], BOARD)
+    assert unprojected
 
 
 def test_no_lidar_view_no_prediction():
