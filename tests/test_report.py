@@ -28,12 +28,14 @@ def report(tmp_path_factory):
 
 
 def _embedded_pngs(text: str) -> dict:
-    """{alt name: decoded PNG image} of every <img> in the report (all must be data URIs)."""
+    """{alt name: decoded image} of every <img> in the report (all must be PNG or JPEG data URIs)."""
     imgs = re.findall(r"<img src='([^']+)' alt='([^']+)'", text)
     out = {}
     for src, alt in imgs:
-        assert src.startswith("data:image/png;base64,"), src[:60]
-        out[alt] = mpimg.imread(io.BytesIO(base64.b64decode(src.split(",", 1)[1])), format="png")
+        fmt = re.match(r"data:image/(png|jpeg);base64,", src)
+        assert fmt, src[:60]
+        img = mpimg.imread(io.BytesIO(base64.b64decode(src.split(",", 1)[1])), format=fmt.group(1))
+        out[alt] = img / 255.0 if img.dtype == np.uint8 else img
     return out
 
 
@@ -60,7 +62,7 @@ def test_report_figures_each_after_their_howto(report):
     text = path.read_text()
     imgs = _embedded_pngs(text)
     # the Result-only report: every figure but the clouds needing scans of two LIDARs' overlap is drawn
-    want = {"lidar-on-camera-2.png", "clouds-before-after.png", "camera-residuals-and-coverage.png", *plots.PLOTS}
+    want = {"lidar-on-camera-2.jpg", "clouds-before-after.png", "camera-residuals-and-coverage.png", *plots.PLOTS}
     assert want <= set(imgs), sorted(want - set(imgs))
     for name in imgs:
         key = "lidar-on-camera" if name.startswith("lidar-on-camera") else name

@@ -242,9 +242,10 @@ def _png(fig_fn, *args, **kwargs) -> bytes:
     return buf.getvalue()
 
 
-def embed_png(name: str, png: bytes) -> str:
-    """An <img> holding the PNG itself (a data URI): the page needs no other file."""
-    return (f"<img src='data:image/png;base64,{base64.b64encode(png).decode('ascii')}' alt='{html.escape(name)}' "
+def embed_image(name: str, data: bytes) -> str:
+    """An <img> holding the PNG or JPEG itself (a data URI): the page needs no other file."""
+    mime = "image/jpeg" if data[:3] == b"\xff\xd8\xff" else "image/png"
+    return (f"<img src='data:{mime};base64,{base64.b64encode(data).decode('ascii')}' alt='{html.escape(name)}' "
             f"title='{html.escape(name)}'>")
 
 
@@ -350,7 +351,7 @@ def _lidar_on_camera_figures(result, inputs, checks: dict) -> list[tuple[str, st
         what = "whole scans" if image is not None else "board points only (the report has no image of it)"
         caption = (f"{i_cam}: {cam.topic}, {_snapshot_name(k, inputs)}, {what}. " + "; ".join(says)
                    + f". Colour: LIDAR range, {norm[0]:.1f} m (blue) to {norm[1]:.1f} m (red), the bar at the bottom.")
-        out.append((f"lidar-on-camera-{i_cam}.png", caption,
+        out.append((f"lidar-on-camera-{i_cam}.jpg", caption,
                     _png(plots.plot_lidar_on_image, panels, cam.imagersize, image=image, norm=norm)))
     return out
 
@@ -567,7 +568,7 @@ def report_html(result: Result, *, title: str = "clcgraph calibration", inputs: 
             shown.add(key)
         if caption:
             parts.append(f"<p>{html.escape(caption)}</p>")
-        parts.append(embed_png(name, png))
+        parts.append(embed_image(name, png))
     parts += ["<h2>Convergence</h2>", convergence_html(result.stats.get("convergence") or {}),
               "<h2>Consistency</h2>", _consistency(result),
               "<h2>Uncertainty check</h2>", _uncertainty_check(result),

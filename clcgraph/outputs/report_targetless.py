@@ -20,7 +20,7 @@ from .. import __version__
 from ..geometry import pose_stdevs
 from ..types import Result
 from . import plots
-from .report import convergence_html, embed_png
+from .report import convergence_html, embed_image
 
 def _name(topic: str) -> str:
     return topic.strip("/").replace("/", "_")
@@ -80,7 +80,7 @@ def targetless_report_html(result: Result, pngs: dict[str, bytes], *, title: str
             f"<th>scale frames</th><th>scale edges</th><th>common mode</th></tr>{graph}</table>"
             + "".join(f"<h2>convergence: {html.escape(t)}</h2>" + convergence_html(c) for t, c in run.convergence.items())
             + f"<h2>timings [s]</h2><table border=1>{timings}</table>"
-            + "".join(f"<h2>{html.escape(n)}</h2>" + embed_png(n, png) for n, png in pngs.items())
+            + "".join(f"<h2>{html.escape(n)}</h2>" + embed_image(n, png) for n, png in pngs.items())
             + "".join(f"<p>{html.escape(n)}</p>" for n in run.notes) + "</body></html>")
 
 

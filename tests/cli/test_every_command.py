@@ -95,7 +95,8 @@ def test_solve_report_shows_the_data(session):
 
     bags, model, calib = session
     text = (calib / "report.html").read_text()
-    assert all(src.startswith("data:image/png;base64,") for src in re.findall(r"src='([^']+)'", text))
+    assert all(src.startswith(("data:image/png;base64,", "data:image/jpeg;base64,"))
+               for src in re.findall(r"src='([^']+)'", text))
     assert not [p.name for p in calib.glob("*.png")]
     assert "/cam/front, snapshot" in text and "whole scans" in text  # the camera's own picture
     assert "right picture: nominal /tf_static extrinsics" in text
