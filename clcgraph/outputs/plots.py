@@ -67,7 +67,8 @@ def _save(fig, path, *, dpi: int = _DPI):
     draw (the figure is laid out already: ``margins`` or ``layout="constrained"``)."""
     if not hasattr(path, "write"):
         path = Path(path)
-    fig.savefig(path, dpi=dpi, format="png")
+    # zlib level 1: a plot's flat colours compress nearly as well, and level 6 (PIL's default) costs 3x
+    fig.savefig(path, dpi=dpi, format="png", pil_kwargs={"compress_level": 1})
     return path
 
 
@@ -199,7 +200,7 @@ def plot_residuals_per_snapshot(result: Result, path) -> Path:
     axes[1].set_xlabel("snapshot (index, bag)")
     axes[0].set_title("residual RMS per snapshot and sensor")
     named = result.problem.snapshot_bags and result.problem.n_snapshots <= 60
-    margins(fig, left=0.75, right=2.9, bottom=1.25 if named else 0.55, top=0.35, hspace=0.2)
+    margins(fig, left=0.95, right=2.9, bottom=1.25 if named else 0.55, top=0.35, hspace=0.2)
     return _save(fig, path)
 
 
@@ -774,18 +775,20 @@ def plot_map_trajectory(points: np.ndarray, trajectory: np.ndarray, path, *, key
     p = np.asarray(points, float).reshape(-1, 3)
     if len(p) > max_points:
         p = p[np.random.default_rng(0).choice(len(p), max_points, replace=False)]
-    fig, ax = subplots(figsize=(8, 6))
-    if len(p):
-        lo, hi = np.percentile(p[:, 2], [2, 98])
-        s = ax.scatter(p[:, 0], p[:, 1], s=0.3, c=p[:, 2], cmap="viridis", vmin=lo, vmax=hi, linewidths=0, rasterized=True)
-        fig.colorbar(s, ax=ax, shrink=0.8, label="z (m)")
     t = np.asarray(trajectory, float).reshape(-1, 3)
+    lo, hi = crop_box([p, t], margin_m=1.0)  # a stray far point must not set the scale
+    lo, hi = np.minimum(lo, t.min(0) - 1.0), np.maximum(hi, t.max(0) + 1.0)
+    span = hi - lo
+    # the figure shaped like the map (equal axes): a 80 x 20 m drive is a strip, not a square
+    fig, ax = subplots(figsize=(10, float(np.clip(8.6 * span[1] / max(span[0], 1e-3) + 0.9, 3.0, 9.0))))
+    if len(p):
+        zlo, zhi = np.percentile(p[:, 2], [2, 98])
+        s = ax.scatter(p[:, 0], p[:, 1], s=0.3, c=p[:, 2], cmap="viridis", vmin=zlo, vmax=zhi, linewidths=0, rasterized=True)
+        fig.colorbar(s, ax=ax, shrink=0.8, label="z (m)", pad=0.02)
     ax.plot(t[:, 0], t[:, 1], "r-", lw=1.2, label="trajectory")
     if keyframes is not None and len(keyframes):
         k = np.asarray(keyframes, float).reshape(-1, 3)
         ax.plot(k[:, 0], k[:, 1], "k.", ms=4, label="keyframes")
-    lo, hi = crop_box([p, t], margin_m=1.0)  # a stray far point must not set the scale
-    lo, hi = np.minimum(lo, t.min(0) - 1.0), np.maximum(hi, t.max(0) + 1.0)
     ax.set_xlim(lo[0], hi[0])
     ax.set_ylim(lo[1], hi[1])
     ax.set_aspect("equal")

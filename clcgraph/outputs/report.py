@@ -127,11 +127,11 @@ def _noise_cells(result: Result) -> list[str]:
 
 
 def banner(items) -> str:
-    """The verdicts at the top of both reports, failures first: ``items`` of (state, what, word, detail),
-    state True (passed: green), False (failed: red) or None (for information), e.g.
-    (True, "Self-consistency", "passed", "12 checks ..."). ``detail`` is HTML."""
+    """The verdicts at the top of both reports, failures first, then the checks passed, then what is for
+    information: ``items`` of (state, what, word, detail), state False (failed: red), True (passed: green)
+    or None, e.g. (True, "Self-consistency", "passed", "12 checks ..."). ``detail`` is HTML."""
     cls = {True: "verdict ok", False: "verdict warn", None: "verdict"}
-    order = sorted(items, key=lambda x: {False: 0, None: 1, True: 2}[x[0]])
+    order = sorted(items, key=lambda x: {False: 0, True: 1, None: 2}[x[0]])
     return "\n".join(f"<div class='{cls[st]}'>{html.escape(what, quote=False)}: <b>{html.escape(word, quote=False)}</b>"
                      f"{': ' + detail if detail else ''}</div>" for st, what, word, detail in order)
 
@@ -506,7 +506,7 @@ def _verdicts(result: Result, inputs, checks: dict, coverage: list) -> str:
         if moved:
             far = max(moved, key=lambda m: m["rotation_deg"])
             items.append((None, f"Moved from the nominal pose ({inputs.nominal_source})",
-                          f"up to {far['rotation_deg']:.2f} deg", f"({html.escape(far['topic'])}) and "
+                          f"up to {far['rotation_deg']:.2f} deg", f"{html.escape(far['topic'])}; and up to "
                           f"{max(m['translation_mm'] for m in moved):.0f} mm; see the table below"))
     return banner([x for x in items if x is not None])
 
