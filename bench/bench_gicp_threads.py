@@ -10,9 +10,10 @@ repeated calls give the same bytes. Scan-to-scan GICP at the mapper's settings (
 from __future__ import annotations
 
 import hashlib
-import time
 
 import numpy as np
+
+from bench.timed import timed
 
 REPEATS = 7
 
@@ -22,12 +23,7 @@ def _digest(a) -> str:
 
 
 def _timed(fn):
-    ts, out = [], []
-    for _ in range(REPEATS):
-        t = time.perf_counter()
-        out.append(fn())
-        ts.append(time.perf_counter() - t)
-    return 1e3 * float(np.median(ts)), out
+    return timed(fn, REPEATS)
 
 
 def main() -> str:

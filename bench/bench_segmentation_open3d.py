@@ -26,10 +26,11 @@ import json
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
+
+from bench.timed import timed
 
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "data" / "synthetic" / "demo"
@@ -47,13 +48,7 @@ def _digest(*arrays) -> str:
 
 
 def _timed(fn):
-    """(median ms, [results]) over REPEATS calls."""
-    ts, out = [], []
-    for _ in range(REPEATS):
-        t = time.perf_counter()
-        out.append(fn())
-        ts.append(time.perf_counter() - t)
-    return 1e3 * float(np.median(ts)), out
+    return timed(fn, REPEATS)
 
 
 def _scans():

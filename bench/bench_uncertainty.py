@@ -51,17 +51,25 @@ def trial(rig_shape, errors: str, effects: bool, seed: int, n_snapshots: int = 1
     problem, truth = simulate_problem(rig=make_rig(*rig_shape), n_snapshots=n_snapshots, seed=seed,
                                       errors=_errors(errors))
     res = calibrate(problem, dataclasses.replace(Config().solve, observation_effects=effects))
-    z, ratio = [], []
+    ratio = []
+    for i in res.variable_sensors():
+        jk = res.jackknife.get("sensors", {}).get(i)
+        if jk:
+            ratio.extend([*jk["orientation_ratio"], *jk["position_ratio"]])
+    return {"z": principal_z(res, truth), "ratio": np.array(ratio)}
+
+
+def principal_z(res, truth) -> np.ndarray:
+    """(6 per variable sensor,) rt errors against the simulator's truth over the reported sigma along
+    each sensor's principal axes (rotation, then translation): N(0, 1) when the sigmas are right."""
+    out = []
     for i in res.variable_sensors():
         e = np.asarray(res.rt_lidar0_sensor[i]) - truth.rt_lidar0_sensor[i]
         C = res.covariance_block(i)
         for part in (slice(0, 3), slice(3, 6)):
             lam, V = np.linalg.eigh(C[part, part])
-            z.extend((e[part] @ V) / np.sqrt(lam))
-        jk = res.jackknife.get("sensors", {}).get(i)
-        if jk:
-            ratio.extend([*jk["orientation_ratio"], *jk["position_ratio"]])
-    return {"z": np.array(z), "ratio": np.array(ratio)}
+            out.extend((e[part] @ V) / np.sqrt(lam))
+    return np.array(out)
 
 
 def run(trials_per_rig: int, cases=None, seed0: int = 1000, log=None) -> str:

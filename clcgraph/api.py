@@ -481,7 +481,8 @@ def write_outputs(result: Result, out_dir, config=None, *, force: bool = False, 
 
     ``out_dir`` must be new, empty or a previous clcgraph output; ``force``: replace it anyway.
     ``report_inputs``: an ``outputs.evidence.ReportInputs`` (the run's record, images and clouds to
-    draw, nominal poses); without it the report draws what the Result holds."""
+    draw, nominal poses); without it, ``gather_report_inputs(result, config)`` gathers them from the bags the
+    result names (the same report as `clcgraph solve`'s)."""
     from .outputs.dump import save_problem
     from .outputs.report import write_report
     from .outputs.results import write_results
@@ -490,7 +491,9 @@ def write_outputs(result: Result, out_dir, config=None, *, force: bool = False, 
     return write_results(
         result, out_dir, config=cfg,
         problem_dump=(lambda problem, path: save_problem(path, problem, cfg)) if result.method == "target" else None,
-        extra_files={"report.html": lambda path: write_report(result, path.parent, inputs=report_inputs)},
+        extra_files={"report.html": lambda path: write_report(
+            result, path.parent, inputs=report_inputs if report_inputs is not None else gather_report_inputs(
+                result, cfg, call=f"clcgraph.write_outputs(result, {str(out_dir)!r})"))},
         force=force,
     )
 
@@ -513,7 +516,9 @@ def calibrate_bags(bags, topics: Sequence[str], models: Sequence[str | Path] = (
     result = dataclasses.replace(result, stats={**result.stats, "stage_time_s": timings})
     if out is not None:
         with StageClock(timings)("report"):
-            inputs = _report_inputs(bags, topics, models, out, cfg, problem, material)
+            call = (f"clcgraph.calibrate_bags({[str(b) for b in bags]!r}, {list(topics)!r}, "
+                    f"{[str(m) for m in models]!r}, out={str(out)!r})")
+            inputs = gather_report_inputs(result, cfg, bags=bags, models=models, call=call, material=material)
             write_outputs(result, out, cfg, force=force, report_inputs=inputs)
     return result
 
@@ -535,28 +540,71 @@ def _import_in_background(*modules: str) -> None:
     threading.Thread(target=run, name="clcgraph-import", daemon=True).start()
 
 
-def _report_inputs(bags, topics, models, out, cfg: Config, problem: Problem, material: dict):
-    """The report's record of this run (bags with sizes, models, the call, the settings), the
-    snapshots it draws, and the nominal poses from /tf_static when the bags have one."""
+def gather_report_inputs(result: Result, config=None, *, bags=None, models=(), call: str | None = None,
+                  material: dict | None = None):
+    """The report's record of a run (bags with sizes, camera models, the call, the effective settings),
+    the snapshots it draws and the nominal poses from /tf_static: what `clcgraph solve` and
+    ``write_outputs`` give ``outputs.report.write_report`` (an ``outputs.evidence.ReportInputs``).
+
+    ``bags``: the bags given (default: the ones ``result.problem`` names, where they still exist);
+    ``material``: read_problem's ``report_material`` (the decoded snapshots, kept while reading); without
+    it, the few snapshots the report draws are read again from the bags. The nominal poses are the
+    priors' when the solve had /tf_static priors (read once), else the first bag's /tf_static.
+    Nothing here fails the calibration: what cannot be read is logged and left out."""
     import shlex
     import sys
 
     from .outputs.evidence import ReportInputs
 
-    paths = expand_bags(bags)
-    size = lambda p: p.stat().st_size if p.is_file() else sum(f.stat().st_size for f in p.rglob("*") if f.is_file())  # noqa: E731
-    cams = [s.topic for s in problem.sensors if s.is_camera]
-    call = (f"clcgraph.calibrate_bags({[str(b) for b in bags]!r}, {list(topics)!r}, {[str(m) for m in models]!r}, "
-            f"out={str(out)!r})\nprocess: {shlex.join(sys.argv)}")
-    try:  # /tf_static is static: the first bag's (reading every bag's costs a second on 20 bags)
-        nominal = nominal_poses(paths[:1], problem.sensors)
-    except Exception as e:  # the nominal poses only add to the report: never lose the calibration
-        log.warning("report: no nominal poses from /tf_static (%s)", str(e).splitlines()[0] if str(e) else e)
-        nominal = {}
-    return ReportInputs(bags=tuple((str(p), size(p)) for p in paths), models=tuple(zip(cams, map(str, models))),
-                        command=call, config_yaml=cfg.to_yaml(), snapshots=material.get("snapshots", {}),
-                        sources=material.get("sources", {}), rt_nominal=nominal,
-                        nominal_source=f"/tf_static of {paths[0].name}" if nominal else "")
+    cfg = _config(config)
+    p = result.problem
+    if bags is not None:
+        paths = expand_bags(bags)
+    else:
+        paths = [Path(b) for b in dict.fromkeys(p.snapshot_bags) if b and Path(b).exists()]
+    size = lambda q: q.stat().st_size if q.is_file() else sum(f.stat().st_size for f in q.rglob("*") if f.is_file())  # noqa: E731
+    cams = [s.topic for s in p.sensors if s.is_camera]
+    command = "\n".join(x for x in (call, f"process: {shlex.join(sys.argv)}") if x)
+    material = dict(material or {})
+    if "snapshots" not in material and result.method == "target" and paths:
+        material.update(_read_report_snapshots(p))
+    nominal, source = {}, ""
+    if p.priors:
+        nominal, source = {q.sensor: np.asarray(q.rt_lidar0_sensor, float) for q in p.priors}, "/tf_static (the priors')"
+    elif result.method == "target" and paths:
+        try:  # /tf_static is static: the first bag's (reading every bag's costs a second on 20 bags)
+            nominal = nominal_poses(paths[:1], p.sensors)
+            source = f"/tf_static of {paths[0].name}" if nominal else ""
+        except Exception as e:  # the nominal poses only add to the report: never lose the calibration
+            log.warning("report: no nominal poses from /tf_static (%s)", str(e).splitlines()[0] if str(e) else e)
+    return ReportInputs(bags=tuple((str(q), size(q)) for q in paths if q.exists()),
+                        models=tuple(zip(cams, map(str, models))),
+                        command=command, config_yaml=cfg.to_yaml(), snapshots=material.get("snapshots", {}),
+                        sources=material.get("sources", {}) or {k: b for k, b in enumerate(p.snapshot_bags)},
+                        rt_nominal=nominal, nominal_source=source)
+
+
+def _read_report_snapshots(problem: Problem) -> dict:
+    """read_problem's report material, read again from the bags the problem names: the snapshots the
+    report draws (``_report_snapshots``), each topic's message nearest the snapshot's stamp."""
+    from .export_mcap import snapshot_messages
+    from .types import Image, Snapshot
+
+    out: dict = {}
+    topics = [s.topic for s in problem.sensors]
+    for k in sorted(_report_snapshots(problem.sensors, problem.lidar_observations, problem.camera_observations)):
+        bag = problem.snapshot_bags[k] if k < len(problem.snapshot_bags) else ""
+        if not bag or not Path(bag).exists():
+            continue
+        try:
+            msgs = snapshot_messages(Path(bag), topics, int(problem.snapshot_stamps_ns[k]))
+        except Exception as e:  # noqa: BLE001 - a picture less, never a lost calibration
+            log.warning("report: snapshot %d not read again from %s (%s)", k, bag, e)
+            continue
+        out[k] = Snapshot(index=k, stamp_ns=int(problem.snapshot_stamps_ns[k]), source=bag, bag=bag,
+                          scans={t: m for t, m in msgs.items() if not isinstance(m, Image)},
+                          images={t: m for t, m in msgs.items() if isinstance(m, Image)})
+    return {"snapshots": out}
 
 
 def check_out_dir(out, *, kind: str = "results", force: bool = False) -> None:
@@ -603,7 +651,10 @@ def calibrate_targetless(bags, *, mapping_topic: str, calibration_topics, base_f
                          base_frame=base_frame, config=cfg)
     if out is not None:
         with StageClock(result.stats["stage_time_s"])("report"):
-            write_outputs(result, out, cfg, force=force)
+            call = (f"clcgraph.calibrate_targetless({[str(b) for b in bags] if not isinstance(bags, (str, Path)) else str(bags)!r}, "
+                    f"mapping_topic={mapping_topic!r}, calibration_topics={list(calibration_topics)!r}, "
+                    f"base_frame={base_frame!r}, out={str(out)!r})")
+            write_outputs(result, out, cfg, force=force, report_inputs=gather_report_inputs(result, cfg, bags=bags, call=call))
     return result
 
 

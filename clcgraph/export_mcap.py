@@ -31,11 +31,10 @@ log = logging.getLogger(__name__)
 def _choose(bags: list[Path], cal: dict, wanted) -> list[tuple[int | None, Path, int | None]]:
     """(snapshot index or None, bag, stamp_ns or None) of each chosen snapshot: ``wanted`` items
     are snapshot indices (calibration.yaml's snapshots.list) or bag names; None: every bag."""
+    from .types import names_bag
+
     listed = (cal.get("snapshots") or {}).get("list") or []
-    by_name: dict[str, list[Path]] = {}
-    for b in bags:
-        for key in {b.name, b.stem, str(b)}:
-            by_name.setdefault(key, []).append(b)
+    named = lambda name: [b for b in bags if names_bag(name, b)]  # noqa: E731
     if not wanted:
         return [(None, b, None) for b in bags]
     out = []
@@ -46,22 +45,22 @@ def _choose(bags: list[Path], cal: dict, wanted) -> list[tuple[int | None, Path,
             if entry is None:
                 raise InputError(f"--snapshots {item}: the calibration lists no snapshot {item} "
                                  f"({len(listed)} listed)" + ("" if listed else "; name bags instead"))
-            hits = by_name.get(str(entry.get("bag")), [])
+            hits = named(str(entry.get("bag")))
             if not hits:
                 raise InputError(f"--snapshots {item}: its bag {entry.get('bag')} is not among the bags given")
             # a bag of one snapshot is read from its start (as solve did); one of several (a continuous
             # bag, --decimation-period) around the snapshot's stamp
             several = sum(e.get("bag") == entry.get("bag") for e in listed) > 1
             out.append((int(item), hits[0], entry.get("stamp_ns") if several else None))
-        elif item in by_name:
-            out.append((None, by_name[item][0], None))
+        elif named(item):
+            out.append((None, named(item)[0], None))
         else:
             raise InputError(f"--snapshots {item!r}: neither a snapshot index nor one of the bags given "
                              f"({', '.join(sorted(b.name for b in bags)[:5])}{', ...' if len(bags) > 5 else ''})")
     return out
 
 
-def _messages(bag: Path, topics: list[str], stamp_ns: int | None) -> dict:
+def snapshot_messages(bag: Path, topics: list[str], stamp_ns: int | None) -> dict:
     """{topic: decoded message}: the one nearest ``stamp_ns`` (a continuous bag's snapshot), or
     the first of each topic (one snapshot per bag)."""
     from .frontend.bag import first_messages, read_messages
@@ -146,7 +145,7 @@ def write_aligned_mcap(bags, calibration, out, *, snapshots=None, topics=None, b
         raise InputError(f"{out}: its directory {out.parent} does not exist")
     written, stamps, pending = [], [], []
     for index, bag, stamp in chosen:
-        msgs = _messages(bag, topics, stamp)
+        msgs = snapshot_messages(bag, topics, stamp)
         if not msgs:
             raise InputError(f"{bag}: no message on {', '.join(topics)}")
         pending.append((index, bag, msgs))

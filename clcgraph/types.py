@@ -9,11 +9,19 @@ This module imports nothing of clcgraph.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import PurePath
 from typing import Literal, Mapping
 
 import numpy as np
 
 SensorKind = Literal["lidar", "camera"]
+
+
+def names_bag(name: str, bag) -> bool:
+    """Whether ``name`` (what a person typed: --exclude, --exclude-bag, --snapshots) names ``bag`` (a path):
+    its path as given or as an equal path, its file name, or its stem ("pose007" for pose007.bag)."""
+    b = PurePath(str(bag))
+    return name in (str(bag), b.name, b.stem) or PurePath(name) == b
 
 
 @dataclass(frozen=True, eq=False)
@@ -233,7 +241,7 @@ class Problem:
         """The file (or ROS2 bag directory) name snapshot k came from, or None if unknown."""
         if not 0 <= k < len(self.snapshot_bags):
             return None
-        return self.snapshot_bags[k].rstrip("/").rsplit("/", 1)[-1]
+        return PurePath(self.snapshot_bags[k]).name
 
     def snapshot_label(self, k: int) -> str:
         """'snapshot 7 (0007.bag @1700000012.345 s)': the index with its bag and stamp, for people."""

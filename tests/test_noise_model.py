@@ -2,7 +2,9 @@
 (backend/jackknife.py), and the simulator's correlated errors they are tested against."""
 
 import dataclasses
+import sys
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,23 +12,14 @@ import pytest
 from clcgraph.config import Config
 from clcgraph.sim.observations import CorrelatedErrors, make_rig, simulate_problem
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench.bench_uncertainty import RIGS, principal_z as _z, trial  # noqa: E402  (the bench's own metric)
+
 
 def _solve(problem, **options):
     from clcgraph.backend.solve import calibrate
 
     return calibrate(problem, dataclasses.replace(Config().solve, **options))
-
-
-def _z(res, truth):
-    """(N,) rt errors over the reported sigma along each sensor's principal axes."""
-    out = []
-    for i in res.variable_sensors():
-        e = np.asarray(res.rt_lidar0_sensor[i]) - truth.rt_lidar0_sensor[i]
-        C = res.covariance_block(i)
-        for part in (slice(0, 3), slice(3, 6)):
-            lam, V = np.linalg.eigh(C[part, part])
-            out.extend((e[part] @ V) / np.sqrt(lam))
-    return np.array(out)
 
 
 def _shift_lidar_boards(problem, truth, sigma_m, rng):
@@ -257,12 +250,6 @@ def test_simulator_board_warp_mixed_pixels_corner_bias_and_lens_field():
 @pytest.mark.slow
 def test_monte_carlo_with_correlated_errors_fast_version():
     # The small CI version of bench/bench_uncertainty.py (which runs >= 200 trials).
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from bench.bench_uncertainty import RIGS, trial
-
     z = np.concatenate([trial(shape, "per-observation", True, seed=2000 + 10 * r + k)["z"]
                         for r, shape in enumerate(RIGS) for k in range(2)])
     assert np.mean(np.abs(z) <= 3) >= 0.93 and 0.5 < np.mean(z**2) < 1.8, (np.mean(np.abs(z) <= 3), np.mean(z**2))

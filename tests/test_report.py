@@ -28,12 +28,14 @@ def report(tmp_path_factory):
 
 
 def _embedded_pngs(text: str) -> dict:
-    """{alt name: decoded PNG image} of every <img> in the report (all must be data URIs)."""
+    """{alt name: decoded image} of every <img> in the report (all must be PNG or JPEG data URIs)."""
     imgs = re.findall(r"<img src='([^']+)' alt='([^']+)'", text)
     out = {}
     for src, alt in imgs:
-        assert src.startswith("data:image/png;base64,"), src[:60]
-        out[alt] = mpimg.imread(io.BytesIO(base64.b64decode(src.split(",", 1)[1])), format="png")
+        fmt = re.match(r"data:image/(png|jpeg);base64,", src)
+        assert fmt, src[:60]
+        img = mpimg.imread(io.BytesIO(base64.b64decode(src.split(",", 1)[1])), format=fmt.group(1))
+        out[alt] = img / 255.0 if img.dtype == np.uint8 else img
     return out
 
 
@@ -60,7 +62,7 @@ def test_report_figures_each_after_their_howto(report):
     text = path.read_text()
     imgs = _embedded_pngs(text)
     # the Result-only report: every figure but the clouds needing scans of two LIDARs' overlap is drawn
-    want = {"lidar-on-camera-2.png", "clouds-before-after.png", "camera-residuals-and-coverage.png", *plots.PLOTS}
+    want = {"lidar-on-camera-2.jpg", "clouds-before-after.png", "camera-residuals-and-coverage.png", *plots.PLOTS}
     assert want <= set(imgs), sorted(want - set(imgs))
     for name in imgs:
         key = "lidar-on-camera" if name.startswith("lidar-on-camera") else name
@@ -96,7 +98,7 @@ def test_report_records_inputs_and_nominal(tmp_path, caplog):
     assert f"clcgraph {clcgraph.__version__}" in text
     row = re.search(r"<td>1</td><td>/lidar/rear/points</td><td>([0-9.]+)</td><td>[0-9.]+</td><td>([0-9.]+)</td>", text)
     assert float(row.group(1)) == pytest.approx(1.0, abs=1e-3) and float(row.group(2)) == pytest.approx(20.0, abs=0.05)
-    assert text.index("Moved from the nominal pose (/tf_static of a.bag ...): up to 1.00 deg") < text.index("<h2>Poses</h2>")
+    assert text.index("Moved from the nominal pose (/tf_static of a.bag ...): <b>up to 1.00 deg</b>") < text.index("<h2>Poses</h2>")
     assert any("corners only in rows" in r.message for r in caplog.records)  # the coverage warning is logged too
 
 
@@ -171,3 +173,27 @@ def test_render_aligned_clouds(tmp_path):
     assert mpimg.imread(p).shape[1] > 600
     with pytest.raises(ValueError, match="unknown view"):
         plots.render_aligned_clouds(clouds, {}, tmp_path / "x.png", views=("diagonal",))
+
+
+def test_poses_table_in_roll_pitch_yaw(report):
+    """The report's poses as the CLI's table and the README write them: roll, pitch, yaw [deg] about
+    lidar0's fixed x-y-z axes (never the Rodrigues vector in degrees), per-axis sigmas labelled."""
+    from clcgraph.geometry import RPY_LABEL, pose_stdevs, rpy_deg_from_rt
+
+    result, out, path = report
+    text = path.read_text()
+    table = text[text.index("<h2>Poses</h2>"):text.index("</table>", text.index("<h2>Poses</h2>"))]
+    head = re.findall(r"<th>([^<]*)</th>", table)
+    assert head[3:7] == ["x, y, z [m] in lidar0", html.escape(RPY_LABEL), "1-sigma position along lidar0 x, y, z [mm]",
+                         "1-sigma orientation about the sensor's own x, y, z [deg]"]
+    for i, s in enumerate(result.problem.sensors):
+        cells = re.search(rf"<tr><td>{i}</td><td>{re.escape(s.topic)}[^<]*</td><td>{s.kind}</td>" + r"<td>([^<]*)</td>" * 4,
+                          table).groups()
+        rt = np.asarray(result.rt_lidar0_sensor[i], float)
+        np.testing.assert_allclose(np.array(cells[0].split(), float), rt[3:], atol=1e-4)
+        np.testing.assert_allclose(np.array(cells[1].split(), float), rpy_deg_from_rt(rt), atol=1e-3)
+        if i != result.problem.reference:
+            assert np.max(np.abs(rpy_deg_from_rt(rt) - np.degrees(rt[:3]))) > 0.01  # the two formats differ here
+            sd_rot, sd_pos = pose_stdevs(rt, result.covariance_block(i))
+            np.testing.assert_allclose(np.array(cells[2].split(), float), 1e3 * sd_pos, atol=0.006)
+            np.testing.assert_allclose(np.array(cells[3].split(), float), np.degrees(sd_rot), atol=6e-4)

@@ -3,6 +3,9 @@ writer and come back through load_result as the same type (issue 14, point 1).""
 
 from __future__ import annotations
 
+import dataclasses
+from html import escape as html_escape
+
 import numpy as np
 import pytest
 import yaml
@@ -163,3 +166,43 @@ def test_compare_reads_a_result_of_either_method_like_its_files(outputs):
         same = compare(res, out)
         assert not same.changed and same.reference == a.reference
         assert all(s.chi2 < 1e-6 for s in same.sensors if s.status != "reference"), same.sensors
+
+
+def _report_of(result, out) -> str:
+    clcgraph.write_outputs(result, out)
+    return (out / "report.html").read_text()
+
+
+def test_targetless_report_has_the_verdicts_and_the_record(outputs, tmp_path):
+    """The targetless report: the target-based report's banner (its checks from what the Result carries),
+    pose table (roll, pitch, yaw) and record of the run (the call, the settings, the version), written
+    by write_outputs without report_inputs; and the verdicts turn red on a calibration worse than its guess."""
+    from clcgraph.geometry import RPY_LABEL, rpy_deg_from_rt
+
+    d, _, good = outputs
+    text = (d / "targetless" / "report.html").read_text()
+    top = text.index("<h2>Poses</h2>")
+    for verdict in (f"Registration scores of {SIDE}: <b>better than the guess</b>: 6 of 6 calibration frames",
+                    f"Distances to the map of {SIDE}: <b>closer</b>",
+                    f"base_link &lt;- {TOP} from the ground plane: <b>roll +0.50 deg, pitch -0.30 deg, z +1.800 m</b>"):
+        assert text.index(verdict) < top, verdict
+    assert "class='verdict warn'" not in text and "class='verdict ok'" in text
+    assert f"<th>{html_escape(RPY_LABEL)}</th>" in text
+    assert " ".join(f"{v:+.3f}" for v in rpy_deg_from_rt(RT_SIDE)) in text
+    record = text[text.index("<h2>Inputs and settings</h2>"):]
+    assert f"clcgraph {clcgraph.__version__}" in record and "clcgraph.write_outputs(result, " in record
+    assert "targetless:" in record and "registration_common_mode" in record  # the effective settings
+    # a result that fits the map worse than the /tf_static guess, farther from it
+    run = good.targetless
+    pf = {SIDE: [{**r, "score_guess": r["score_final"], "score_final": r["score_guess"]} for r in run.per_frame[SIDE]]}
+    al = dict(run.pictures["alignment"][SIDE])
+    al["distances_guess"], al["distances_final"] = al["distances_final"], al["distances_guess"]
+    bad = dataclasses.replace(good, targetless=dataclasses.replace(
+        run, per_frame=pf, pictures={**run.pictures, "alignment": {SIDE: al}},
+        convergence={SIDE: {"converged": False, "warnings": ["final: 100 iterations"], "stages": []}}))
+    text = _report_of(bad, tmp_path / "bad")
+    top = text.index("<h2>Poses</h2>")
+    for verdict in (f"Registration scores of {SIDE}: <b>NOT BETTER than the guess</b>: 0 of 6",
+                    f"Distances to the map of {SIDE}: <b>FARTHER</b>", f"Graph of {SIDE}: <b>NOT CONVERGED</b>"):
+        assert text.index(verdict) < top, verdict
+        assert text.rindex("class='verdict warn'", 0, text.index(verdict)) > text.rfind("</div>", 0, text.index(verdict))

@@ -18,7 +18,7 @@ import numpy as np
 from clcgraph.config import SolveOptions
 from clcgraph.errors import InputError
 from clcgraph.geometry import compose_rt, invert_rt, transform
-from clcgraph.types import CameraBoardObservation, LidarBoardObservation, Problem, Rejected, Result
+from clcgraph.types import CameraBoardObservation, LidarBoardObservation, Problem, Rejected, Result, names_bag
 
 
 def renoise_problem(
@@ -74,8 +74,6 @@ def renoise_problem(
 def snapshot_indices(problem: Problem, items, *, flag: str = "--exclude") -> list[int]:
     """Snapshot indices named by ``items``: each an index (int or digits) or a bag's file name or
     path (every snapshot of that bag). InputError naming an item that matches nothing."""
-    from pathlib import PurePath
-
     out: set[int] = set()
     for item in items:
         text = str(item).strip()
@@ -85,8 +83,7 @@ def snapshot_indices(problem: Problem, items, *, flag: str = "--exclude") -> lis
                 raise InputError(f"{flag}: no snapshot {k} (the problem has {problem.n_snapshots})")
             out.add(k)
             continue
-        hits = [k for k, b in enumerate(problem.snapshot_bags)
-                if text in (b, PurePath(b).name, PurePath(b).stem) or PurePath(b) == PurePath(text)]
+        hits = [k for k, b in enumerate(problem.snapshot_bags) if names_bag(text, b)]
         if not hits:
             known = ", ".join(sorted({problem.snapshot_bag(k) for k in range(len(problem.snapshot_bags))})[:5])
             raise InputError(f"{flag}: {text!r} is neither a snapshot index (0..{problem.n_snapshots - 1}) nor a bag "

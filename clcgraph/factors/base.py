@@ -76,6 +76,25 @@ def board_perturbed(residual_fn: ResidualFn, board_index: int, T_board_centre) -
     return fn
 
 
+def lidar_board_factor(residual, sensor_key: int | None, board_key: int, points_sensor, sigma_m: float, *,
+                       effect_key: int | None = None, T_board_centre=None):
+    """The factor of one LIDAR observation of the board (K points in the sensor's frame) for a LIDAR
+    residual ``residual(T_sensor or None, T_board, points (K,3), want_jacobians) -> (err (K,), [H])``:
+    keys (sensor, board), or (board) alone for lidar0 (``sensor_key`` None), whitened by ``sigma_m``;
+    with ``effect_key``, also of that observation's board-pose error D (board_perturbed)."""
+    pts = np.array(points_sensor, dtype=float)
+    if sensor_key is None:
+        fn = lambda poses, want: residual(None, poses[0], pts, want)  # noqa: E731
+        keys = [board_key]
+    else:
+        fn = lambda poses, want: residual(poses[0], poses[1], pts, want)  # noqa: E731
+        keys = [sensor_key, board_key]
+    if effect_key is not None:  # this observation's own board-pose error
+        fn = board_perturbed(fn, len(keys) - 1, T_board_centre)
+        keys = [*keys, effect_key]
+    return make_factor(keys, isotropic(len(pts), sigma_m), fn)
+
+
 def isotropic(dim: int, sigma: float):
     """An isotropic Gaussian noise model of ``dim`` rows and std ``sigma``."""
     import gtsam

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import board_perturbed, isotropic, make_factor
+from .base import lidar_board_factor
 
 _E3 = np.array([0.0, 0.0, 1.0])
 
@@ -54,14 +54,5 @@ def lidar_plane_factor(sensor_key: int | None, board_key: int, points_sensor, si
                        effect_key: int | None = None, T_board_centre=None):
     """Point-to-plane factor of one LIDAR observation of the board, whitened by ``sigma_m``;
     with ``effect_key``, also of that observation's board-pose error D (base.board_perturbed)."""
-    pts = np.array(points_sensor, dtype=float)
-    if sensor_key is None:
-        fn = lambda poses, want: _residual(None, poses[0], pts, want)  # noqa: E731
-        keys = [board_key]
-    else:
-        fn = lambda poses, want: _residual(poses[0], poses[1], pts, want)  # noqa: E731
-        keys = [sensor_key, board_key]
-    if effect_key is not None:  # this observation's own board-pose error (factors/base.board_perturbed)
-        fn = board_perturbed(fn, len(keys) - 1, T_board_centre)
-        keys = [*keys, effect_key]
-    return make_factor(keys, isotropic(len(pts), sigma_m), fn)
+    return lidar_board_factor(_residual, sensor_key, board_key, points_sensor, sigma_m, effect_key=effect_key,
+                              T_board_centre=T_board_centre)

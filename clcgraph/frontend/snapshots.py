@@ -42,7 +42,7 @@ from typing import Iterable, Iterator, Sequence
 import numpy as np
 
 from clcgraph.errors import InputError
-from clcgraph.types import Image, LidarScan, Rejected, Snapshot
+from clcgraph.types import Image, LidarScan, Rejected, Snapshot, names_bag
 
 log = logging.getLogger(__name__)
 
@@ -240,7 +240,7 @@ def parse_exclude_bag(spec: str | None, bags: Sequence[Path]) -> tuple[set[Path]
     items = [x.strip() for x in spec.split(",") if x.strip()]
 
     def named(item: str) -> list[Path]:
-        return [b for b in bags if item in (str(b), b.name, b.stem) or Path(item) == b]
+        return [b for b in bags if names_bag(item, b)]
 
     if items and all(named(x) or x.isdigit() for x in items):
         return set(), {b for x in items for b in named(x)}, {int(x) for x in items if not named(x)}

@@ -47,12 +47,28 @@ def subplots(*grid, figsize, layout=None, **kwargs):
     return fig, fig.subplots(*grid, **kwargs)
 
 
-def _save(fig, path, *, dpi: int = _DPI, tight: bool = True):
-    """Save as PNG to a path (returned as a Path) or to a binary file object (returned as is).
-    ``tight=False`` for figures laid out by ``layout="constrained"`` (a tight box costs another draw)."""
+def margins(fig, *, left: float = 0.8, right: float = 0.2, bottom: float = 0.6, top: float = 0.45,
+            wspace: float = 0.7, hspace: float = 0.7) -> None:
+    """Lay the axes out with fixed margins and gaps, in inches (labels have a fixed size in points, so a
+    margin in inches fits every figure size). One draw per figure: a tight bounding box
+    (``bbox_inches="tight"``) or the constrained layout engine measures every text first, which
+    costs as much as drawing the figure again."""
+    w, h = fig.get_size_inches()
+    ss = next((a.get_subplotspec() for a in fig.axes if a.get_subplotspec() is not None), None)
+    nrows, ncols = ss.get_topmost_subplotspec().get_gridspec().get_geometry() if ss is not None else (1, 1)
+    aw = (w - left - right - wspace * (ncols - 1)) / ncols  # one axes' width and height
+    ah = (h - bottom - top - hspace * (nrows - 1)) / nrows
+    fig.subplots_adjust(left=left / w, right=1 - right / w, bottom=bottom / h, top=1 - top / h,
+                        wspace=wspace / max(aw, 1e-3), hspace=hspace / max(ah, 1e-3))
+
+
+def _save(fig, path, *, dpi: int = _DPI):
+    """Save as PNG to a path (returned as a Path) or to a binary file object (returned as is), in one
+    draw (the figure is laid out already: ``margins`` or ``layout="constrained"``)."""
     if not hasattr(path, "write"):
         path = Path(path)
-    fig.savefig(path, dpi=dpi, bbox_inches="tight" if tight else None, format="png")
+    # zlib level 1: a plot's flat colours compress nearly as well, and level 6 (PIL's default) costs 3x
+    fig.savefig(path, dpi=dpi, format="png", pil_kwargs={"compress_level": 1})
     return path
 
 
@@ -110,6 +126,7 @@ def plot_residual_histograms(result: Result, path) -> Path:
         ax.set_ylabel("density")
         ax.set_title(f"{kind} residuals: RMS {np.sqrt(np.mean(x**2)):.3g} {unit}")
         ax.legend(fontsize=8)
+    margins(fig, left=0.75, bottom=0.55, top=0.4, wspace=0.85)
     return _save(fig, path)
 
 
@@ -182,6 +199,8 @@ def plot_residuals_per_snapshot(result: Result, path) -> Path:
         axes[1].set_xticks(list(ks), [f"{k} {result.problem.snapshot_bag(k)}" for k in ks], rotation=90, fontsize=6)
     axes[1].set_xlabel("snapshot (index, bag)")
     axes[0].set_title("residual RMS per snapshot and sensor")
+    named = result.problem.snapshot_bags and result.problem.n_snapshots <= 60
+    margins(fig, left=0.95, right=2.9, bottom=1.25 if named else 0.55, top=0.35, hspace=0.2)
     return _save(fig, path)
 
 
@@ -233,6 +252,7 @@ def plot_geometry(result: Result, path, *, with_boards: bool = True, axis_len_m:
     ax.plot([], [], "b-", label="z axis")
     ax.legend(fontsize=8, loc="upper left")
     ax.set_title("solved geometry in the lidar0 frame\n(LIDAR axes front-left-up; camera axes right-down-forward)")
+    margins(fig, left=0.1, right=0.1, bottom=0.1, top=0.2)
     return _save(fig, path)
 
 
@@ -272,6 +292,7 @@ def plot_sectors(result: Result, path) -> Path:
         ax.set_title(f"{title} ({unit})\nforward = up, left = left", fontsize=10)
         sm = ScalarMappable(norm=norm, cmap=cm)
         fig.colorbar(sm, ax=ax, shrink=0.7, pad=0.1, label=unit)
+    margins(fig, left=0.6, right=0.3, bottom=0.75, top=0.75, wspace=1.2)
     return _save(fig, path)
 
 
@@ -305,6 +326,7 @@ def plot_coverage(result: Result, path) -> Path:
         ax.set_ylabel("y left (m)")
         ax.set_title(f"{i}: {s.topic}\nboard centres, top view ({int(used.sum())} seen)", fontsize=9)
         ax.legend(fontsize=7)
+    margins(fig, left=0.75, bottom=0.55, top=0.55, wspace=0.85)
     return _save(fig, path)
 
 
@@ -328,6 +350,7 @@ def plot_uncertainty_grid(stdev_m: np.ndarray, xs: np.ndarray, ys: np.ndarray, p
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_title(title or "point-transform uncertainty", fontsize=10)
+    margins(fig, left=0.75, right=0.3, bottom=0.55, top=0.4)
     return _save(fig, path)
 
 
@@ -394,7 +417,7 @@ def render_aligned_clouds(clouds: dict, rt_lidar0_sensor: dict, path_png, *, vie
         ax.grid(alpha=0.3)
         ax.set_title(f"{v} view, lidar0 frame, {span[a]:.1f} x {span[b]:.1f} m (1-99 % of the points)", fontsize=10)
         ax.legend(markerscale=8, fontsize=8, loc="upper right")
-    return _save(fig, path_png, tight=False)
+    return _save(fig, path_png)
 
 
 PLOTS = {
@@ -439,6 +462,7 @@ def plot_scan_preview(scan, path, *, title: str = "") -> Path:
     b.set_ylabel("ring" if scan.ring is not None else "elevation [deg]")
     b.set_title("range image")
     fig.suptitle(title or f"{scan.topic}: {len(pts)} valid points")
+    margins(fig, left=0.75, bottom=0.55, top=0.75, wspace=0.9)
     return _save(fig, path)
 
 
@@ -453,6 +477,7 @@ def plot_image_preview(image, path, *, title: str = "") -> Path:
         ax.imshow(px, cmap="gray")
     ax.set_axis_off()
     ax.set_title(title or f"{image.topic}: {w}x{h} {image.encoding}")
+    margins(fig, left=0.1, right=0.1, bottom=0.1, top=0.4)
     return _save(fig, path)
 
 
@@ -493,6 +518,7 @@ def plot_segmentation(scan, debug, result, path) -> Path:
     reason = getattr(result, "reason", None)
     fig.suptitle(reason if reason else f"board: {len(result.indices)} points, RMS {result.rms_m * 1e3:.1f} mm",
                  fontsize=9)
+    margins(fig, left=0.75, bottom=0.55, top=0.7, wspace=0.9)
     return _save(fig, path)
 
 
@@ -508,7 +534,7 @@ def plot_lidar_on_image(panels: list, imagersize, path, *, image=None, norm: tup
     edge fitted to the camera's own detected corners) is drawn dashed black and white. ``image``: (H,W)
     or (H,W,3) BGR (None: a grey canvas). Points are coloured by LIDAR range, turbo colour map from
     ``norm`` = (near, far) m (default: the 1-99 % range of all panels' points); a colour bar runs along
-    the bottom. Titles belong in the caption. Returns what ``_save`` does.
+    the bottom. Titles belong in the caption. Writes a JPEG; returns ``path``.
     """
     w, h = imagersize
     if norm is None:
@@ -550,9 +576,10 @@ def plot_lidar_on_image(panels: list, imagersize, path, *, image=None, norm: tup
     pic = np.concatenate(tiles[:-1], axis=1)
     bar = np.repeat(lut[np.linspace(0, 255, pic.shape[1]).astype(int)][None], 14, axis=0)  # near ... far
     pic = np.concatenate([pic, np.full((4, pic.shape[1], 3), 255, np.uint8), bar], axis=0)
-    from matplotlib.image import imsave
+    from PIL import Image
 
-    imsave(path if hasattr(path, "write") else Path(path), pic, format="png")
+    # JPEG: a camera image is a photograph (PNG of one costs 30x the time and twice the bytes)
+    Image.fromarray(pic).save(path if hasattr(path, "write") else Path(path), format="jpeg", quality=90)
     return path
 
 
@@ -598,7 +625,7 @@ def plot_cloud_overlap(states: dict, path, *, box=None, board: dict | None = Non
         off = np.concatenate([np.abs(y) for st in edge_on.values() for _, y in st.values()] + [np.zeros(1)])
         edge_lim = float(np.clip(1.3 * np.percentile(off, 99.5), 20, 150))
     span = hi - lo
-    fig, axes = subplots(len(rows), ncol, figsize=(5.2 * ncol, 4.2 * len(rows)), squeeze=False, layout="constrained",
+    fig, axes = subplots(len(rows), ncol, figsize=(5.2 * ncol, 4.2 * len(rows)), squeeze=False,
                          gridspec_kw={"width_ratios": [1, 1, 1.2][:ncol]})
     for r, st in enumerate(rows):
         for c, (a, b, la, lb, view) in enumerate(((0, 1, "x (m)", "y (m)", "top view"), (0, 2, "x (m)", "z (m)", "side view"))):
@@ -625,7 +652,8 @@ def plot_cloud_overlap(states: dict, path, *, box=None, board: dict | None = Non
             ax.grid(alpha=0.3)
             ax.set_title(f"{st}: the board edge-on", fontsize=9)
         axes[r, 0].legend(markerscale=8, fontsize=7, loc="upper left")
-    return _save(fig, path, dpi=80, tight=False)
+    margins(fig, left=0.6, right=0.15, bottom=0.5, top=0.3, wspace=0.7, hspace=0.6)
+    return _save(fig, path, dpi=80)
 
 
 def plot_camera_residuals_and_coverage(cams: list, path):
@@ -639,7 +667,7 @@ def plot_camera_residuals_and_coverage(cams: list, path):
     from scipy.spatial import ConvexHull, QhullError
 
     n = max(1, len(cams))
-    fig, axes = subplots(1, n, figsize=(5.4 * n, 4.6), squeeze=False, layout="constrained")
+    fig, axes = subplots(1, n, figsize=(5.4 * n, 4.6), squeeze=False)
     for ax, c in zip(axes[0], cams):
         w, h = c["imagersize"]
         q = np.asarray(c["corners"], float).reshape(-1, 2)
@@ -687,7 +715,8 @@ def plot_camera_residuals_and_coverage(cams: list, path):
     if not cams:
         axes[0, 0].text(0.5, 0.5, "no cameras", ha="center", va="center")
         axes[0, 0].set_axis_off()
-    return _save(fig, path, dpi=80, tight=False)
+    margins(fig, left=0.45, right=0.1, bottom=0.35, top=0.75, wspace=0.5)
+    return _save(fig, path, dpi=80)
 
 
 def plot_lidar_residuals(lidars: list, path, *, max_points: int = 5000):
@@ -698,7 +727,7 @@ def plot_lidar_residuals(lidars: list, path, *, max_points: int = 5000):
     miscalibrated ring elevation (the LIDAR's own intrinsics).
     """
     n = max(1, len(lidars))
-    fig, axes = subplots(n, 2, figsize=(11, 3.0 * n), squeeze=False, layout="constrained")
+    fig, axes = subplots(n, 2, figsize=(11, 3.0 * n), squeeze=False)
     rng = np.random.default_rng(0)
     for row, L in zip(axes, lidars):
         x = np.asarray(L["residual"], float) * 1e3
@@ -736,7 +765,8 @@ def plot_lidar_residuals(lidars: list, path, *, max_points: int = 5000):
         row[0].legend(fontsize=7, loc="upper right")
     if not lidars:
         axes[0, 0].text(0.5, 0.5, "no LIDAR residuals", ha="center", va="center")
-    return _save(fig, path, dpi=80, tight=False)
+    margins(fig, left=0.6, right=0.15, bottom=0.45, top=0.3, wspace=0.6, hspace=0.7)
+    return _save(fig, path, dpi=80)
 
 
 def plot_map_trajectory(points: np.ndarray, trajectory: np.ndarray, path, *, keyframes: np.ndarray | None = None,
@@ -745,18 +775,20 @@ def plot_map_trajectory(points: np.ndarray, trajectory: np.ndarray, path, *, key
     p = np.asarray(points, float).reshape(-1, 3)
     if len(p) > max_points:
         p = p[np.random.default_rng(0).choice(len(p), max_points, replace=False)]
-    fig, ax = subplots(figsize=(8, 6), layout="constrained")
-    if len(p):
-        lo, hi = np.percentile(p[:, 2], [2, 98])
-        s = ax.scatter(p[:, 0], p[:, 1], s=0.3, c=p[:, 2], cmap="viridis", vmin=lo, vmax=hi, linewidths=0, rasterized=True)
-        fig.colorbar(s, ax=ax, shrink=0.8, label="z (m)")
     t = np.asarray(trajectory, float).reshape(-1, 3)
+    lo, hi = crop_box([p, t], margin_m=1.0)  # a stray far point must not set the scale
+    lo, hi = np.minimum(lo, t.min(0) - 1.0), np.maximum(hi, t.max(0) + 1.0)
+    span = hi - lo
+    # the figure shaped like the map (equal axes): a 80 x 20 m drive is a strip, not a square
+    fig, ax = subplots(figsize=(10, float(np.clip(8.6 * span[1] / max(span[0], 1e-3) + 0.9, 3.0, 9.0))))
+    if len(p):
+        zlo, zhi = np.percentile(p[:, 2], [2, 98])
+        s = ax.scatter(p[:, 0], p[:, 1], s=0.3, c=p[:, 2], cmap="viridis", vmin=zlo, vmax=zhi, linewidths=0, rasterized=True)
+        fig.colorbar(s, ax=ax, shrink=0.8, label="z (m)", pad=0.02)
     ax.plot(t[:, 0], t[:, 1], "r-", lw=1.2, label="trajectory")
     if keyframes is not None and len(keyframes):
         k = np.asarray(keyframes, float).reshape(-1, 3)
         ax.plot(k[:, 0], k[:, 1], "k.", ms=4, label="keyframes")
-    lo, hi = crop_box([p, t], margin_m=1.0)  # a stray far point must not set the scale
-    lo, hi = np.minimum(lo, t.min(0) - 1.0), np.maximum(hi, t.max(0) + 1.0)
     ax.set_xlim(lo[0], hi[0])
     ax.set_ylim(lo[1], hi[1])
     ax.set_aspect("equal")
@@ -764,14 +796,15 @@ def plot_map_trajectory(points: np.ndarray, trajectory: np.ndarray, path, *, key
     ax.set_ylabel("y (m)")
     ax.set_title("map (top view, 1-99 % of the points) and trajectory")
     ax.legend(fontsize=8, loc="upper left")
-    return _save(fig, path, dpi=80, tight=False)
+    margins(fig, left=0.7, right=0.2, bottom=0.55, top=0.35)
+    return _save(fig, path, dpi=80)
 
 
 def plot_frame_scores(before: np.ndarray, after: np.ndarray, path, *, title: str = "",
                       ylabel: str = "truncated mean sq. distance (m^2)"):
     """Targetless: a score per calibration frame under the initial guess and the result (lower is better)."""
     b, a = np.asarray(before, float), np.asarray(after, float)
-    fig, ax = subplots(figsize=(7, 3.2), layout="constrained")
+    fig, ax = subplots(figsize=(7, 3.2))
     x = np.arange(len(b))
     ax.bar(x - 0.2, b, 0.4, label="initial guess")
     ax.bar(x + 0.2, a, 0.4, label="final")
@@ -779,12 +812,13 @@ def plot_frame_scores(before: np.ndarray, after: np.ndarray, path, *, title: str
     ax.set_ylabel(ylabel, fontsize=8)
     ax.set_title(title or "per-frame scores", fontsize=9)
     ax.legend(fontsize=8)
-    return _save(fig, path, dpi=80, tight=False)
+    margins(fig, left=0.7, right=0.15, bottom=0.5, top=0.3)
+    return _save(fig, path, dpi=80)
 
 
 def plot_distance_histograms(distances: dict, path, *, max_m: float, title: str = ""):
     """Targetless: histograms of each point's distance to the map ({label: (N,) m}), last bin = farther."""
-    fig, ax = subplots(figsize=(7, 3.2), layout="constrained")
+    fig, ax = subplots(figsize=(7, 3.2))
     bins = np.linspace(0, max_m, 61)
     for (lab, d), col in zip(distances.items(), ("C0", "C3", "C2", "C4")):
         d = np.asarray(d, float)
@@ -793,4 +827,5 @@ def plot_distance_histograms(distances: dict, path, *, max_m: float, title: str 
     ax.set_ylabel("points")
     ax.set_title(title, fontsize=9)
     ax.legend(fontsize=8)
-    return _save(fig, path, dpi=80, tight=False)
+    margins(fig, left=0.7, right=0.15, bottom=0.5, top=0.3)
+    return _save(fig, path, dpi=80)

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__, cameras
-from ..geometry import R_from_r, compose_rt, invert_rt, pose_stdevs, transform
+from ..geometry import RPY_LABEL, R_from_r, compose_rt, invert_rt, pose_stdevs, rpy_deg_from_R, rpy_deg_from_rt, transform
 from ..types import Result
 from . import evidence as ev
 
@@ -85,29 +85,55 @@ def _fmt(v, f="{:.3g}"):
     return f.format(v)
 
 
-def _pose_table(result: Result) -> str:
+def pose_table(result: Result, *, extra: dict | None = None) -> str:
+    """The poses of both reports, in the people's format (geometry.RPY_LABEL, as the CLI's table and the
+    README): position and roll, pitch, yaw of every sensor in lidar0, the per-axis 1-sigmas (position
+    along lidar0's axes, orientation about the sensor's own), then the base-frame poses when known.
+    ``extra``: {column heading: [one cell per sensor]} (the noise sigmas, the frames registered)."""
+    extra = extra or {}
+    p = result.problem
     rows = []
-    per = result.noise.get("per_sensor") or {}
-    for i, s in enumerate(result.problem.sensors):
+    for i, s in enumerate(p.sensors):
         rt = np.asarray(result.rt_lidar0_sensor[i], float)
+        ref = i == p.reference
         sd_rot, sd_pos = pose_stdevs(rt, result.covariance_block(i))
-        ref = " (reference)" if i == result.problem.reference else ""
-        noise = "–" if i not in per else (f"{per[i] * 1e3:.1f} mm" if s.kind == "lidar" else f"{per[i]:.3f} px")
-        rows.append(
-            "<tr>" + "".join(
-                f"<td>{c}</td>" for c in (
-                    i, html.escape(s.topic) + ref, s.kind,
-                    " ".join(f"{x:+.4f}" for x in rt[3:]),
-                    " ".join(f"{x:+.3f}" for x in np.degrees(rt[:3])),
-                    " ".join(f"{x:.2f}" for x in sd_pos * 1e3),
-                    " ".join(f"{x:.3f}" for x in np.degrees(sd_rot)),
-                    noise,
-                )
-            ) + "</tr>"
-        )
-    head = ("<tr><th>#</th><th>topic</th><th>kind</th><th>t_lidar0_sensor (m)</th><th>r_lidar0_sensor (deg)</th>"
-            "<th>stdev position along lidar0 x y z (mm)</th><th>stdev orientation about the sensor's x y z (deg)</th><th>noise sigma</th></tr>")
-    return f"<table>{head}{''.join(rows)}</table>"
+        cells = [i, html.escape(s.topic) + (" (reference)" if ref else ""), s.kind,
+                 " ".join(f"{x:+.4f}" for x in rt[3:]), " ".join(f"{x:+.3f}" for x in rpy_deg_from_rt(rt)),
+                 "–" if ref else " ".join(f"{x:.2f}" for x in sd_pos * 1e3),
+                 "–" if ref else " ".join(f"{x:.3f}" for x in np.degrees(sd_rot)),
+                 *(html.escape(str(col[i])) for col in extra.values())]
+        rows.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
+    for t, T in result.T_base_sensor.items():
+        T = np.asarray(T, float)
+        cells = ["", f"{html.escape(str(result.base_frame))} &lt;- {html.escape(t)}", "base", " ".join(f"{x:+.4f}" for x in T[:3, 3]),
+                 " ".join(f"{x:+.3f}" for x in rpy_deg_from_R(T[:3, :3])), "ground plane", "", *([""] * len(extra))]
+        rows.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
+    head = ["#", "sensor", "kind", "x, y, z [m] in lidar0", html.escape(RPY_LABEL),
+            "1-sigma position along lidar0 x, y, z [mm]", "1-sigma orientation about the sensor's own x, y, z [deg]",
+            *map(html.escape, extra)]
+    return ("<table><tr>" + "".join(f"<th>{h}</th>" for h in head) + "</tr>" + "".join(rows) + "</table>"
+            "<p class='howto'>Each sensor's pose in the lidar0 frame (<code>T_lidar0_sensor</code>: x_lidar0 = R x_sensor "
+            "+ t). The rotation R = Rz(yaw) Ry(pitch) Rx(roll): roll about x, then pitch about y, then yaw about z, "
+            "all three about lidar0's fixed axes (the URDF's rpy); calibration.yaml holds the same rotation as a "
+            "Rodrigues vector in radians. The 1-sigmas are per axis: the position's along lidar0's x, y, z; the "
+            "orientation's about the sensor's own x, y, z (a small rotation of the sensor). A sigma of several mm or "
+            "a tenth of a degree or more means the data did not constrain that sensor well.</p>")
+
+
+def _noise_cells(result: Result) -> list[str]:
+    per = result.noise.get("per_sensor") or {}
+    return ["–" if i not in per else (f"{per[i] * 1e3:.1f} mm" if s.kind == "lidar" else f"{per[i]:.3f} px")
+            for i, s in enumerate(result.problem.sensors)]
+
+
+def banner(items) -> str:
+    """The verdicts at the top of both reports, failures first, then the checks passed, then what is for
+    information: ``items`` of (state, what, word, detail), state False (failed: red), True (passed: green)
+    or None, e.g. (True, "Self-consistency", "passed", "12 checks ..."). ``detail`` is HTML."""
+    cls = {True: "verdict ok", False: "verdict warn", None: "verdict"}
+    order = sorted(items, key=lambda x: {False: 0, True: 1, None: 2}[x[0]])
+    return "\n".join(f"<div class='{cls[st]}'>{html.escape(what, quote=False)}: <b>{html.escape(word, quote=False)}</b>"
+                     f"{': ' + detail if detail else ''}</div>" for st, what, word, detail in order)
 
 
 def convergence_html(conv: dict) -> str:
@@ -242,9 +268,10 @@ def _png(fig_fn, *args, **kwargs) -> bytes:
     return buf.getvalue()
 
 
-def embed_png(name: str, png: bytes) -> str:
-    """An <img> holding the PNG itself (a data URI): the page needs no other file."""
-    return (f"<img src='data:image/png;base64,{base64.b64encode(png).decode('ascii')}' alt='{html.escape(name)}' "
+def embed_image(name: str, data: bytes) -> str:
+    """An <img> holding the PNG or JPEG itself (a data URI): the page needs no other file."""
+    mime = "image/jpeg" if data[:3] == b"\xff\xd8\xff" else "image/png"
+    return (f"<img src='data:{mime};base64,{base64.b64encode(data).decode('ascii')}' alt='{html.escape(name)}' "
             f"title='{html.escape(name)}'>")
 
 
@@ -350,7 +377,7 @@ def _lidar_on_camera_figures(result, inputs, checks: dict) -> list[tuple[str, st
         what = "whole scans" if image is not None else "board points only (the report has no image of it)"
         caption = (f"{i_cam}: {cam.topic}, {_snapshot_name(k, inputs)}, {what}. " + "; ".join(says)
                    + f". Colour: LIDAR range, {norm[0]:.1f} m (blue) to {norm[1]:.1f} m (red), the bar at the bottom.")
-        out.append((f"lidar-on-camera-{i_cam}.png", caption,
+        out.append((f"lidar-on-camera-{i_cam}.jpg", caption,
                     _png(plots.plot_lidar_on_image, panels, cam.imagersize, image=image, norm=norm)))
     return out
 
@@ -436,22 +463,27 @@ def _coverage(result) -> list[dict]:
 # ---------------------------------------------------------------- verdicts and record
 
 
+def consistency_verdict(result: Result) -> tuple:
+    """The self-consistency verdict (backend/consistency.py) as one banner item (see ``banner``)."""
+    v = result.stats.get("consistency") or {}
+    if not v:
+        return (False, "Self-consistency", "not checked", "")
+    if v.get("passed"):
+        return (True, "Self-consistency", "passed", f"{v.get('n_checks', 0)} checks: every snapshot and every sensor "
+                "pair agrees with the rest within its uncertainty")
+    return (False, "Self-consistency", "FAILED", html.escape((v.get("failures") or v.get("unverifiable") or ["?"])[0]))
+
+
+def convergence_verdict(conv: dict, what: str = "Solve") -> tuple | None:
+    """A banner item when a solve did not converge (None when it did, or when nothing was recorded)."""
+    if not conv or conv.get("converged"):
+        return None
+    return (False, what, "NOT CONVERGED", html.escape("; ".join(conv.get("warnings", ()))))
+
+
 def _verdicts(result: Result, inputs, checks: dict, coverage: list) -> str:
     """The banner at the top: what says the calibration is right (or not), worst first."""
-    v = result.stats.get("consistency") or {}
-    parts = []
-    if not v:
-        parts.append("<div class='verdict warn'>Self-consistency: <b>not checked</b>.</div>")
-    elif v.get("passed"):
-        parts.append(f"<div class='verdict ok'>Self-consistency: <b>passed</b> ({v.get('n_checks', 0)} checks: every "
-                     "snapshot and every sensor pair agrees with the rest within its uncertainty).</div>")
-    else:
-        why = (v.get("failures") or v.get("unverifiable") or ["?"])[0]
-        parts.append(f"<div class='verdict warn'>Self-consistency: <b>FAILED</b>: {html.escape(why)}</div>")
-    conv = result.stats.get("convergence") or {}
-    if conv and not conv.get("converged"):
-        parts.append("<div class='verdict warn'>Solve: <b>NOT CONVERGED</b>: "
-                     + html.escape("; ".join(conv.get("warnings", ()))) + "</div>")
+    items = [consistency_verdict(result), convergence_verdict(result.stats.get("convergence") or {})]
     rows = checks.get("solved", [])
     if rows:
         worst = max(rows, key=lambda x: x["spill_sigma"])
@@ -460,25 +492,23 @@ def _verdicts(result: Result, inputs, checks: dict, coverage: list) -> str:
         nom = (f" With the nominal /tf_static extrinsics the spill is up to {max(x['spill_px'] for x in nominal):.1f} px."
                if nominal else "")
         ok = worst["spill_sigma"] <= 4.0
-        parts.append(
-            f"<div class='verdict {'ok' if ok else 'warn'}'>LIDAR board points on the cameras' boards: "
-            f"<b>{'on the board' if ok else 'OFF THE BOARD'}</b>: over {len(rows)} (camera, LIDAR, snapshot) views, the "
-            f"largest spill past the board's outline (a view's third-farthest point: one or two rim returns do not count) is "
-            f"{worst['spill_px']:.2f} px = {worst['spill_sigma']:.1f} sigma ({html.escape(p.sensors[worst['lidar']].topic)} "
-            f"in {html.escape(p.sensors[worst['camera']].topic)}, {html.escape(_snapshot_name(worst['snapshot'], inputs))}; "
-            f"more than 4 sigma is flagged).{nom}</div>")
+        items.append((ok, "LIDAR board points on the cameras' boards", "on the board" if ok else "OFF THE BOARD",
+                      f"over {len(rows)} (camera, LIDAR, snapshot) views, the largest spill past the board's outline (a "
+                      f"view's third-farthest point: one or two rim returns do not count) is {worst['spill_px']:.2f} px = "
+                      f"{worst['spill_sigma']:.1f} sigma ({html.escape(p.sensors[worst['lidar']].topic)} in "
+                      f"{html.escape(p.sensors[worst['camera']].topic)}, {html.escape(_snapshot_name(worst['snapshot'], inputs))}; "
+                      f"more than 4 sigma is flagged).{nom}"))
     for c in coverage:
         if c["coverage"].get("warning"):
-            parts.append(f"<div class='verdict warn'>Image coverage of {html.escape(c['title'])}: "
-                         f"<b>too little</b>: {html.escape(c['coverage']['warning'])}</div>")
+            items.append((False, f"Image coverage of {c['title']}", "too little", html.escape(c["coverage"]["warning"])))
     if inputs is not None and inputs.rt_nominal:
         moved = ev.moved_from_nominal(result, inputs.rt_nominal)
         if moved:
             far = max(moved, key=lambda m: m["rotation_deg"])
-            parts.append(f"<div class='verdict'>Moved from the nominal pose ({html.escape(inputs.nominal_source)}): up to "
-                         f"{max(m['rotation_deg'] for m in moved):.2f} deg ({html.escape(far['topic'])}) and "
-                         f"{max(m['translation_mm'] for m in moved):.0f} mm; see the table below.</div>")
-    return "\n".join(parts)
+            items.append((None, f"Moved from the nominal pose ({inputs.nominal_source})",
+                          f"up to {far['rotation_deg']:.2f} deg", f"{html.escape(far['topic'])}; and up to "
+                          f"{max(m['translation_mm'] for m in moved):.0f} mm; see the table below"))
+    return banner([x for x in items if x is not None])
 
 
 def _moved_table(result, inputs) -> str:
@@ -494,7 +524,9 @@ def _moved_table(result, inputs) -> str:
             f"<th>translation (mm)</th><th>1-sigma (mm)</th></tr>{rows}</table>")
 
 
-def _inputs_html(result, inputs) -> str:
+def inputs_html(result, inputs) -> str:
+    """The run's record of both reports: the version, the sensors (cameras with their models), the call,
+    the bags with their sizes, the effective settings."""
     p = result.problem
     cams = "".join(f"<tr><td>{i}</td><td>{html.escape(s.topic)}</td><td>{html.escape(str(s.lensmodel))}</td>"
                    f"<td>{s.imagersize[0]}x{s.imagersize[1]}</td><td>{html.escape(dict(inputs.models).get(s.topic, '–') if inputs else '–')}</td></tr>"
@@ -544,13 +576,9 @@ def report_html(result: Result, *, title: str = "clcgraph calibration", inputs: 
         f"<p>Reference frame: lidar0 = <code>{html.escape(result.problem.sensors[result.problem.reference].topic)}</code>. "
         f"Snapshots used: {used} of {result.problem.n_snapshots}.</p>",
         f"<p>{html.escape(_board_line(result.problem.board))}</p>",
-        "<h2>Poses</h2>", _pose_table(result),
-        "<p class='howto'>Poses are <code>rt_lidar0_sensor</code>: the sensor's position and orientation (Rodrigues "
-        "vector, in degrees) in the lidar0 frame. The stdevs are 1-sigma marginals computed with the re-estimated "
-        "noise; a stdev of several mm or a tenth of a degree or more means the capture did not constrain that sensor "
-        "well (see the sector and coverage plots).</p>",
+        "<h2>Poses</h2>", pose_table(result, extra={"noise sigma": _noise_cells(result)}),
         "<h2>Moved from the nominal pose</h2>", _moved_table(result, inputs),
-        "<h2>Inputs and settings</h2>", _inputs_html(result, inputs),
+        "<h2>Inputs and settings</h2>", inputs_html(result, inputs),
         "<h2>Fit</h2><table><tr><th>RMS normalized</th><th>RMS LIDAR (m)</th><th>RMS camera (px)</th>"
         "<th>noise sigma LIDAR (m)</th><th>noise sigma camera (px)</th></tr>"
         f"<tr><td>{_fmt(rms.get('normalized'))}</td><td>{_fmt(rms.get('lidar_m'))}</td><td>{_fmt(rms.get('camera_px'))}</td>"
@@ -567,7 +595,7 @@ def report_html(result: Result, *, title: str = "clcgraph calibration", inputs: 
             shown.add(key)
         if caption:
             parts.append(f"<p>{html.escape(caption)}</p>")
-        parts.append(embed_png(name, png))
+        parts.append(embed_image(name, png))
     parts += ["<h2>Convergence</h2>", convergence_html(result.stats.get("convergence") or {}),
               "<h2>Consistency</h2>", _consistency(result),
               "<h2>Uncertainty check</h2>", _uncertainty_check(result),
@@ -587,7 +615,8 @@ def write_report(result: Result, out_dir, *, title: str = "clcgraph calibration"
     if result.method == "targetless":
         from .report_targetless import write_targetless_report
 
-        return write_targetless_report(result, out_dir, title=title.replace("calibration", "targetless calibration"))
+        return write_targetless_report(result, out_dir, title=title.replace("calibration", "targetless calibration"),
+                                       inputs=inputs)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "report.html"

@@ -95,7 +95,8 @@ def test_solve_report_shows_the_data(session):
 
     bags, model, calib = session
     text = (calib / "report.html").read_text()
-    assert all(src.startswith("data:image/png;base64,") for src in re.findall(r"src='([^']+)'", text))
+    assert all(src.startswith(("data:image/png;base64,", "data:image/jpeg;base64,"))
+               for src in re.findall(r"src='([^']+)'", text))
     assert not [p.name for p in calib.glob("*.png")]
     assert "/cam/front, snapshot" in text and "whole scans" in text  # the camera's own picture
     assert "right picture: nominal /tf_static extrinsics" in text
@@ -105,6 +106,30 @@ def test_solve_report_shows_the_data(session):
     assert "pose000.bag" in text and "8 bag(s)" in text and str(model) in text
     assert "process: " in text and " solve --bag " in text  # the command line as run
     assert "effective settings (config.resolved.yaml)" in text
+
+
+def test_api_report_is_the_clis(session, tmp_path):
+    """A Python user's read_problem + calibrate + write_outputs (no report_inputs) gets the report `clcgraph
+    solve` writes: the same figures (the LIDAR scans on the camera's own image, solved beside nominal), the
+    same verdicts, the bags and the settings recorded; not board points on a grey canvas and no record."""
+    import glob
+    import re
+
+    import clcgraph
+
+    bags, model, calib = session
+    problem = clcgraph.read_problem(sorted(glob.glob(f"{bags}/*.bag")), TOPICS, [model])
+    clcgraph.write_outputs(clcgraph.calibrate(problem), tmp_path / "api")
+    api, cli = ((d / "report.html").read_text() for d in (tmp_path / "api", calib))
+    alts = lambda t: re.findall(r"alt='([^']+)'", t)  # noqa: E731
+    heads = lambda t: re.findall(r"<h2>([^<]+)</h2>", t)  # noqa: E731
+    verdicts = lambda t: re.findall(r"<div class='verdict[^']*'>([^:]+): <b>([^<]+)</b>", t)  # noqa: E731
+    assert alts(api) == alts(cli) and "lidar-on-camera-2.jpg" in alts(api)
+    assert heads(api) == heads(cli) and verdicts(api) == verdicts(cli)
+    assert "whole scans" in api and "board points only" not in api
+    assert "right picture: nominal /tf_static extrinsics" in api
+    assert "pose000.bag" in api and "8 bag(s)" in api and "No record of the bags" not in api
+    assert "clcgraph.write_outputs(result, " in api and "effective settings (config.resolved.yaml)" in api
 
 
 def test_every_command_is_covered():

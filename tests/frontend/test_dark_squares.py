@@ -2,31 +2,18 @@
 board's plane would sit ~40 % of that behind the board a camera sees. Segmentation sees the
 pattern in the intensities and moves the weak returns back by the offset it measures."""
 
-from dataclasses import replace
-
 import numpy as np
 
 import clcgraph
 from clcgraph.frontend.lidar_board import dark_square_correction
-from clcgraph.sim.lidar import LidarModel, simulate_scan
-from clcgraph.sim.scene import make_scene, random_board_pose, static_meshes
-from clcgraph.types import BoardGeometry, LidarBoardObservation
-
-BOARD = BoardGeometry.from_spec(corners=[10, 10], square_m=0.1, size_m=[1.3, 1.3])
+from clcgraph.sim.lidar import LidarModel
+from clcgraph.types import LidarBoardObservation
+from lidar_board_scans import BOARD, board_scans
 
 
 def _planes(model, n=8):
-    T = np.eye(4)
-    T[2, 3] = 1.9
-    static = static_meshes(np.random.default_rng(0))
-    scans, truth = [], []
-    for k in range(n):
-        rng = np.random.default_rng(k)
-        Tb = random_board_pose(rng, BOARD, T[:3, 3], tilt_max_deg=30, distance_m=(3.0, 6.0))
-        scan, _ = simulate_scan(model, T, make_scene(BOARD, Tb, rng, static=static), rng, stamp_ns=k, topic="/l")
-        scans.append(scan)
-        T_lb = np.linalg.inv(T) @ Tb
-        truth.append((-T_lb[:3, 2], -T_lb[:3, 2] @ T_lb[:3, 3]))  # n toward the sensor, d
+    scans, boards = board_scans(model, n, tilt_max_deg=30, distance_m=(3.0, 6.0))
+    truth = [(-T_lb[:3, 2], -T_lb[:3, 2] @ T_lb[:3, 3]) for T_lb in boards]  # n toward the sensor, d
     found = clcgraph.segment(scans, board=BOARD)
     assert all(isinstance(o, LidarBoardObservation) for o in found), [getattr(o, "reason", "") for o in found]
     return np.array([o.plane[3] - d for o, (n, d) in zip(found, truth)])  # offset error (m), + = nearer

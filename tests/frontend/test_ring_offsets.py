@@ -6,25 +6,13 @@ import numpy as np
 
 import clcgraph
 from clcgraph.config import Config
-from clcgraph.sim.lidar import LidarModel, simulate_scan
-from clcgraph.sim.scene import make_scene, random_board_pose, static_meshes
-from clcgraph.types import BoardGeometry, LidarBoardObservation
-
-BOARD = BoardGeometry.from_spec(corners=[10, 10], square_m=0.1, size_m=[1.3, 1.3])
+from clcgraph.sim.lidar import LidarModel
+from clcgraph.types import LidarBoardObservation
+from lidar_board_scans import BOARD, board_scans
 
 
 def _scans(model, n=10):
-    T = np.eye(4)
-    T[2, 3] = 1.9
-    static = static_meshes(np.random.default_rng(0))
-    scans, boards = [], []
-    for k in range(n):
-        rng = np.random.default_rng(k)
-        Tb = random_board_pose(rng, BOARD, T[:3, 3], tilt_max_deg=40, distance_m=(2.5, 9.0))
-        scan, _ = simulate_scan(model, T, make_scene(BOARD, Tb, rng, static=static), rng, stamp_ns=k, topic="/l")
-        scans.append(scan)
-        boards.append(np.linalg.inv(T) @ Tb)
-    return scans, boards
+    return board_scans(model, n, tilt_max_deg=40, distance_m=(2.5, 9.0))
 
 
 def test_boards_with_per_ring_range_offsets_are_found():
