@@ -236,6 +236,14 @@ class SolveOptions:
     # component is kept only if a likelihood-ratio test shows it, so on independent noise
     # the sigmas stay those of the independent model. False: independent noise only.
     observation_effects: bool = True
+    # Errors fixed for the whole capture, which neither the per-observation model nor the
+    # jackknife can see (they bias every board the same way), propagated into the covariance
+    # as "consider" terms (backend/consider.py, docs/uncertainty.md); 0 = not included.
+    # The board's bow (m): its centre this far off the plane of its edges, 1 sigma.
+    board_flatness_m: float = 0.002
+    # One range offset common to all of a LIDAR's points (m, 1 sigma; its datasheet's
+    # range accuracy is an upper bound, it includes the per-point noise).
+    lidar_range_offset_m: float = 0.0
 
 
 @dataclass(frozen=True)
