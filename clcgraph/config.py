@@ -240,7 +240,7 @@ class SolveOptions:
     # jackknife can see (they bias every board the same way), propagated into the covariance
     # as "consider" terms (backend/consider.py, docs/uncertainty.md); 0 = not included.
     # The board's bow (m): its centre this far off the plane of its edges, 1 sigma.
-    board_flatness_m: float = 0.002
+    board_flatness_m: float = 0.001
     # One range offset common to all of a LIDAR's points (m, 1 sigma; its datasheet's
     # range accuracy is an upper bound, it includes the per-point noise).
     lidar_range_offset_m: float = 0.0

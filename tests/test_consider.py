@@ -115,3 +115,68 @@ def test_calibrate_adds_the_terms_and_reports_their_shares():
     # a 1 cm common range offset is 8-12 mm of the camera's position: most of its variance here
     assert share["range offset /lidar0"] > 0.5
     assert 0.006 < np.linalg.norm(extra) < 0.012
+
+
+def _mrcal_calibrated_model(path, rng):
+    """A .cameramodel made as mrcal-calibrate-cameras makes one (optimization_inputs kept): mrcal's
+    own calibration of 30 synthetic chessboard views (0.3 px noise) of a known OPENCV4 camera."""
+    import mrcal
+    import numpysane as nps
+
+    lens, intr, (w, h) = "LENSMODEL_OPENCV4", np.array([800.0, 805.0, 639.5, 479.5, -0.1, 0.02, 1e-3, -1e-3]), (1280, 960)
+    truth = mrcal.cameramodel(intrinsics=(lens, intr), imagersize=np.array([w, h]), extrinsics_rt_fromref=np.zeros(6))
+    q, Rt_ref_board = mrcal.synthesize_board_observations(
+        [truth], object_width_n=10, object_height_n=10, object_spacing=0.05, calobject_warp=None,
+        rt_ref_boardcenter=np.array([0, 0, 0, 0, 0, 1.0]),
+        rt_ref_boardcenter__noiseradius=np.array([np.radians(30)] * 3 + [0.4, 0.3, 0.3]), Nframes=30,
+        which="all-cameras-must-see-full-board")
+    obs = nps.glue(q + rng.normal(0, 0.3, q.shape), np.ones(q.shape[:-1] + (1,)), axis=-1)[:, 0]
+    n = len(q)
+    inputs = dict(lensmodel=lens, intrinsics=(intr + np.r_[5, -5, 2, -2, 0, 0, 0, 0])[None], extrinsics_rt_fromref=np.zeros((0, 6)),
+                  frames_rt_toref=mrcal.rt_from_Rt(Rt_ref_board), points=None, observations_point=None,
+                  indices_point_camintrinsics_camextrinsics=None, calobject_warp=None, observations_board=obs,
+                  indices_frame_camintrinsics_camextrinsics=np.c_[np.arange(n), np.zeros(n), -np.ones(n)].astype(np.int32),
+                  imagersizes=np.array([[w, h]], dtype=np.int32), calibration_object_spacing=0.05,
+                  do_optimize_intrinsics_core=True, do_optimize_intrinsics_distortions=True, do_optimize_extrinsics=True,
+                  do_optimize_frames=True, do_optimize_calobject_warp=False, do_apply_regularization=True,
+                  do_apply_outlier_rejection=False)
+    mrcal.optimize(**inputs)
+    mrcal.cameramodel(optimization_inputs=inputs, icam_intrinsics=0).write(str(path))
+
+
+def test_intrinsics_term_matches_a_monte_carlo_over_the_intrinsics(tmp_path):
+    """The camera's intrinsics drawn from the covariance mrcal's calibration gives them, the
+    extrinsics re-solved (same observations) each time: the spread matches J Sigma_i J^T along
+    its principal axes (60 draws: each variance within its chi2 95 % band)."""
+    from clcgraph.cameras import load_camera
+
+    rng = np.random.default_rng(11)
+    _mrcal_calibrated_model(tmp_path / "cal.cameramodel", rng)
+    cam = load_camera("/cam0", tmp_path / "cal.cameramodel")
+    assert cam.intrinsics_covariance is not None and np.all(np.diag(cam.intrinsics_covariance) > 0)
+    rig = make_rig(1, 1)
+    rig = dataclasses.replace(rig, sensors=(rig.sensors[0], cam))
+    problem, truth = simulate_problem(rig=rig, n_snapshots=10, seed=3)
+    options = dataclasses.replace(Config().solve, board_flatness_m=0.0)
+    sigma = np.array([0.015, 0.3])
+    solve, build, idx = _solver(problem, options, sigma)
+    x, values = solve(problem, truth.rt_lidar0_sensor, truth.rt_lidar0_board)
+    rt_s = truth.rt_lidar0_sensor.copy()
+    rt_s[1] = x
+    rt_b = np.array([rt_from_pose3(values.atPose3(G.board_key(k))) for k in range(len(truth.rt_lidar0_board))])
+    terms = consider.consider_terms(problem, lambda p: build(p, rt_s, rt_b)[0], values, options)
+    assert list(terms) == ["intrinsics /cam0"]
+    A = _rt_columns(terms, x, idx)["intrinsics /cam0"]
+    C_pred = A @ A.T
+    draws = rng.multivariate_normal(cam.intrinsics, cam.intrinsics_covariance, 60)
+    X = np.array([solve(consider._intrinsics_moved(problem, 1, d - cam.intrinsics), rt_s, rt_b)[0] for d in draws])
+    C_mc = np.cov(X.T)
+    from scipy.stats import chi2
+
+    lo, hi = chi2.ppf([0.025, 0.975], 59) / 59
+    for part in (slice(0, 3), slice(3, 6)):
+        lam, V = np.linalg.eigh(C_pred[part, part])
+        ratio = np.einsum("ia,ij,ja->a", V, C_mc[part, part], V) / lam
+        assert np.all((ratio > lo) & (ratio < hi)), ratio
+    # and it matters: the intrinsics move the camera by more than 0.3 mm here
+    assert np.sqrt(np.linalg.eigvalsh(C_pred[3:, 3:])[-1]) > 3e-4

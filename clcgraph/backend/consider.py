@@ -117,13 +117,13 @@ def intrinsics_directions(covariance: np.ndarray) -> np.ndarray:
     return (V[:, keep] * np.sqrt(lam[keep])).T
 
 
-def consider_terms(problem: Problem, build, values, options) -> dict:
+def consider_terms(problem: Problem, build, values, options, S: np.ndarray | None = None) -> dict:
     """{term name: (ns, m) columns sigma_c J_c in the sensors' tangent (noise.Linearization
     order)}: the term's covariance is their outer product.
 
     ``build(problem) -> g``: the final graph of ``problem`` (same active masks, sigmas, D), so
     only the measurements (or a camera's intrinsics) differ between the nominal and the
-    perturbed linearizations.
+    perturbed linearizations. ``S``: the nominal sensor-only information, if already reduced.
     """
     from .noise import Linearization
 
@@ -141,7 +141,8 @@ def consider_terms(problem: Problem, build, values, options) -> dict:
                                               for d in intrinsics_directions(s.intrinsics_covariance)]
     if not wanted:
         return {}
-    S, _, _ = Linearization(problem, build(problem), values).reduced()
+    if S is None:
+        S = Linearization(problem, build(problem), values).reduced()[0]
 
     def r_of(p):
         return Linearization(p, build(p), values).reduced()[1]

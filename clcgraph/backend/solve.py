@@ -410,7 +410,7 @@ def calibrate(problem: Problem, options) -> Result:
         return G.build(p, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig, sigma_camera_px=sig,
                        options=options, board_nominal=nominal, effects=effect_sig, effect_values=values)[0]
 
-    terms = consider.consider_terms(problem, rebuild, values, options)
+    terms = consider.consider_terms(problem, rebuild, values, options, S=lin.reduced()[0])
     cov, uncertainty_terms = consider.add_terms(problem, rt_sensor, cov, terms)
     times["consider"] = time.perf_counter() - t
     final = stages[-1]
