@@ -63,7 +63,7 @@ def _rt_columns(terms, x, idx):
 def test_consider_sensitivity_matches_a_resolve_of_the_moved_measurements(solved, what):
     problem, truth, options, sigma, solve, build, idx, x, values = solved
     h = 0.004
-    opts = dataclasses.replace(options, **{what: h})
+    opts = dataclasses.replace(options, **{"board_flatness_m": 0.0, what: h})
     rt_s = truth.rt_lidar0_sensor.copy()
     for a, i in enumerate(idx):
         rt_s[i] = x[6 * a:6 * a + 6]
@@ -97,15 +97,17 @@ def test_range_offset_moves_cameras_along_the_boards_direction(solved):
 
 def test_calibrate_adds_the_terms_and_reports_their_shares():
     problem, truth = simulate_problem(rig=make_rig(1, 1), n_snapshots=10, seed=7)
+    from clcgraph.backend.solve import calibrate
+
     base = Config().solve
-    r0 = consider_free = __import__("clcgraph.backend.solve", fromlist=["calibrate"]).calibrate(problem, base)
-    r1 = __import__("clcgraph.backend.solve", fromlist=["calibrate"]).calibrate(
-        problem, dataclasses.replace(base, lidar_range_offset_m=0.01, board_flatness_m=0.003))
+    assert base.board_flatness_m == 0.001 and base.lidar_range_offset_m == 0.0  # the defaults (docs/uncertainty.md)
+    r0 = calibrate(problem, dataclasses.replace(base, board_flatness_m=0.0))
+    r1 = calibrate(problem, dataclasses.replace(base, lidar_range_offset_m=0.01, board_flatness_m=0.003))
     t0 = r0.stats["uncertainty_terms"]
     t1 = r1.stats["uncertainty_terms"]
     assert t0["included"] == [consider.MODEL_TERM]
     assert t1["included"] == [consider.MODEL_TERM, "board flatness", "range offset /lidar0"]
-    np.testing.assert_allclose(r1.rt_lidar0_sensor, consider_free.rt_lidar0_sensor)  # the estimate is unchanged
+    np.testing.assert_allclose(r1.rt_lidar0_sensor, r0.rt_lidar0_sensor)  # the estimate is unchanged
     C0, C1 = r0.covariance_block(1)[3:, 3:], r1.covariance_block(1)[3:, 3:]
     extra = np.array(t1["sigma_rt"]["range offset /lidar0"])[:, 3:]  # (m, 3): position part
     np.testing.assert_allclose(C1, C0 + extra.T @ extra + np.array(t1["sigma_rt"]["board flatness"])[:, 3:].T
@@ -180,3 +182,11 @@ def test_intrinsics_term_matches_a_monte_carlo_over_the_intrinsics(tmp_path):
         assert np.all((ratio > lo) & (ratio < hi)), ratio
     # and it matters: the intrinsics move the camera by more than 0.3 mm here
     assert np.sqrt(np.linalg.eigvalsh(C_pred[3:, 3:])[-1]) > 3e-4
+
+
+def test_stated_sigmas_out_of_range_are_refused_naming_the_key():
+    from clcgraph.config import ConfigError
+
+    for key in ("board_flatness_m", "lidar_range_offset_m"):
+        with pytest.raises(ConfigError, match=rf"'solve.{key}' must be in \["):
+            Config.from_dict({"solve": {key: -0.001}})
