@@ -15,6 +15,14 @@ Cases: the noise models
 each solved with and without the per-observation effects (solve.observation_effects).
 
     python bench/bench_uncertainty.py 67 per-observation:on     # the issue's >= 200 trials
+
+Environment: ``CLCGRAPH_BENCH_LOG=trials.jsonl`` keeps every trial (errors, covariance and each
+consider term's columns: ``python -m bench.mc_table trials.jsonl "board flatness=0"`` re-judges
+them with a term scaled); ``CLCGRAPH_BENCH_SET="board_flatness_m=0.003"`` sets solve options
+(the simulated board's bow is 3 mm: state it, as a user states theirs); ``CLCGRAPH_BENCH_SEED0``
+the first seed (two processes: 1000 and 1034 with 34 and 33 trials per rig).
+Cases ``bow``, ``mixed``, ``corner-bias``, ``ring-bias``, ``ring-elevation``, ``lens-field``:
+one correlated error alone at its realistic value, to see which one the sigmas miss.
 """
 
 from __future__ import annotations
@@ -40,7 +48,18 @@ def _errors(name: str):
         return CorrelatedErrors()
     if name == "per-observation":
         return dataclasses.replace(full, ring_range_bias_m=0.0, ring_elevation_deg=0.0, lens_field_px=0.0)
+    if name in _ALONE:  # one source alone, at its realistic value: which one the sigmas miss
+        return CorrelatedErrors(**{_ALONE[name]: getattr(full, _ALONE[name])})
     return full
+
+
+_ALONE = {"bow": "board_warp_m", "mixed": "mixed_pixel_m", "corner-bias": "corner_bias_px",
+          "ring-bias": "ring_range_bias_m", "ring-elevation": "ring_elevation_deg", "lens-field": "lens_field_px"}
+
+
+def _settings() -> dict:
+    """Solve settings from ``CLCGRAPH_BENCH_SET="board_flatness_m=0.003 lidar_range_offset_m=0.005"``."""
+    return {k: float(v) for k, v in (kv.split("=") for kv in os.environ.get("CLCGRAPH_BENCH_SET", "").split())}
 
 
 def trial(rig_shape, errors: str, effects: bool, seed: int, n_snapshots: int = 12) -> dict:
@@ -50,13 +69,15 @@ def trial(rig_shape, errors: str, effects: bool, seed: int, n_snapshots: int = 1
 
     problem, truth = simulate_problem(rig=make_rig(*rig_shape), n_snapshots=n_snapshots, seed=seed,
                                       errors=_errors(errors))
-    res = calibrate(problem, dataclasses.replace(Config().solve, observation_effects=effects))
+    res = calibrate(problem, dataclasses.replace(Config().solve, observation_effects=effects, **_settings()))
     ratio = []
     for i in res.variable_sensors():
         jk = res.jackknife.get("sensors", {}).get(i)
         if jk:
             ratio.extend([*jk["orientation_ratio"], *jk["position_ratio"]])
-    return {"z": principal_z(res, truth), "ratio": np.array(ratio)}
+    err = [np.asarray(res.rt_lidar0_sensor[i]) - truth.rt_lidar0_sensor[i] for i in res.variable_sensors()]
+    return {"z": principal_z(res, truth), "ratio": np.array(ratio), "error_rt": np.concatenate(err),
+            "covariance_rt": res.covariance_rt, "terms": res.stats.get("uncertainty_terms", {})}
 
 
 def principal_z(res, truth) -> np.ndarray:
@@ -98,7 +119,10 @@ def run(trials_per_rig: int, cases=None, seed0: int = 1000, log=None) -> str:
                 if log:
                     with open(log, "a") as f:
                         f.write(json.dumps({"errors": errors, "effects": effects, "rig": shape, "seed": seed0 + 100 * r + k,
-                                            "z": out["z"].tolist(), "ratio": out["ratio"].tolist()}) + "\n")
+                                            "z": out["z"].tolist(), "ratio": out["ratio"].tolist(),
+                                            "error_rt": out["error_rt"].tolist(),
+                                            "covariance_rt": out["covariance_rt"].tolist(),
+                                            "terms": out["terms"]}) + "\n")
                 n += 1
         per_axis = {}  # (rig, axis) -> z over trials: "per axis" as the issue asks
         for (shape, z) in Z:
@@ -120,7 +144,8 @@ def main() -> str:
     args = [a for a in sys.argv[1:] if a != "uncertainty"]
     trials = int(args[0]) if args and args[0].isdigit() else 5
     cases = [(c.split(":")[0], c.split(":")[1] == "on") for c in args[1:]] or None
-    return run(trials_per_rig=trials, cases=cases, log=os.environ.get("CLCGRAPH_BENCH_LOG"))
+    return run(trials_per_rig=trials, cases=cases, log=os.environ.get("CLCGRAPH_BENCH_LOG"),
+               seed0=int(os.environ.get("CLCGRAPH_BENCH_SEED0", 1000)))
 
 
 if __name__ == "__main__":

@@ -62,7 +62,49 @@ def load_camera(topic: str, path: str | Path) -> Sensor:
         lensmodel=lensmodel,
         intrinsics=intrinsics,
         imagersize=(w, h),
+        intrinsics_covariance=intrinsics_covariance(model, path),
     )
+
+
+def intrinsics_covariance(model, path="the camera model") -> np.ndarray | None:
+    """(Nintrinsics, Nintrinsics) covariance of a model's intrinsics from the calibration that
+    made it (mrcal's ``optimization_inputs``, kept by mrcal-calibrate-cameras), or None if the
+    model has none. mrcal's own propagation of its calibration noise (the observed pixel noise
+    estimated from that calibration's residuals, regularization accounted for, as
+    mrcal.projection_uncertainty does); rows of intrinsics the calibration held fixed are 0."""
+    mrcal = _mrcal()
+    inputs = model.optimization_inputs()
+    if inputs is None:
+        return None
+    from mrcal.model_analysis import _propagate_calibration_uncertainty  # mrcal 2.2's own propagation
+
+    lensmodel = model.intrinsics()[0]
+    n = mrcal.lensmodel_num_params(lensmodel)
+    if not (inputs.get("do_optimize_intrinsics_core") or inputs.get("do_optimize_intrinsics_distortions")):
+        return np.zeros((n, n))
+    try:
+        _, x, J, factorization = mrcal.optimizer_callback(**inputs)
+        if factorization is None:
+            raise ValueError("its calibration's normal equations are singular")
+        icam = model.icam_intrinsics()
+        i0 = mrcal.state_index_intrinsics(icam, **inputs)
+        ncore = 4 if mrcal.lensmodel_metadata_and_config(lensmodel)["has_core"] else 0
+        first = 0 if inputs.get("do_optimize_intrinsics_core") else ncore
+        last = n if inputs.get("do_optimize_intrinsics_distortions") else ncore
+        scale = np.ones(J.shape[1])
+        mrcal.unpack_state(scale, **inputs)  # b = D b*: D on the diagonal
+        dF = np.zeros((last - first, J.shape[1]))
+        dF[np.arange(last - first), i0 + np.arange(last - first)] = scale[i0:i0 + last - first]
+        n_obs = mrcal.num_measurements_boards(**inputs)
+        n_obs = None if n_obs == mrcal.num_measurements(**inputs) else n_obs
+        sigma_px = float(np.std(mrcal.residuals_chessboard(inputs, residuals=x).ravel()))
+        C = _propagate_calibration_uncertainty(dF, factorization, J, n_obs, sigma_px, "covariance")
+    except Exception as e:  # mrcal raises many kinds for inconsistent inputs
+        raise DataError(f"{path}: its optimization_inputs do not give the intrinsics' uncertainty: "
+                        f"{str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
+    out = np.zeros((n, n))
+    out[first:last, first:last] = 0.5 * (C + C.T)
+    return out
 
 
 def write_cameramodel(path: str | Path, camera: Sensor, *, rt_cam_ref: np.ndarray) -> None:

@@ -236,6 +236,15 @@ class SolveOptions:
     # component is kept only if a likelihood-ratio test shows it, so on independent noise
     # the sigmas stay those of the independent model. False: independent noise only.
     observation_effects: bool = True
+    # Errors fixed for the whole capture, which neither the per-observation model nor the
+    # jackknife can see (they bias every board the same way), propagated into the covariance
+    # as "consider" terms (backend/consider.py, docs/uncertainty.md); 0 = not included.
+    # The board's bow (m): its centre this far off the plane of its edges, 1 sigma. 1 mm: a
+    # rigid printed target; a large hand-held foam or plywood board bows 2-5 mm: state yours.
+    board_flatness_m: float = 0.001
+    # One range offset common to all of a LIDAR's points (m, 1 sigma; its datasheet's
+    # range accuracy is an upper bound, it includes the per-point noise).
+    lidar_range_offset_m: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -590,6 +599,8 @@ _RANGES = {
     "solve.prior_from_tf_static_sigma_m": "(0, inf)",
     "solve.consistency_alpha": "[0, 1)",
     "solve.max_stdev_m": "(0, inf)",
+    "solve.board_flatness_m": "[0, 0.1]",
+    "solve.lidar_range_offset_m": "[0, 1]",
     "solve.max_stdev_deg": "(0, 180]",
     "sectors.n_sectors": "[1, 3600]",
     "sectors.threshold_valid_lidar_range_m": "[0, inf)",

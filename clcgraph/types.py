@@ -36,6 +36,9 @@ class Sensor:
     lensmodel: str | None = None  # mrcal lens model name, cameras only
     intrinsics: np.ndarray | None = None  # (Nintrinsics,)
     imagersize: tuple[int, int] | None = None  # (width, height)
+    # (Nintrinsics, Nintrinsics) the intrinsics' covariance, when the model carries the
+    # calibration that made it (cameras.intrinsics_covariance); None: taken as exact
+    intrinsics_covariance: np.ndarray | None = None
 
     @property
     def is_lidar(self) -> bool:

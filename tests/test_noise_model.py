@@ -92,8 +92,9 @@ def test_reduced_information_is_the_marginal_covariance(independent):
     J = np.zeros_like(S)
     for a, i in enumerate(res.variable_sensors()):
         J[6 * a:6 * a + 6, 6 * a:6 * a + 6] = drt_dxi(res.rt_lidar0_sensor[i])
-    np.testing.assert_allclose(J @ np.linalg.inv(S) @ J.T, res.covariance_rt, rtol=0.02,
-                               atol=1e-3 * np.abs(res.covariance_rt).max())
+    # the model's part of the covariance: the consider terms (backend/consider.py) are added to it
+    C = res.covariance_rt - sum(np.array(a).T @ np.array(a) for a in res.stats["uncertainty_terms"]["sigma_rt"].values())
+    np.testing.assert_allclose(J @ np.linalg.inv(S) @ J.T, C, rtol=0.02, atol=1e-3 * np.abs(C).max())
 
 
 @pytest.mark.parametrize("effects", [False, True])
@@ -179,7 +180,9 @@ def test_calibration_yaml_and_report_carry_the_check(independent, tmp_path):
 
     problem, _, res, _ = independent
     d = calibration_dict(res)["uncertainty_check"]
-    assert d["camera_intrinsics_uncertainty"] == "not included"
+    assert set(d["camera_intrinsics_uncertainty"].values()) == {
+        "not included (the camera model carries no optimization_inputs)"}
+    assert d["terms_included"] == ["noise and per-observation errors", "board flatness"]
     jk = d["jackknife"]
     assert jk["n_snapshots"] == 16 and set(jk["sensors"]) == {s.topic for s in problem.sensors[1:]}
     s = jk["sensors"]["/lidar1"]
@@ -194,6 +197,9 @@ def test_calibration_yaml_and_report_carry_the_check(independent, tmp_path):
     yaml.safe_dump(d)  # plain types only
     page = report_html(res)
     assert "Uncertainty check" in page and f"Snapshot {w['snapshot']} moves" in page
+    assert "<th>board flatness</th>" in page and "Camera intrinsics uncertainty is not included for /cam0" in page
+    share = d["variance_share"]["/cam0"]["position"]
+    assert abs(sum(share.values()) - 1) < 1e-3 and 0 < share["board flatness"] < 0.5
 
 
 def _ring_of(points, elevations):

@@ -33,7 +33,7 @@ import numpy as np
 from ..errors import DegenerateError, SolveError
 from ..geometry import R_from_r, drt_dxi, rt_from_pose3, tangent_covariance_from_rt
 from ..types import Problem, Rejected, Result
-from . import consistency
+from . import consider, consistency
 from . import graph as G
 from . import noise as N
 from .convergence import MAX_UNCONVERGED_STEP_SIGMA, optimize_lm, public, step_sigma
@@ -400,8 +400,19 @@ def calibrate(problem: Problem, options) -> Result:
     times["covariance"] = time.perf_counter() - t
     t = time.perf_counter()
     lin = N.Linearization(problem, g, values)
+    # the jackknife judges the board-to-board part: it cannot see errors fixed for the capture
     jk = jackknife(problem, lin, rt_sensor, cov)
     times["jackknife"] = time.perf_counter() - t
+    t = time.perf_counter()
+    effect_sig = None if effects is None else N.effect_sigmas(problem, effects)
+
+    def rebuild(p):  # the final graph of p: the same masks, sigmas and D, other measurements
+        return G.build(p, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig, sigma_camera_px=sig,
+                       options=options, board_nominal=nominal, effects=effect_sig, effect_values=values)[0]
+
+    terms = consider.consider_terms(problem, rebuild, values, options, S=lin.reduced()[0])
+    cov, uncertainty_terms = consider.add_terms(problem, rt_sensor, cov, terms)
+    times["consider"] = time.perf_counter() - t
     final = stages[-1]
     step = _final_step_sigma(problem, final.pop("_last_step"), values, rt_sensor, cov)
     for r in stages:
@@ -458,7 +469,7 @@ def calibrate(problem: Problem, options) -> Result:
     stats = {"stage": "solve", "iterations": iters, "convergence": convergence, "time_s": times, "regularization_share": float(prior / max(total, 1e-300)),
              "n_outlier_points": int(sum(int((~m).sum()) for m in active.lidar if m is not None)),
              "n_rejected_observations": sum(1 for r in rejected if r.stage in ("outlier", "seed")),
-             "consistency": verdict}
+             "consistency": verdict, "uncertainty_terms": uncertainty_terms}
     if not np.all(np.isfinite(rt_sensor)):
         raise SolveError("the solve produced non-finite sensor poses")
     log.info("solve: %d rounds, sigma LIDAR %.4f m, camera %.3f px, %.2f s", iters["rounds"], noise["lidar_m"],

@@ -194,7 +194,26 @@ def _uncertainty_check(result: Result) -> str:
             f"<p>Snapshot {w['snapshot']} moves <code>{html.escape(result.problem.sensors[w['sensor']].topic)}</code> most: "
             f"{w['position_mm']:.1f} mm, {w['orientation_deg']:.3f} deg."
             + (f" Without snapshot(s) {', '.join(map(str, need))} some sensor is not determined." if need else "")
-            + " Camera intrinsics uncertainty is not included in the sigmas.</p>")
+            + "</p>" + _uncertainty_terms(result))
+
+
+def _uncertainty_terms(result: Result) -> str:
+    """What the sigmas include (backend/consider.py): each term's share of the final variance."""
+    terms = result.stats.get("uncertainty_terms") or {}
+    cams = [s.topic for s in result.problem.sensors if s.is_camera
+            and f"intrinsics {s.topic}" not in terms.get("included", ())]
+    note = (f"<p>Camera intrinsics uncertainty is not included for {', '.join(html.escape(c) for c in cams)} "
+            "(its camera model carries no optimization_inputs).</p>") if cams else ""
+    if not terms:
+        return note
+    names = terms["included"]
+    rows = "".join(f"<tr><td>{html.escape(topic)}</td><td>{what}</td>"
+                   + "".join(f"<td>{100 * sh[what][n]:.0f} %</td>" for n in names) + "</tr>"
+                   for topic, sh in terms["variance_share"].items() for what in ("position", "orientation"))
+    return ("<p>Share of each sensor's final variance (trace) per term; the jackknife above judges the first "
+            "(errors fixed for the whole capture bias every snapshot alike, so it cannot see the others).</p>"
+            "<table><tr><th>sensor</th><th></th>" + "".join(f"<th>{html.escape(n)}</th>" for n in names)
+            + "</tr>" + rows + "</table>" + note)
 
 
 _CSS = """body{font-family:sans-serif;max-width:1200px;margin:2em auto;color:#222}

@@ -186,6 +186,21 @@ def _plain(v, digits: int | None = None):
     return v
 
 
+def uncertainty_terms_dict(result: Result) -> dict:
+    """Which terms the sigmas include (backend/consider.py), each term's share of every sensor's
+    final position / orientation variance, and per camera whether its intrinsics' uncertainty
+    is in them (only where its .cameramodel carries the calibration that made it)."""
+    terms = result.stats.get("uncertainty_terms") or {}
+    cams = {s.topic: ("included" if f"intrinsics {s.topic}" in terms.get("included", ()) else
+                      "not included (the camera model carries no optimization_inputs)")
+            for s in result.problem.sensors if s.is_camera}
+    out = {"camera_intrinsics_uncertainty": cams}
+    if terms:
+        out["terms_included"] = list(terms["included"])
+        out["variance_share"] = _plain(terms["variance_share"], digits=4)
+    return out
+
+
 def uncertainty_check_dict(result: Result) -> dict:
     """The noise model and its leave-one-snapshot-out check, YAML-safe ({} if not computed).
 
@@ -199,8 +214,7 @@ def uncertainty_check_dict(result: Result) -> dict:
     effects = result.noise.get("observation_effects") or {}
     out = {
         "noise_model": {problem.sensors[i].topic: {k: float(v) for k, v in e.items()} for i, e in effects.items()},
-        # mrcal's intrinsics uncertainty is not propagated (docs/uncertainty.md)
-        "camera_intrinsics_uncertainty": "not included",
+        **uncertainty_terms_dict(result),
     }
     if not jk:
         return out

@@ -1,0 +1,192 @@
+"""Consider terms (backend/consider.py): errors fixed for the capture propagated into the covariance.
+
+Each term's sensitivity J_c (one Gauss-Newton step from the final linearization) is checked
+against a real nonlinear re-solve of the moved measurements; the intrinsics term against a
+Monte Carlo over intrinsics drawn from the covariance an mrcal calibration gives them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from clcgraph.backend import consider
+from clcgraph.backend import graph as G
+from clcgraph.config import Config
+from clcgraph.geometry import drt_dxi, rt_from_pose3
+from clcgraph.sim.observations import make_rig, simulate_problem
+
+
+def _solver(problem, options, sigma):
+    """(solve(p, start) -> (rt of the variable sensors (ns,), values), rebuild(p) -> graph) at fixed sigmas."""
+    import gtsam
+
+    active = G.Active.all(problem)
+    idx = [i for i in range(len(problem.sensors)) if i != problem.reference]
+
+    def build(p, rt_s, rt_b):
+        return G.build(p, active, rt_s, rt_b, lidar="range", sigma_lidar_m=sigma, sigma_camera_px=sigma,
+                       options=options)
+
+    def solve(p, rt_s, rt_b):
+        g, v = build(p, rt_s, rt_b)
+        params = gtsam.LevenbergMarquardtParams()
+        params.setRelativeErrorTol(1e-12)
+        params.setAbsoluteErrorTol(1e-15)
+        out = gtsam.LevenbergMarquardtOptimizer(g, v, params).optimize()
+        return np.concatenate([rt_from_pose3(out.atPose3(G.sensor_key(i))) for i in idx]), out
+
+    return solve, build, idx
+
+
+@pytest.fixture(scope="module")
+def solved():
+    truth_problem, truth = simulate_problem(rig=make_rig(1, 2), n_snapshots=10, seed=5)
+    options = Config().solve
+    sigma = np.array([0.015 if s.is_lidar else 0.3 for s in truth_problem.sensors])
+    solve, build, idx = _solver(truth_problem, options, sigma)
+    rt_b = truth.rt_lidar0_board
+    x, values = solve(truth_problem, truth.rt_lidar0_sensor, rt_b)
+    return truth_problem, truth, options, sigma, solve, build, idx, x, values
+
+
+def _rt_columns(terms, x, idx):
+    J = np.zeros((6 * len(idx), 6 * len(idx)))
+    for a in range(len(idx)):
+        J[6 * a:6 * a + 6, 6 * a:6 * a + 6] = drt_dxi(x[6 * a:6 * a + 6])
+    return {k: J @ v for k, v in terms.items()}
+
+
+@pytest.mark.parametrize("what", ["board_flatness_m", "lidar_range_offset_m"])
+def test_consider_sensitivity_matches_a_resolve_of_the_moved_measurements(solved, what):
+    problem, truth, options, sigma, solve, build, idx, x, values = solved
+    h = 0.004
+    opts = dataclasses.replace(options, **{"board_flatness_m": 0.0, what: h})
+    rt_s = truth.rt_lidar0_sensor.copy()
+    for a, i in enumerate(idx):
+        rt_s[i] = x[6 * a:6 * a + 6]
+    rt_b = np.array([rt_from_pose3(values.atPose3(G.board_key(k))) for k in range(len(truth.rt_lidar0_board))])
+    terms = consider.consider_terms(problem, lambda p: build(p, rt_s, rt_b)[0], values, opts)
+    cols = _rt_columns(terms, x, idx)
+    name = "board flatness" if what == "board_flatness_m" else "range offset /lidar0"
+    assert set(cols) == {name}
+    moved = consider._bow_moves(problem, values, h) if what == "board_flatness_m" else \
+        consider._range_moves(problem, 0, h)
+    x_moved, _ = solve(moved, rt_s, rt_b)
+    dx = x_moved - x
+    pred = cols[name][:, 0]
+    # the move is measurable (not zero by construction) and the one-step prediction is it to 3 %
+    assert np.linalg.norm(dx[3:6]) > 2e-4 and np.linalg.norm(dx[9:12]) > 2e-4
+    assert np.linalg.norm(pred - dx) < 0.03 * np.linalg.norm(dx)
+
+
+def test_range_offset_moves_cameras_along_the_boards_direction(solved):
+    """A LIDAR whose ranges are all 1 cm long sees every board ~1 cm farther (along lidar0 +x):
+    the cameras, which see the boards where they are, move with them, and turn by < 0.15 deg."""
+    problem, truth, options, sigma, solve, build, idx, x, values = solved
+    moved = consider._range_moves(problem, 0, 0.01)
+    rt_s, rt_b = truth.rt_lidar0_sensor, truth.rt_lidar0_board
+    x_moved, _ = solve(moved, rt_s, rt_b)
+    for a in range(len(idx)):
+        dt = x_moved[6 * a + 3:6 * a + 6] - x[6 * a + 3:6 * a + 6]
+        assert 0.006 < dt[0] < 0.012, dt
+        assert np.degrees(np.linalg.norm(x_moved[6 * a:6 * a + 3] - x[6 * a:6 * a + 3])) < 0.15
+
+
+def test_calibrate_adds_the_terms_and_reports_their_shares():
+    problem, truth = simulate_problem(rig=make_rig(1, 1), n_snapshots=10, seed=7)
+    from clcgraph.backend.solve import calibrate
+
+    base = Config().solve
+    assert base.board_flatness_m == 0.001 and base.lidar_range_offset_m == 0.0  # the defaults (docs/uncertainty.md)
+    r0 = calibrate(problem, dataclasses.replace(base, board_flatness_m=0.0))
+    r1 = calibrate(problem, dataclasses.replace(base, lidar_range_offset_m=0.01, board_flatness_m=0.003))
+    t0 = r0.stats["uncertainty_terms"]
+    t1 = r1.stats["uncertainty_terms"]
+    assert t0["included"] == [consider.MODEL_TERM]
+    assert t1["included"] == [consider.MODEL_TERM, "board flatness", "range offset /lidar0"]
+    np.testing.assert_allclose(r1.rt_lidar0_sensor, r0.rt_lidar0_sensor)  # the estimate is unchanged
+    C0, C1 = r0.covariance_block(1)[3:, 3:], r1.covariance_block(1)[3:, 3:]
+    extra = np.array(t1["sigma_rt"]["range offset /lidar0"])[:, 3:]  # (m, 3): position part
+    np.testing.assert_allclose(C1, C0 + extra.T @ extra + np.array(t1["sigma_rt"]["board flatness"])[:, 3:].T
+                               @ np.array(t1["sigma_rt"]["board flatness"])[:, 3:], rtol=1e-9, atol=1e-15)
+    share = t1["variance_share"]["/cam0"]["position"]
+    assert abs(sum(share.values()) - 1) < 1e-9
+    # a 1 cm common range offset is 8-12 mm of the camera's position: most of its variance here
+    assert share["range offset /lidar0"] > 0.5
+    assert 0.006 < np.linalg.norm(extra) < 0.012
+
+
+def _mrcal_calibrated_model(path, rng):
+    """A .cameramodel made as mrcal-calibrate-cameras makes one (optimization_inputs kept): mrcal's
+    own calibration of 30 synthetic chessboard views (0.3 px noise) of a known OPENCV4 camera."""
+    import mrcal
+    import numpysane as nps
+
+    lens, intr, (w, h) = "LENSMODEL_OPENCV4", np.array([800.0, 805.0, 639.5, 479.5, -0.1, 0.02, 1e-3, -1e-3]), (1280, 960)
+    truth = mrcal.cameramodel(intrinsics=(lens, intr), imagersize=np.array([w, h]), extrinsics_rt_fromref=np.zeros(6))
+    q, Rt_ref_board = mrcal.synthesize_board_observations(
+        [truth], object_width_n=10, object_height_n=10, object_spacing=0.05, calobject_warp=None,
+        rt_ref_boardcenter=np.array([0, 0, 0, 0, 0, 1.0]),
+        rt_ref_boardcenter__noiseradius=np.array([np.radians(30)] * 3 + [0.4, 0.3, 0.3]), Nframes=30,
+        which="all-cameras-must-see-full-board")
+    obs = nps.glue(q + rng.normal(0, 0.3, q.shape), np.ones(q.shape[:-1] + (1,)), axis=-1)[:, 0]
+    n = len(q)
+    inputs = dict(lensmodel=lens, intrinsics=(intr + np.r_[5, -5, 2, -2, 0, 0, 0, 0])[None], extrinsics_rt_fromref=np.zeros((0, 6)),
+                  frames_rt_toref=mrcal.rt_from_Rt(Rt_ref_board), points=None, observations_point=None,
+                  indices_point_camintrinsics_camextrinsics=None, calobject_warp=None, observations_board=obs,
+                  indices_frame_camintrinsics_camextrinsics=np.c_[np.arange(n), np.zeros(n), -np.ones(n)].astype(np.int32),
+                  imagersizes=np.array([[w, h]], dtype=np.int32), calibration_object_spacing=0.05,
+                  do_optimize_intrinsics_core=True, do_optimize_intrinsics_distortions=True, do_optimize_extrinsics=True,
+                  do_optimize_frames=True, do_optimize_calobject_warp=False, do_apply_regularization=True,
+                  do_apply_outlier_rejection=False)
+    mrcal.optimize(**inputs)
+    mrcal.cameramodel(optimization_inputs=inputs, icam_intrinsics=0).write(str(path))
+
+
+def test_intrinsics_term_matches_a_monte_carlo_over_the_intrinsics(tmp_path):
+    """The camera's intrinsics drawn from the covariance mrcal's calibration gives them, the
+    extrinsics re-solved (same observations) each time: the spread matches J Sigma_i J^T along
+    its principal axes (60 draws: each variance within its chi2 95 % band)."""
+    from clcgraph.cameras import load_camera
+
+    rng = np.random.default_rng(11)
+    _mrcal_calibrated_model(tmp_path / "cal.cameramodel", rng)
+    cam = load_camera("/cam0", tmp_path / "cal.cameramodel")
+    assert cam.intrinsics_covariance is not None and np.all(np.diag(cam.intrinsics_covariance) > 0)
+    rig = make_rig(1, 1)
+    rig = dataclasses.replace(rig, sensors=(rig.sensors[0], cam))
+    problem, truth = simulate_problem(rig=rig, n_snapshots=10, seed=3)
+    options = dataclasses.replace(Config().solve, board_flatness_m=0.0)
+    sigma = np.array([0.015, 0.3])
+    solve, build, idx = _solver(problem, options, sigma)
+    x, values = solve(problem, truth.rt_lidar0_sensor, truth.rt_lidar0_board)
+    rt_s = truth.rt_lidar0_sensor.copy()
+    rt_s[1] = x
+    rt_b = np.array([rt_from_pose3(values.atPose3(G.board_key(k))) for k in range(len(truth.rt_lidar0_board))])
+    terms = consider.consider_terms(problem, lambda p: build(p, rt_s, rt_b)[0], values, options)
+    assert list(terms) == ["intrinsics /cam0"]
+    A = _rt_columns(terms, x, idx)["intrinsics /cam0"]
+    C_pred = A @ A.T
+    draws = rng.multivariate_normal(cam.intrinsics, cam.intrinsics_covariance, 60)
+    X = np.array([solve(consider._intrinsics_moved(problem, 1, d - cam.intrinsics), rt_s, rt_b)[0] for d in draws])
+    C_mc = np.cov(X.T)
+    from scipy.stats import chi2
+
+    lo, hi = chi2.ppf([0.025, 0.975], 59) / 59
+    for part in (slice(0, 3), slice(3, 6)):
+        lam, V = np.linalg.eigh(C_pred[part, part])
+        ratio = np.einsum("ia,ij,ja->a", V, C_mc[part, part], V) / lam
+        assert np.all((ratio > lo) & (ratio < hi)), ratio
+    # and it matters: the intrinsics move the camera by more than 0.3 mm here
+    assert np.sqrt(np.linalg.eigvalsh(C_pred[3:, 3:])[-1]) > 3e-4
+
+
+def test_stated_sigmas_out_of_range_are_refused_naming_the_key():
+    from clcgraph.config import ConfigError
+
+    for key in ("board_flatness_m", "lidar_range_offset_m"):
+        with pytest.raises(ConfigError, match=rf"'solve.{key}' must be in \["):
+            Config.from_dict({"solve": {key: -0.001}})
