@@ -138,9 +138,21 @@ class Linearization:
                 self.terms.append((snapshot, cols, group, Ar.T @ Ar, Ar.T @ br, float(br @ br), n))
         self.groups = sorted({t[2] for t in self.terms if t[2] is not None}, key=str)
 
+    def reweighted(self, weights: dict) -> "Linearization":
+        """The same system with groups rescaled (``{group: w}``, w = (old sigma / new sigma)^2):
+        what a fresh linearization at the same values with the new sigmas gives, without
+        evaluating the factors again."""
+        out = object.__new__(Linearization)
+        out.variable_sensors, out.ns, out.local, out.groups = self.variable_sensors, self.ns, self.local, self.groups
+        out.terms = []
+        for snapshot, cols, group, AtA, Atb, btb, rows in self.terms:
+            w = 1.0 if group is None else weights.get(group, 1.0)
+            out.terms.append((snapshot, cols, group, w * AtA, w * Atb, w * btb, rows))
+        return out
+
     def _batches(self):
         """The normal equations split by group, so reweighting is a weighted sum, built once:
-        [(snapshots, n, M (K*n*n, G), v (K*n, G), btb (G,K), rows (G,K))] per size of the
+        [(snapshots, n, M (K*n*n, G), v (K*n, G), M^T, v^T, btb (G,K), rows (G,K))] per size of the
         snapshots' locals (n = sensors + locals; M, v scipy.sparse: a group touches one
         sensor's, one board's and one D's columns), and the sensor-only (groups, M0 (G,ns,ns),
         v0 (G,ns), btb (G,), rows (G,)) of the factors no snapshot holds."""
@@ -185,7 +197,7 @@ class Linearization:
                                shape=(len(ks) * n * n, len(groups)))  # duplicates summed
                 v = csr_matrix((np.concatenate(e[5]), (np.concatenate(e[3]), np.concatenate(e[4]))),
                                shape=(len(ks) * n, len(groups)))
-                batches.append((ks, n, M, v, btb[size], rows[size]))
+                batches.append((ks, n, M, v, M.T.tocsr(), v.T.tocsr(), btb[size], rows[size]))  # .T once: it copies
             self._batch_cache = (groups, batches, (M0, v0, btb0, rows0))
         return self._batch_cache
 
@@ -214,7 +226,7 @@ class Linearization:
         wv = self._weights(groups, weights or {})
         S, r = np.einsum("g,gij->ij", wv, M0g), wv @ v0g
         parts = {}
-        for ks, n, Mg, vg, _, _ in batches:
+        for ks, n, Mg, vg, *_ in batches:
             S_k, r_k, _, _, _ = self._eliminate((Mg @ wv).reshape(len(ks), n, n), (vg @ wv).reshape(len(ks), n))
             parts.update({k: (S_k[b], r_k[b]) for b, k in enumerate(ks)})
         S = S + sum((p[0] for p in parts.values()), np.zeros_like(S))
@@ -233,7 +245,7 @@ class Linearization:
         wv = self._weights(groups, weights)
         S, r = np.einsum("g,gij->ij", wv, M0g), wv @ v0g
         logdet, solved = 0.0, []
-        for ks, n, Mg, vg, _, _ in batches:
+        for ks, n, Mg, vg, *_ in batches:
             M, v = (Mg @ wv).reshape(len(ks), n, n), (vg @ wv).reshape(len(ks), n)
             S_k, r_k, iL, B, ld = self._eliminate(M, v)
             logdet += float(np.sum(ld))
@@ -245,16 +257,16 @@ class Linearization:
         q = np.einsum("gi,i->g", np.einsum("gij,j->gi", M0g, dx_s), dx_s) - 2 * v0g @ dx_s + btb0
         tr = np.einsum("gij,ij->g", M0g, Css) if trace else np.zeros(len(groups))
         nrows = rows0.copy()
-        for (ks, n, Mg, vg, btbg, rowsg), (v, B, iL) in zip(batches, solved):
+        for (ks, n, _, _, MgT, vgT, btbg, rowsg), (v, B, iL) in zip(batches, solved):
             dx_l = np.einsum("kij,kj->ki", iL, v[:, ns:] - np.einsum("kji,j->ki", B, dx_s))
             x = np.concatenate([np.broadcast_to(dx_s, (len(dx_l), ns)), dx_l], axis=1)
-            q = q + Mg.T @ (x[:, :, None] * x[:, None, :]).ravel() - 2 * (vg.T @ x.ravel()) + np.sum(btbg, axis=1)
+            q = q + MgT @ (x[:, :, None] * x[:, None, :]).ravel() - 2 * (vgT @ x.ravel()) + np.sum(btbg, axis=1)
             if trace:  # each snapshot's covariance over [sensors, its locals]
                 C_ls = -iL @ B.transpose(0, 2, 1) @ Css
                 C = np.empty((len(ks), n, n))
                 C[:, :ns, :ns], C[:, ns:, :ns], C[:, :ns, ns:] = Css, C_ls, C_ls.transpose(0, 2, 1)
                 C[:, ns:, ns:] = iL - C_ls @ B @ iL
-                tr = tr + Mg.T @ C.ravel()
+                tr = tr + MgT @ C.ravel()
             nrows = nrows + np.sum(rowsg, axis=1)
         q, tr = wv * q, wv * tr
         m2l = logdet + float(np.sum(q)) - float(np.sum(nrows[1:] * np.log(wv[1:])))
