@@ -101,6 +101,16 @@ def _pnp(corners_px, sensor, board, max_px: float):
     return rt
 
 
+def _turn(board, perm: np.ndarray) -> np.ndarray:
+    """rt_board_turned: the in-plane turn of the grid that maps each corner to the one ``perm``
+    puts in its place (``corners[perm] = transform(rt, corners)``; exact for the orderings of
+    corner_orderings, which permute the grid onto itself)."""
+    c = board.corners()
+    a, b = c - c.mean(axis=0), c[perm] - c[perm].mean(axis=0)
+    R = _procrustes(b, a)
+    return rt_from_R_t(R, c[perm].mean(axis=0) - R @ c.mean(axis=0))
+
+
 def _board_centre(board) -> np.ndarray:
     xmin, xmax, ymin, ymax = board.extent()
     return np.array([(xmin + xmax) / 2, (ymin + ymax) / 2, 0.0])
@@ -113,17 +123,16 @@ def _reduce(problem: Problem, options) -> tuple[list[_Obs], list[Rejected]]:
         out.append(_Obs(o.sensor, o.snapshot, n, d, np.asarray(o.points, float).mean(axis=0), None))
     centre = _board_centre(problem.board)
     orders = corner_orderings(problem.board)
+    turns = [(perm, _turn(problem.board, perm)) for perm in orders[1:]]
     for o in problem.camera_observations:
         s = problem.sensors[o.sensor]
         rt = _pnp(o.corners_px, s, problem.board, options.seed_max_corner_px)
         if isinstance(rt, str):
             rejected.append(Rejected(rt, "seed", o.sensor, o.snapshot))
             continue
-        alts = [(orders[0], rt)]
-        for perm in orders[1:]:
-            alt = _pnp(np.asarray(o.corners_px)[perm], s, problem.board, options.seed_max_corner_px)
-            if not isinstance(alt, str):
-                alts.append((perm, alt))
+        # the grid's other orderings are the same board pose turned in its plane (no PnP each):
+        # it fits their corners exactly as well as this one fits its own
+        alts = [(orders[0], rt)] + [(perm, compose_rt(rt, rt_turn)) for perm, rt_turn in turns]
         R, t = R_from_r(rt[:3]), rt[3:]
         n = R[:, 2]
         d = float(n @ t)
