@@ -31,7 +31,7 @@ import time
 import numpy as np
 
 from ..errors import DegenerateError, SolveError
-from ..geometry import R_from_r, drt_dxi, rt_from_pose3, tangent_covariance_from_rt
+from ..geometry import R_from_r, drt_dxi, pose3_from_rt, rt_from_pose3, tangent_covariance_from_rt
 from ..types import Problem, Rejected, Result
 from . import consistency
 from . import graph as G
@@ -232,11 +232,12 @@ def _deleted_z(problem, active, rt_sensor, rt_board, k, kind, j, sig_l, sig_c, o
         return float("inf")
     b = rt_board.copy()
     b[k] = rt_from_pose3(out.atPose3(G.board_key(k)))
-    lid, cam = G.residuals(problem, rt_sensor, b)
+    poses = [None if i == problem.reference else pose3_from_rt(rt_sensor[i]) for i in range(len(problem.sensors))]
+    r = G.residual_of(problem, kind, j, poses, b)  # this observation's alone: not every snapshot's
     if kind == "lidar":
-        r = lid[j][active.lidar[j]]
+        r = r[active.lidar[j]]
         return float(np.sqrt(np.mean(r**2)) / G.sigma_of(sig_l, problem.lidar_observations[j].sensor))
-    r = cam[j][active.camera[j]].ravel()
+    r = r[active.camera[j]].ravel()
     return float(np.sqrt(np.mean(r**2)) / G.sigma_of(sig_c, problem.camera_observations[j].sensor))
 
 
