@@ -20,15 +20,11 @@ _SMALL = 1e-7
 def skew(v: np.ndarray) -> np.ndarray:
     """(...,3) -> (...,3,3) cross-product matrix: skew(a) @ b == cross(a, b)."""
     v = np.asarray(v, dtype=float)
-    z = np.zeros(v.shape[:-1])
-    return np.stack(
-        [
-            np.stack([z, -v[..., 2], v[..., 1]], -1),
-            np.stack([v[..., 2], z, -v[..., 0]], -1),
-            np.stack([-v[..., 1], v[..., 0], z], -1),
-        ],
-        -2,
-    )
+    K = np.zeros(v.shape[:-1] + (3, 3))  # filled in place: np.stack costs more than the rest of R_from_r
+    K[..., 0, 1], K[..., 0, 2] = -v[..., 2], v[..., 1]
+    K[..., 1, 0], K[..., 1, 2] = v[..., 2], -v[..., 0]
+    K[..., 2, 0], K[..., 2, 1] = -v[..., 1], v[..., 0]
+    return K
 
 
 def R_from_r(r: np.ndarray) -> np.ndarray:
@@ -38,9 +34,9 @@ def R_from_r(r: np.ndarray) -> np.ndarray:
     th = np.sqrt(th2)
     K = skew(r)
     small = th2 < _SMALL**2
-    with np.errstate(invalid="ignore", divide="ignore"):
-        a = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / np.where(small, 1, th))
-        b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / np.where(small, 1, th2))
+    with np.errstate(invalid="ignore"):  # non-finite r: NaN out, quietly
+        a = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / np.where(small, 1.0, th))
+        b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / np.where(small, 1.0, th2))
     return np.eye(3) + a * K + b * (K @ K)
 
 

@@ -148,14 +148,22 @@ def residuals(problem: Problem, rt_sensor: np.ndarray, rt_board: np.ndarray, *, 
              camera: list of (K,2) px or None).
     """
     poses = [None if i == problem.reference else pose3_from_rt(rt_sensor[i]) for i in range(len(problem.sensors))]
-    fn = lidar_plane_residuals if lidar == "plane" else lidar_range_residuals
-    lid, cam = [], []
-    for o in problem.lidar_observations:
-        b = rt_board[o.snapshot]
-        lid.append(fn(poses[o.sensor], pose3_from_rt(b), o.points) if np.all(np.isfinite(b)) else None)
-    for o in problem.camera_observations:
-        b = rt_board[o.snapshot]
-        s = problem.sensors[o.sensor]
-        cam.append(camera_corners_residuals(poses[o.sensor], pose3_from_rt(b), o.corners_px, s.lensmodel,
-                                            s.intrinsics, problem.board) if np.all(np.isfinite(b)) else None)
+    lid = [residual_of(problem, "lidar", j, poses, rt_board, lidar=lidar) for j in range(len(problem.lidar_observations))]
+    cam = [residual_of(problem, "camera", j, poses, rt_board) for j in range(len(problem.camera_observations))]
     return lid, cam
+
+
+def residual_of(problem: Problem, kind: str, j: int, poses: list, rt_board: np.ndarray, *, lidar: str = "range"):
+    """Unwhitened residuals of observation j of ``kind`` ("lidar": (K,) m, "camera": (K,2) px)
+    at the sensor ``poses`` (gtsam.Pose3 per sensor, None for lidar0); None where its board
+    pose is unknown."""
+    o = (problem.lidar_observations if kind == "lidar" else problem.camera_observations)[j]
+    b = rt_board[o.snapshot]
+    if not np.all(np.isfinite(b)):
+        return None
+    if kind == "lidar":
+        fn = lidar_plane_residuals if lidar == "plane" else lidar_range_residuals
+        return fn(poses[o.sensor], pose3_from_rt(b), o.points)
+    s = problem.sensors[o.sensor]
+    return camera_corners_residuals(poses[o.sensor], pose3_from_rt(b), o.corners_px, s.lensmodel, s.intrinsics,
+                                    problem.board)

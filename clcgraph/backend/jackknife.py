@@ -41,7 +41,7 @@ _MIN_SNAPSHOTS = 4  # fewer: the spread says nothing
 def _axes(C_model: np.ndarray, C_jk: np.ndarray, scale: float, expected_var) -> dict:
     """Per principal axis of C_model: the sigmas, their ratio, and the ratio the model expects:
     ``expected_var(V)`` gives, per column of V, (E, Var) of the jackknife variance along it."""
-    from scipy.stats import chi2
+    from scipy.special import gammaincinv  # not scipy.stats: 1-2 s to import
 
     lam, V = np.linalg.eigh(C_model)
     V = V * np.sign(V[np.argmax(np.abs(V), axis=0), np.arange(3)])  # each axis' largest component positive
@@ -51,7 +51,8 @@ def _axes(C_model: np.ndarray, C_jk: np.ndarray, scale: float, expected_var) -> 
     dof = 2 * E**2 / np.maximum(var, 1e-300)  # Satterthwaite: the jackknife variance ~ E chi2_dof / dof
     safe = np.where(model > 0, model, 1.0)
     centre = np.sqrt(E) / safe
-    q = np.stack([chi2.ppf(0.025, dof), chi2.ppf(0.975, dof)], axis=1) / dof[:, None]
+    with np.errstate(invalid="ignore"):  # chi2.ppf's own formula; NaN where dof is not positive
+        q = np.stack([np.where(dof > 0, 2 * gammaincinv(dof / 2, p), np.nan) for p in (0.025, 0.975)], axis=1) / dof[:, None]
     return {"axes": V.T, "model": model * scale, "jackknife": jk * scale,
             "ratio": np.where(model > 0, jk / safe, np.nan), "dof": dof,
             "expected": centre, "expected_95": centre[:, None] * np.sqrt(q)}
@@ -85,18 +86,30 @@ def jackknife(problem, lin, rt_lidar0_sensor: np.ndarray, covariance_rt: np.ndar
     dX = X - X.mean(axis=0)
     C_jk = (n - 1) / n * dX.T @ dX
     # If the model is right, the move k is sum_j T_kj r_j over the independent parts r_j ~ N(0, S_j)
-    # (every snapshot, and the rest S_0 that is never left out): T_kj = A_k, T_kk = -S^-1.
-    js = sorted(parts)
-    S_j = np.array([parts[j][0] for j in js] + [S - sum(parts[j][0] for j in js)])
-    T = np.array([[-Si if j == k else A[k] for j in [*js, None]] for k in ks])  # (n, m, ns, ns)
-    D = T - T.mean(axis=0)  # of the deviations from the mean move
+    # (every snapshot, and the rest that is never left out; they sum to S): T_kj = A_k, T_kk = -S^-1.
+    # Along a tangent direction u, with b_k = u'A_k, c = u'S^-1, beta_k = b_k - mean(b) and
+    # gamma_k = (b_k + c) / n, the deviation from the mean move is a_kj = beta_k + gamma_j - [j = k] n gamma_k
+    # (gamma_j = 0 for the parts never left out), so cov(a_k r, a_l r) = sum_j a_kj S_j a_lj' takes
+    # O(n^2) products of ns-vectors: no (n, n, ns, ns) tensor.
+    A = np.array([A[k] for k in ks])  # (n, ns, ns)
+    S_k = np.array([parts[k][0] for k in ks])
 
     def expected_var(W):  # W (ns, a): directions in rt -> (E, Var) of the jackknife variance along each
-        a = np.ascontiguousarray(np.tensordot(D, J.T @ W, axes=([2], [0])).transpose(3, 0, 1, 2))  # (a,k,j,x)
-        na, m = a.shape[0], a.shape[2]
-        aS = (a.transpose(2, 0, 1, 3).reshape(m, na * n, -1) @ S_j).reshape(m, na, n, -1).transpose(1, 2, 0, 3)
-        flat = a.reshape(na, n, -1)
-        cov = (n - 1) / n * (aS.reshape(na, n, -1) @ flat.transpose(0, 2, 1))  # of the moves along w, (a,k,l)
+        U = J.T @ W  # tangent
+        b = np.einsum("xa,kxy->aky", U, A)  # (a, n, ns)
+        c = U.T @ Si  # (a, ns)
+        beta = b - b.mean(axis=1, keepdims=True)
+        gamma = (b + c[:, None, :]) / n
+        g = np.einsum("kxy,aky->akx", S_k, gamma)  # S_k gamma_k
+        e = np.einsum("akx,akx->ak", gamma, g)
+        h = g.sum(axis=1)  # sum_j S_j gamma_j, (a, ns)
+        p = e.sum(axis=1)  # sum_j gamma_j S_j gamma_j
+        bh = np.einsum("akx,ax->ak", beta, h)
+        cross = beta @ g.transpose(0, 2, 1)  # beta_k . g_l
+        cov = (beta @ S @ beta.transpose(0, 2, 1) + bh[:, :, None] + bh[:, None, :] + p[:, None, None]
+               - n * (cross + cross.transpose(0, 2, 1)) - n * (e[:, :, None] + e[:, None, :])
+               + n**2 * e[:, :, None] * np.eye(n))
+        cov = (n - 1) / n * cov  # of the moves' deviations along each direction, (a, k, l)
         return np.einsum("akk->a", cov), 2 * np.einsum("akl,alk->a", cov, cov)
 
     sensors, worst = {}, None

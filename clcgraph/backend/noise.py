@@ -138,117 +138,139 @@ class Linearization:
                 self.terms.append((snapshot, cols, group, Ar.T @ Ar, Ar.T @ br, float(br @ br), n))
         self.groups = sorted({t[2] for t in self.terms if t[2] is not None}, key=str)
 
-    def _by_group(self):
-        """{snapshot or None: {group: (M, v)}}, M, v over [sensors, the snapshot's locals]: the
-        normal equations split by group, so reweighting is a weighted sum (computed once)."""
-        if getattr(self, "_groups_cache", None) is None:
-            out: dict = {}
-            for snapshot, cols, group, AtA, Atb, btb, rows in self.terms:
-                n = self.ns + (6 * len(self.local[snapshot]) if snapshot is not None else 0)
-                acc = out.setdefault(snapshot, {}).setdefault(group, [np.zeros((n, n)), np.zeros(n), 0.0, 0])
-                acc[0][np.ix_(cols, cols)] += AtA
-                acc[1][cols] += Atb
-                acc[2] += btb
-                acc[3] += rows
-            self._groups_cache = out
-        return self._groups_cache
+    def reweighted(self, weights: dict) -> "Linearization":
+        """The same system with groups rescaled (``{group: w}``, w = (old sigma / new sigma)^2):
+        what a fresh linearization at the same values with the new sigmas gives, without
+        evaluating the factors again."""
+        out = object.__new__(Linearization)
+        out.variable_sensors, out.ns, out.local, out.groups = self.variable_sensors, self.ns, self.local, self.groups
+        out.terms = []
+        for snapshot, cols, group, AtA, Atb, btb, rows in self.terms:
+            w = 1.0 if group is None else weights.get(group, 1.0)
+            out.terms.append((snapshot, cols, group, w * AtA, w * Atb, w * btb, rows))
+        return out
 
-    def _blocks(self, weights):
-        """Per snapshot (M, v) over [sensors, its locals]; and the sensor-only (M0, v0)."""
-        blocks = {}
-        for snapshot, parts in self._by_group().items():
-            blocks[snapshot] = (sum(weights.get(g, 1.0) * p[0] for g, p in parts.items()),
-                                sum(weights.get(g, 1.0) * p[1] for g, p in parts.items()))
-        M0, v0 = blocks.pop(None, (np.zeros((self.ns, self.ns)), np.zeros(self.ns)))
-        return M0, v0, blocks
+    def _batches(self):
+        """The normal equations split by group, so reweighting is a weighted sum, built once:
+        [(snapshots, n, M (K*n*n, G), v (K*n, G), M^T, v^T, btb (G,K), rows (G,K))] per size of the
+        snapshots' locals (n = sensors + locals; M, v scipy.sparse: a group touches one
+        sensor's, one board's and one D's columns), and the sensor-only (groups, M0 (G,ns,ns),
+        v0 (G,ns), btb (G,), rows (G,)) of the factors no snapshot holds."""
+        if getattr(self, "_batch_cache", None) is None:
+            from scipy.sparse import csr_matrix
 
-    def _schur(self, M, v):
-        """This snapshot's contribution to the sensor-only information and vector, the inverse of
-        its local block and that block's log-determinant."""
+            ns = self.ns
+            groups = [None, *self.groups]
+            gi = {g: a for a, g in enumerate(groups)}
+            by_size: dict = {}
+            for k in sorted(self.local):
+                by_size.setdefault(len(self.local[k]), []).append(k)
+            where = {k: (size, b) for size, ks in by_size.items() for b, k in enumerate(ks)}
+            entries = {size: ([], [], [], [], [], []) for size in by_size}  # M rows, cols, values; v rows, cols, values
+            btb = {size: np.zeros((len(groups), len(ks))) for size, ks in by_size.items()}
+            rows = {size: np.zeros((len(groups), len(ks))) for size, ks in by_size.items()}
+            M0, v0 = np.zeros((len(groups), ns, ns)), np.zeros((len(groups), ns))
+            btb0, rows0 = np.zeros(len(groups)), np.zeros(len(groups))
+            for snapshot, cols, group, AtA, Atb, bb, nrows in self.terms:
+                a = gi[group]
+                if snapshot is None:
+                    M0[a][np.ix_(cols, cols)] += AtA
+                    v0[a][cols] += Atb
+                    btb0[a] += bb
+                    rows0[a] += nrows
+                    continue
+                size, b = where[snapshot]
+                n = ns + 6 * size
+                e = entries[size]
+                e[0].append(((b * n + cols[:, None]) * n + cols[None, :]).ravel())
+                e[1].append(np.full(AtA.size, a))
+                e[2].append(AtA.ravel())
+                e[3].append(b * n + cols)
+                e[4].append(np.full(len(cols), a))
+                e[5].append(Atb)
+                btb[size][a, b] += bb
+                rows[size][a, b] += nrows
+            batches = []
+            for size, ks in sorted(by_size.items()):
+                n, e = ns + 6 * size, entries[size]
+                M = csr_matrix((np.concatenate(e[2]), (np.concatenate(e[0]), np.concatenate(e[1]))),
+                               shape=(len(ks) * n * n, len(groups)))  # duplicates summed
+                v = csr_matrix((np.concatenate(e[5]), (np.concatenate(e[3]), np.concatenate(e[4]))),
+                               shape=(len(ks) * n, len(groups)))
+                batches.append((ks, n, M, v, M.T.tocsr(), v.T.tocsr(), btb[size], rows[size]))  # .T once: it copies
+            self._batch_cache = (groups, batches, (M0, v0, btb0, rows0))
+        return self._batch_cache
+
+    def _weights(self, groups, weights) -> np.ndarray:
+        return np.array([1.0 if g is None else weights.get(g, 1.0) for g in groups])
+
+    def _eliminate(self, M, v):
+        """The snapshots' locals out of stacked (K,n,n), (K,n): (their sum of the sensor-only
+        information and vector, the locals' inverses iL (K,nl,nl), B = M[:, :ns, ns:], the
+        locals' log-determinants summed). Jacobi-scaled like _inv (scales span 1e-8..1e10)."""
         ns = self.ns
-        L = M[ns:, ns:]
-        iL = _inv(L)
-        K = M[:ns, ns:] @ iL
-        return M[:ns, :ns] - K @ M[ns:, :ns], v[:ns] - K @ v[ns:], iL, _logdet(L)
+        L, B = M[:, ns:, ns:], M[:, :ns, ns:]
+        d = 1.0 / np.sqrt(np.diagonal(L, axis1=1, axis2=2))
+        Ls = d[:, :, None] * L * d[:, None, :]
+        logdet = 2 * np.sum(np.log(np.diagonal(np.linalg.cholesky(Ls), axis1=1, axis2=2)), axis=1) - 2 * np.sum(np.log(d), axis=1)
+        iL = d[:, :, None] * np.linalg.inv(Ls) * d[:, None, :]
+        K = B @ iL
+        S_k = M[:, :ns, :ns] - K @ B.transpose(0, 2, 1)
+        r_k = v[:, :ns] - np.einsum("kij,kj->ki", K, v[:, ns:])
+        return S_k, r_k, iL, B, logdet
 
     def reduced(self, weights=None):
         """(S, r, {snapshot: (S_k, r_k)}): sensor-only normal equations S dx = r, the boards and
         D marginalized out (Schur), and each snapshot's share of them."""
-        M0, v0, blocks = self._blocks(weights or {})
-        parts = {k: self._schur(M, v)[:2] for k, (M, v) in blocks.items()}
-        S = M0 + sum((p[0] for p in parts.values()), np.zeros_like(M0))
-        r = v0 + sum((p[1] for p in parts.values()), np.zeros_like(v0))
+        groups, batches, (M0g, v0g, _, _) = self._batches()
+        wv = self._weights(groups, weights or {})
+        S, r = np.einsum("g,gij->ij", wv, M0g), wv @ v0g
+        parts = {}
+        for ks, n, Mg, vg, *_ in batches:
+            S_k, r_k, _, _, _ = self._eliminate((Mg @ wv).reshape(len(ks), n, n), (vg @ wv).reshape(len(ks), n))
+            parts.update({k: (S_k[b], r_k[b]) for b, k in enumerate(ks)})
+        S = S + sum((p[0] for p in parts.values()), np.zeros_like(S))
+        r = r + sum((p[1] for p in parts.values()), np.zeros_like(r))
         return S, r, parts
-
-    def _batches(self):
-        """The per-group normal equations stacked over the snapshots whose locals have the same
-        size, for solve_and_trace: [(groups, M (G,K,n,n), v (G,K,n), btb (G,K), rows (G,K))],
-        and the sensor-only (groups, M0 (G,ns,ns), v0 (G,ns), btb (G,), rows (G,))."""
-        if getattr(self, "_batch_cache", None) is None:
-            parts = self._by_group()
-            groups = [None, *self.groups]
-            by_size: dict = {}
-            for k in parts:
-                if k is not None:
-                    by_size.setdefault(len(self.local[k]), []).append(k)
-            batches = []
-            for size, ks in sorted(by_size.items()):
-                n = self.ns + 6 * size
-                M, v = np.zeros((len(groups), len(ks), n, n)), np.zeros((len(groups), len(ks), n))
-                btb, rows = np.zeros((len(groups), len(ks))), np.zeros((len(groups), len(ks)))
-                for a, g in enumerate(groups):
-                    for b, k in enumerate(ks):
-                        if g in parts[k]:
-                            M[a, b], v[a, b], btb[a, b], rows[a, b] = parts[k][g]
-                batches.append((M, v, btb, rows))
-            ns, G0 = self.ns, parts.get(None, {})
-            zero = (np.zeros((ns, ns)), np.zeros(ns), 0.0, 0)
-            sensor_only = tuple(np.array([G0.get(g, zero)[i] for g in groups], float) for i in range(4))
-            self._batch_cache = (groups, batches, sensor_only)
-        return self._batch_cache
 
     def solve_and_trace(self, weights, trace: bool = True):
         """(stats, m2l): per group, (n rows, v^T W v at the step's solution, tr(W A Cov A^T)) for
         VCE (the trace 0 unless ``trace``); and -2 log of the restricted (REML) likelihood of the
         weights, up to a constant: ``-sum_g n_g log w_g + log det N + v^T W v`` (N the normal
         matrix of every variable; the D's are the random effects, their priors the rows of G^-1).
-        Vectorized over the snapshots (their local blocks stacked by size)."""
+        Vectorized over the snapshots (their local blocks stacked by size): per group, v^T W v
+        and the trace are the group's (sparse) normal matrix against x x^T and the covariance."""
         ns = self.ns
         groups, batches, (M0g, v0g, btb0, rows0) = self._batches()
-        wv = np.array([1.0 if g is None else weights.get(g, 1.0) for g in groups])
+        wv = self._weights(groups, weights)
         S, r = np.einsum("g,gij->ij", wv, M0g), wv @ v0g
         logdet, solved = 0.0, []
-        for Mg, vg, _, _ in batches:
-            M, v = np.einsum("g,gkij->kij", wv, Mg), np.einsum("g,gki->ki", wv, vg)
-            L, B = M[:, ns:, ns:], M[:, :ns, ns:]
-            d = 1.0 / np.sqrt(np.diagonal(L, axis1=1, axis2=2))
-            Ls = d[:, :, None] * L * d[:, None, :]
-            logdet += float(2 * np.sum(np.log(np.diagonal(np.linalg.cholesky(Ls), axis1=1, axis2=2))) - 2 * np.sum(np.log(d)))
-            iL = d[:, :, None] * np.linalg.inv(Ls) * d[:, None, :]
-            K = B @ iL
-            S = S + np.sum(M[:, :ns, :ns] - K @ B.transpose(0, 2, 1), axis=0)
-            r = r + np.sum(v[:, :ns] - np.einsum("kij,kj->ki", K, v[:, ns:]), axis=0)
-            solved.append((M, v, B, iL))
+        for ks, n, Mg, vg, *_ in batches:
+            M, v = (Mg @ wv).reshape(len(ks), n, n), (vg @ wv).reshape(len(ks), n)
+            S_k, r_k, iL, B, ld = self._eliminate(M, v)
+            logdet += float(np.sum(ld))
+            S, r = S + np.sum(S_k, axis=0), r + np.sum(r_k, axis=0)
+            solved.append((v, B, iL))
         Css = _inv(S) if ns else np.zeros((0, 0))
         logdet += _logdet(S) if ns else 0.0
         dx_s = Css @ r
-        q = np.einsum("i,gij,j->g", dx_s, M0g, dx_s, optimize=True) - 2 * v0g @ dx_s + btb0
+        q = np.einsum("gi,i->g", np.einsum("gij,j->gi", M0g, dx_s), dx_s) - 2 * v0g @ dx_s + btb0
         tr = np.einsum("gij,ij->g", M0g, Css) if trace else np.zeros(len(groups))
-        n = rows0.copy()
-        for (Mg, vg, btbg, rowsg), (M, v, B, iL) in zip(batches, solved):
+        nrows = rows0.copy()
+        for (ks, n, _, _, MgT, vgT, btbg, rowsg), (v, B, iL) in zip(batches, solved):
             dx_l = np.einsum("kij,kj->ki", iL, v[:, ns:] - np.einsum("kji,j->ki", B, dx_s))
             x = np.concatenate([np.broadcast_to(dx_s, (len(dx_l), ns)), dx_l], axis=1)
-            q = q + np.sum(np.einsum("ki,gkij,kj->gk", x, Mg, x, optimize=True) - 2 * np.einsum("gki,ki->gk", vg, x) + btbg, axis=1)
-            if trace:
+            q = q + MgT @ (x[:, :, None] * x[:, None, :]).ravel() - 2 * (vgT @ x.ravel()) + np.sum(btbg, axis=1)
+            if trace:  # each snapshot's covariance over [sensors, its locals]
                 C_ls = -iL @ B.transpose(0, 2, 1) @ Css
-                C_ll = iL - C_ls @ B @ iL
-                tr = tr + np.einsum("gkij,kij->g", Mg[:, :, :ns, :ns], np.broadcast_to(Css, (len(x), ns, ns))) \
-                    + 2 * np.einsum("gkij,kij->g", Mg[:, :, ns:, :ns], C_ls) \
-                    + np.einsum("gkij,kij->g", Mg[:, :, ns:, ns:], C_ll)
-            n = n + np.sum(rowsg, axis=1)
+                C = np.empty((len(ks), n, n))
+                C[:, :ns, :ns], C[:, ns:, :ns], C[:, :ns, ns:] = Css, C_ls, C_ls.transpose(0, 2, 1)
+                C[:, ns:, ns:] = iL - C_ls @ B @ iL
+                tr = tr + MgT @ C.ravel()
+            nrows = nrows + np.sum(rowsg, axis=1)
         q, tr = wv * q, wv * tr
-        m2l = logdet + float(np.sum(q)) - float(np.sum(n[1:] * np.log(wv[1:])))
-        out = {g: [int(n[a]), float(q[a]), float(tr[a])] for a, g in enumerate(groups) if g is not None}
+        m2l = logdet + float(np.sum(q)) - float(np.sum(nrows[1:] * np.log(wv[1:])))
+        out = {g: [int(nrows[a]), float(q[a]), float(tr[a])] for a, g in enumerate(groups) if g is not None}
         return out, m2l
 
 

@@ -101,6 +101,16 @@ def _pnp(corners_px, sensor, board, max_px: float):
     return rt
 
 
+def _turn(board, perm: np.ndarray) -> np.ndarray:
+    """rt_board_turned: the in-plane turn of the grid that maps each corner to the one ``perm``
+    puts in its place (``corners[perm] = transform(rt, corners)``; exact for the orderings of
+    corner_orderings, which permute the grid onto itself)."""
+    c = board.corners()
+    a, b = c - c.mean(axis=0), c[perm] - c[perm].mean(axis=0)
+    R = _procrustes(b, a)
+    return rt_from_R_t(R, c[perm].mean(axis=0) - R @ c.mean(axis=0))
+
+
 def _board_centre(board) -> np.ndarray:
     xmin, xmax, ymin, ymax = board.extent()
     return np.array([(xmin + xmax) / 2, (ymin + ymax) / 2, 0.0])
@@ -113,17 +123,16 @@ def _reduce(problem: Problem, options) -> tuple[list[_Obs], list[Rejected]]:
         out.append(_Obs(o.sensor, o.snapshot, n, d, np.asarray(o.points, float).mean(axis=0), None))
     centre = _board_centre(problem.board)
     orders = corner_orderings(problem.board)
+    turns = [(perm, _turn(problem.board, perm)) for perm in orders[1:]]
     for o in problem.camera_observations:
         s = problem.sensors[o.sensor]
         rt = _pnp(o.corners_px, s, problem.board, options.seed_max_corner_px)
         if isinstance(rt, str):
             rejected.append(Rejected(rt, "seed", o.sensor, o.snapshot))
             continue
-        alts = [(orders[0], rt)]
-        for perm in orders[1:]:
-            alt = _pnp(np.asarray(o.corners_px)[perm], s, problem.board, options.seed_max_corner_px)
-            if not isinstance(alt, str):
-                alts.append((perm, alt))
+        # the grid's other orderings are the same board pose turned in its plane (no PnP each):
+        # it fits their corners exactly as well as this one fits its own
+        alts = [(orders[0], rt)] + [(perm, compose_rt(rt, rt_turn)) for perm, rt_turn in turns]
         R, t = R_from_r(rt[:3]), rt[3:]
         n = R[:, 2]
         d = float(n @ t)
@@ -259,38 +268,38 @@ def _board_from_plane(o: _Obs, rt_sensor: np.ndarray, board) -> np.ndarray:
     return rt_from_R_t(R, c - R @ _board_centre(board))
 
 
-def _disagreement(o: _Obs, rt_board: np.ndarray, rt_sensor: np.ndarray, problem: Problem, options) -> str | None:
-    """Why observation ``o`` disagrees with the board pose rt_lidar0_board, or None."""
-    rt_sb = compose_rt(invert_rt(rt_sensor), rt_board)
-    R, t = R_from_r(rt_sb[:3]), rt_sb[3:]
-    n = R[:, 2]
-    ang = np.degrees(np.arccos(min(1.0, abs(float(n @ o.n)))))
-    if ang > options.seed_max_normal_deg:
-        return f"board normal {ang:.1f} deg off the other sensors' (> seed_max_normal_deg)"
-    off = abs(float(n @ (o.centroid - t)))
-    if off > options.seed_max_center_m:
-        return f"board plane {off:.2f} m off the other sensors' (> seed_max_center_m)"
+def _disagreements(o: _Obs, cands: np.ndarray, rt_sensor: np.ndarray, problem: Problem, options) -> list:
+    """Per candidate board pose rt_lidar0_board (cands (C,6)): (why observation ``o``
+    disagrees with it, or None; the corner permutation of the camera ordering that agrees
+    when it is not the detection's own, else None). Every candidate at once: the seed weighs
+    each snapshot's candidates against each of its observations."""
+    rt_sb = compose_rt(invert_rt(rt_sensor), cands)  # (C,6)
+    R, t = R_from_r(rt_sb[:, :3]), rt_sb[:, 3:]
+    n = R[:, :, 2]
+    ang = np.degrees(np.arccos(np.minimum(1.0, np.abs(n @ o.n))))
+    off = np.abs(np.einsum("ci,ci->c", n, o.centroid - t))
+    err = None
     if o.rt_sensor_board is not None:
         s = problem.sensors[o.sensor]
         c = problem.board.corners()
-        pred = cameras.project(transform(rt_sb, c), s.lensmodel, s.intrinsics)
-        obs = cameras.project(transform(o.rt_sensor_board, c), s.lensmodel, s.intrinsics)
-        err = float(np.nanmax(np.linalg.norm(pred - obs, axis=1)))
-        if not err <= options.seed_max_corner_px:
-            return f"corners {err:.1f} px off the other sensors' board pose (> seed_max_corner_px)"
-    return None
-
-
-def _agreeing_ordering(o: _Obs, rt_board, rt_sensor, problem: Problem, options):
-    """(why ``o`` disagrees with board pose rt_lidar0_board, or None; the corner permutation
-    of the camera ordering that agrees when it is not the detection's own, else None)."""
-    why = _disagreement(o, rt_board, rt_sensor, problem, options)
-    if not why or len(o.alts) < 2:
-        return why, None
-    for perm, rt in o.alts[1:]:
-        if _disagreement(o._replace(rt_sensor_board=rt), rt_board, rt_sensor, problem, options) is None:
-            return None, perm
-    return why, None
+        pred = cameras.project(np.einsum("cij,nj->cni", R, c) + t[:, None, :], s.lensmodel, s.intrinsics)  # (C,N,2)
+        # the corners where each ordering's own board pose puts them (the detection's first)
+        obs = np.array([cameras.project(transform(rt, c), s.lensmodel, s.intrinsics) for _, rt in o.alts])
+        err = np.nanmax(np.linalg.norm(pred[:, None] - obs[None], axis=-1), axis=-1)  # (C, orderings)
+    out = []
+    for j in range(len(cands)):
+        if ang[j] > options.seed_max_normal_deg:
+            out.append((f"board normal {ang[j]:.1f} deg off the other sensors' (> seed_max_normal_deg)", None))
+        elif off[j] > options.seed_max_center_m:
+            out.append((f"board plane {off[j]:.2f} m off the other sensors' (> seed_max_center_m)", None))
+        elif err is None or err[j, 0] <= options.seed_max_corner_px:
+            out.append((None, None))
+        else:  # another ordering of the grid may agree (a camera seeing it turned)
+            turned = next((perm for (perm, _), e in zip(o.alts[1:], err[j, 1:]) if e <= options.seed_max_corner_px),
+                          None)
+            why = f"corners {err[j, 0]:.1f} px off the other sensors' board pose (> seed_max_corner_px)"
+            out.append((None, turned) if turned is not None else (why, None))
+    return out
 
 
 def seed(problem: Problem, options) -> Seed:
@@ -309,11 +318,12 @@ def seed(problem: Problem, options) -> Seed:
         # bad detection loses the vote), each camera in the ordering that agrees
         cands = [compose_rt(rts[o.sensor], rt) for o in group if o.rt_sensor_board is not None for _, rt in o.alts]
         cands += [_board_from_plane(o, rts[o.sensor], problem.board) for o in group if o.rt_sensor_board is None]
+        verdicts = [_disagreements(o, np.array(cands), rts[o.sensor], problem, options) for o in group]
         best, best_bad, best_perm = None, None, None
-        for c in cands:
+        for j, c in enumerate(cands):
             bad, perms = [], {}
-            for o in group:
-                why, perm = _agreeing_ordering(o, c, rts[o.sensor], problem, options)
+            for o, v in zip(group, verdicts):
+                why, perm = v[j]
                 if why:
                     bad.append((o, why))
                 elif perm is not None:

@@ -31,7 +31,7 @@ import time
 import numpy as np
 
 from ..errors import DegenerateError, SolveError
-from ..geometry import R_from_r, drt_dxi, rt_from_pose3, tangent_covariance_from_rt
+from ..geometry import R_from_r, drt_dxi, pose3_from_rt, rt_from_pose3, tangent_covariance_from_rt
 from ..types import Problem, Rejected, Result
 from . import consider, consistency
 from . import graph as G
@@ -232,11 +232,12 @@ def _deleted_z(problem, active, rt_sensor, rt_board, k, kind, j, sig_l, sig_c, o
         return float("inf")
     b = rt_board.copy()
     b[k] = rt_from_pose3(out.atPose3(G.board_key(k)))
-    lid, cam = G.residuals(problem, rt_sensor, b)
+    poses = [None if i == problem.reference else pose3_from_rt(rt_sensor[i]) for i in range(len(problem.sensors))]
+    r = G.residual_of(problem, kind, j, poses, b)  # this observation's alone: not every snapshot's
     if kind == "lidar":
-        r = lid[j][active.lidar[j]]
+        r = r[active.lidar[j]]
         return float(np.sqrt(np.mean(r**2)) / G.sigma_of(sig_l, problem.lidar_observations[j].sensor))
-    r = cam[j][active.camera[j]].ravel()
+    r = r[active.camera[j]].ravel()
     return float(np.sqrt(np.mean(r**2)) / G.sigma_of(sig_c, problem.camera_observations[j].sensor))
 
 
@@ -251,32 +252,37 @@ def _solve_with_effects(problem, active, rt_sensor, rt_board, sig, options, nomi
     """Solve with each observation's own board-pose error D (noise.py): the variance components
     (white sigmas, D's sigmas) by VCE on the linearization at the current solution, then LM
     with them; again from there until they are stable. Returns (rt_sensor, rt_board, sig,
-    effects, (g, values), the LMs' convergence records)."""
+    effects, (g, values), the LMs' convergence records, the noise.Linearization at (g, values) or
+    None if the last round moved the values)."""
     import gtsam
 
     effects = N.initial_effects(problem)
-    values, iters = None, []
+    values, iters, lin = None, [], None
     for rnd in range(_MAX_EFFECT_ROUNDS):
         g, v = G.build(problem, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig, sigma_camera_px=sig,
                        options=options, board_nominal=nominal, effects=N.effect_sigmas(problem, effects),
                        effect_values=values)
         # which components the data show is decided once, on the first linearization
-        new_sig, new_effects, _ = N.estimate_components(problem, N.Linearization(problem, g, v), sig, effects,
-                                                        select=rnd == 0)
+        at = N.Linearization(problem, g, v)
+        new_sig, new_effects, _ = N.estimate_components(problem, at, sig, effects, select=rnd == 0)
         change = max([float(np.max(np.abs(new_sig / sig - 1)))]
                      + [abs(new_effects[i][c] / effects[i][c] - 1) for i in effects for c in effects[i]])
-        sig, effects = new_sig, new_effects
         if change < 0.03 and values is not None:  # weights within 3 %: the estimate stands; the graph
-            g, values = G.build(problem, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig,  # gets them
+            # gets them, at the same values: its linearization is this one reweighted
+            lin = at.reweighted({gr: float((sig[gr[1]] / new_sig[gr[1]]) ** 2) if gr[0] == "white" else
+                                 float((effects[gr[1]][gr[2]] / new_effects[gr[1]][gr[2]]) ** 2) for gr in at.groups})
+            sig, effects = new_sig, new_effects
+            g, values = G.build(problem, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig,
                                 sigma_camera_px=sig, options=options, board_nominal=nominal,
                                 effects=N.effect_sigmas(problem, effects), effect_values=values)
             break
+        sig, effects = new_sig, new_effects
         rt_sensor, rt_board, rec, (g, values) = _lm(problem, active, rt_sensor, rt_board, "range", sig, options,
                                                    nominal, f"observation effects round {rnd}",
                                                    N.effect_sigmas(problem, effects), values, _EFFECT_TOL)
         iters.append(rec)
     log.debug("observation effects: %s", effects)
-    return rt_sensor, rt_board, sig, effects, (g, values), iters
+    return rt_sensor, rt_board, sig, effects, (g, values), iters, lin
 
 
 def _covariance(problem: Problem, g, values, rt_sensor, options) -> np.ndarray:
@@ -386,10 +392,10 @@ def calibrate(problem: Problem, options) -> Result:
         warnings.append(f"the noise re-estimation / outlier rounds did not settle in {_MAX_ROUNDS} rounds "
                         "(the last round's noise and rejections are used)")
 
-    effects = None
+    effects, lin = None, None
     if options.observation_effects:
         t = time.perf_counter()
-        rt_sensor, rt_board, sig, effects, (g, values), recs = _solve_with_effects(
+        rt_sensor, rt_board, sig, effects, (g, values), recs, lin = _solve_with_effects(
             problem, active, rt_sensor, rt_board, sig, options, nominal)
         stages += recs
         iters["effects"] = [r["iterations"] for r in recs]
@@ -399,7 +405,7 @@ def calibrate(problem: Problem, options) -> Result:
     cov = _covariance(problem, g, values, rt_sensor, options)
     times["covariance"] = time.perf_counter() - t
     t = time.perf_counter()
-    lin = N.Linearization(problem, g, values)
+    lin = lin or N.Linearization(problem, g, values)  # the noise components' own, when it is at the final values
     # the jackknife judges the board-to-board part: it cannot see errors fixed for the capture
     jk = jackknife(problem, lin, rt_sensor, cov)
     times["jackknife"] = time.perf_counter() - t

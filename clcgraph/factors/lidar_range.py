@@ -20,12 +20,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..geometry import skew
 from .base import lidar_board_factor
 
 _MIN_COS = np.cos(np.radians(87.0))
 
 
-def _residual(T_sensor, T_board, points: np.ndarray, want: bool):
+def _residual(T_sensor, T_board, points: np.ndarray, want: bool, rng: np.ndarray | None = None):
+    """``rng``: the points' ranges |p|, when the caller keeps them (a factor evaluates many times)."""
     if T_sensor is None:
         R_s, t_s = np.eye(3), np.zeros(3)
     else:
@@ -33,7 +35,7 @@ def _residual(T_sensor, T_board, points: np.ndarray, want: bool):
     R_b, t_b = T_board.rotation().matrix(), T_board.translation()
     n = R_b[:, 2]
     n_s = R_s.T @ n
-    rng = np.linalg.norm(points, axis=1)
+    rng = np.linalg.norm(points, axis=1) if rng is None else rng
     a_raw = points @ n_s
     floor = rng * _MIN_COS
     clamped = np.abs(a_raw) < floor
@@ -56,7 +58,7 @@ def _residual(T_sensor, T_board, points: np.ndarray, want: bool):
     if T_sensor is None:
         return err, [J_b]
     J_s = np.empty((K, 6))
-    J_s[:, :3] = g_a[:, None] * np.cross(points, n_s)  # da/d omega_s = p x n_s
+    J_s[:, :3] = g_a[:, None] * (points @ skew(n_s))  # da/d omega_s = p x n_s (np.cross costs more)
     J_s[:, 3:] = g_b[:, None] * -n_s  # db/d v_s = -n_s
     return err, [J_s, J_b]
 
@@ -70,5 +72,6 @@ def lidar_range_factor(sensor_key: int | None, board_key: int, points_sensor, si
                        effect_key: int | None = None, T_board_centre=None):
     """Range-difference factor of one LIDAR observation of the board, whitened by ``sigma_m``;
     with ``effect_key``, also of that observation's board-pose error D (base.board_perturbed)."""
-    return lidar_board_factor(_residual, sensor_key, board_key, points_sensor, sigma_m, effect_key=effect_key,
-                              T_board_centre=T_board_centre)
+    rng = np.linalg.norm(np.asarray(points_sensor, dtype=float), axis=1)  # once per factor, not per evaluation
+    return lidar_board_factor(lambda T_s, T_b, p, want: _residual(T_s, T_b, p, want, rng), sensor_key, board_key,
+                              points_sensor, sigma_m, effect_key=effect_key, T_board_centre=T_board_centre)

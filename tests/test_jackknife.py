@@ -1,0 +1,70 @@
+"""The jackknife's own prediction (backend/jackknife.py): the mean and variance of the
+jackknife variance along each axis if the model is right, against a Monte Carlo of that
+model (the moves are linear in independent parts r_j ~ N(0, S_j))."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from clcgraph.backend.jackknife import jackknife
+from clcgraph.geometry import drt_dxi
+
+
+class _Lin:
+    """The part of noise.Linearization the jackknife reads: sensor-only normal equations."""
+
+    def __init__(self, S, r, parts):
+        self.ns, self.variable_sensors, self._out = len(S), [1, 2], (S, r, parts)
+
+    def reduced(self):
+        return self._out
+
+
+def _spd(rng, ns, rank, scale):
+    A = rng.normal(size=(rank, ns)) * scale
+    return A.T @ A
+
+
+def test_expected_jackknife_variance_matches_monte_carlo():
+    rng = np.random.default_rng(3)
+    ns, n_snap = 12, 9
+    # unequal snapshots (one of high leverage), each rank-deficient like a real board's share
+    S_parts = [_spd(rng, ns, 6, 1.0 + 3.0 * (k == 0)) for k in range(n_snap)]
+    S_rest = _spd(rng, ns, ns, 0.3)
+    S = sum(S_parts) + S_rest
+    rt = np.zeros((3, 6))
+    rt[1:] = rng.normal(size=(2, 6)) * 0.3
+    J = np.zeros((ns, ns))
+    for a in range(2):
+        J[6 * a:6 * a + 6, 6 * a:6 * a + 6] = drt_dxi(rt[a + 1])
+    cov = J @ np.linalg.inv(S) @ J.T
+    r_parts = [rng.multivariate_normal(np.zeros(ns), Sk) for Sk in S_parts]
+    parts = {k: (S_parts[k], r_parts[k]) for k in range(n_snap)}
+    jk = jackknife(None, _Lin(S, sum(r_parts), parts), rt, cov)
+    assert jk["n_snapshots"] == n_snap
+
+    # Monte Carlo of the model: r_j ~ N(0, S_j), the rest too; moves by the exact one-step formula
+    draws = 4000
+    Ls = [np.linalg.cholesky(Sk + 1e-12 * np.eye(ns)) for Sk in S_parts]
+    r = np.stack([rng.normal(size=(draws, ns)) @ L.T for L in Ls], axis=1)  # (draws, k, ns)
+    r_rest = rng.normal(size=(draws, ns)) @ np.linalg.cholesky(S_rest).T
+    R = r.sum(axis=1) + r_rest
+    Si = np.linalg.inv(S)
+    x = np.stack([np.linalg.solve(S - S_parts[k], (R - r[:, k]).T).T for k in range(n_snap)], axis=1) - (R @ Si)[:, None]
+    moves = x @ J.T  # rt
+    dev = moves - moves.mean(axis=1, keepdims=True)
+    for a, i in enumerate((1, 2)):
+        s = jk["sensors"][i]
+        for part, key in ((slice(3, 6), "position"), (slice(0, 3), "orientation")):
+            scale = 1e3 if key == "position" else np.degrees(1.0)
+            axes = s[f"{key}_axes"]  # (3, 3): rows are the model's principal axes
+            along = np.einsum("dkx,ax->dka", dev[:, :, 6 * a:6 * a + 6][:, :, part], axes)
+            var_jk = (n_snap - 1) / n_snap * np.sum(along**2, axis=1)  # (draws, 3)
+            ratio_mc = np.sqrt(var_jk) * scale / s[f"{key}_model_{'mm' if key == 'position' else 'deg'}"]
+            # E[ratio^2] is what "expected" squares; its Monte Carlo error is ~ sqrt(2/dof/draws)
+            se = np.sqrt(np.var(ratio_mc**2, axis=0) / draws)
+            np.testing.assert_array_less(np.abs(np.mean(ratio_mc**2, axis=0) - s[f"{key}_ratio_expected"] ** 2), 4 * se)
+            # the Satterthwaite range holds about 95 % of the draws
+            lo, hi = s[f"{key}_ratio_expected_95"].T
+            inside = np.mean((ratio_mc >= lo) & (ratio_mc <= hi), axis=0)
+            assert np.all((inside > 0.90) & (inside < 0.99)), inside
