@@ -4,7 +4,7 @@ import shutil
 
 import pytest
 
-from fleetsim import N_POSES, TOPICS, write_rig
+from fleetsim import DRIVE_S, N_POSES, TARGETLESS_TOPICS, TOPICS, write_rig
 
 
 @pytest.fixture(scope="session")
@@ -26,3 +26,21 @@ def fleet_data(tmp_path_factory):
     return {"root": root, "model": model, "previous": root / "first-calibration",
             **{n: root / n for n in ("first", "same", "knocked", "truncated")}}
 
+
+
+@pytest.fixture(scope="session")
+def drive_data(tmp_path_factory):
+    """Two short simulated drives of one targetless rig (fleetsim.py) and the first one's calibration."""
+    from clcgraph import api
+    from clcgraph.sim.drive import DrivePlan, simulate_drive, write_drive_bag
+
+    root = tmp_path_factory.mktemp("drives")
+    drives = {}
+    for name, seed in (("drive-first", 0), ("drive-again", 1)):
+        drives[name] = simulate_drive(DrivePlan.small(duration_s=DRIVE_S), seed=seed)
+        (root / name).mkdir()
+        write_drive_bag(drives[name], root / name / "drive.bag")
+    api.calibrate_targetless([root / "drive-first" / "drive.bag"], mapping_topic=TARGETLESS_TOPICS[0],
+                             calibration_topics=TARGETLESS_TOPICS[1:], out=root / "drive-first-calibration")
+    return {"root": root, "drives": drives, "previous": root / "drive-first-calibration",
+            **{n: root / n for n in drives}}

@@ -6,6 +6,10 @@ one rig, a VLP-16 and a 640x480 camera, eight board poses per capture:
 - ``knocked``: the camera turned 0.5 deg about lidar0's z (lidar0's axes are base_link's) and
   moved 5 mm along x;
 - ``truncated``: the ``same`` capture with one bag cut in half (as a full disk leaves it).
+
+and, for ``method: targetless``, two 6 s drives (sim/drive.py ``DrivePlan.small``: a 32-ring
+mapping LIDAR and a 16-ring one, 512 columns, a street at ~2 km/h) of one rig:
+``drive-first`` (calibrated: the `previous`) and ``drive-again``.
 """
 
 from __future__ import annotations
@@ -24,6 +28,8 @@ board: {corners: [10, 10], square_m: 0.1, size_m: [1.3, 1.3]}
 TOPICS = ["/lidar", "/cam"]
 KNOCK_DEG, KNOCK_MM = 0.5, 5.0
 N_POSES = 8
+TARGETLESS_TOPICS = ["/top/points", "/side/points"]  # DrivePlan.small's LIDARs, the mapping one first
+DRIVE_S = 6.0  # ~3 m of driving, 60 scans per LIDAR: ~25 s of CPU to calibrate (the 10 s drive takes ~36 s)
 
 
 def write_rig(d: Path, *, knocked: bool) -> Path:

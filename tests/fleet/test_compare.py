@@ -16,7 +16,7 @@ import yaml
 from scipy.stats import binom, chi2, ncx2
 
 from clcgraph.cli import main
-from clcgraph.comparison import PoseSet, compare, poses_of, sensor_change
+from clcgraph.comparison import compare, poses_of, sensor_change
 from clcgraph.errors import InputError
 from clcgraph.geometry import R_from_r, T_from_rt, drt_dxi, rt_from_T, tangent_covariance_from_rt
 
@@ -201,24 +201,18 @@ def test_false_alarm_rate_and_power_over_1000_pairs_drawn_from_a_solves_covarian
 
 @pytest.mark.slow
 def test_real_resolves_the_reported_covariance_makes_the_rate_right():
-    """16 independent re-solves of simulated captures: their errors against the truth, and the
-    differences of disjoint pairs, are chi-square under the reported covariances (sums of 6-DoF
-    statistics, two-sided at 1e-3). This holds only if the sigmas are honest."""
-    from clcgraph.backend.solve import calibrate
-    from clcgraph.config import Config
-    from clcgraph.sim.observations import make_rig, simulate_problem
+    """Re-solved pairs of simulated captures (bench/bench_fleet_false_alarms.py, the small version of
+    its >= 200 pairs): lidar0 + a 32-ring LIDAR + a camera, 12 snapshots, default config, 5 pairs with
+    independent noise only and 5 with per-observation errors (board bow, mixed pixels, per-board
+    corner bias). Per sensor, the pairs' chi-squares (clcgraph.compare) and each solve's against the
+    truth are sums of 6-DoF statistics (two-sided at 1e-3). This holds only if the sigmas are honest."""
+    from bench.bench_fleet_false_alarms import pair
 
-    rig = make_rig(1, 1)
-    est = []
-    for seed in range(16):
-        problem, truth = simulate_problem(rig=rig, n_snapshots=12, seed=1000 + seed)
-        r = calibrate(problem, Config().solve)
-        est.append(poses_of(r).poses["/cam0"])
-    T_true = T_from_rt(truth.rt_lidar0_sensor[1])
-    to_truth = [sensor_change("/cam0", T_true, C * 1e-12, T, C, false_alarm_rate=ALPHA, max_rotation_deg=1,
-                              max_translation_mm=1).chi2 for T, C in est]
-    pairs = [sensor_change("/cam0", *est[2 * i], *est[2 * i + 1], false_alarm_rate=ALPHA, max_rotation_deg=1,
-                           max_translation_mm=1).chi2 for i in range(8)]
-    for stats in (to_truth, pairs):
-        lo, hi = chi2.ppf([5e-4, 1 - 5e-4], 6 * len(stats))
-        assert lo <= sum(stats) <= hi, (sum(stats), 6 * len(stats), stats)
+    rows = [pair(case, k, seed0=70_000, knock=False) for case in ("independent", "per-observation") for k in range(5)]
+    assert all("sensors" in r for r in rows), [r.get("skipped") for r in rows]
+    for topic in ("/cam0", "/lidar1"):
+        pairs = [r["sensors"][topic]["chi2"] for r in rows]
+        to_truth = [x for r in rows for x in r["sensors"][topic]["to_truth"]]  # the two solves are independent
+        for stats in (pairs, to_truth):
+            lo, hi = chi2.ppf([5e-4, 1 - 5e-4], 6 * len(stats))
+            assert lo <= sum(stats) <= hi, (topic, sum(stats), 6 * len(stats), stats)
