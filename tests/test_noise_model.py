@@ -291,3 +291,50 @@ def test_ray_casting_lidar_ring_errors():
     z = scan.points[down, 2]
     # a beam that leaves higher than reported meets the ground farther: the point lands below it
     assert np.all(np.sign(z + 2) == -np.sign(el_err[scan.ring[down]])) and 1e-3 < np.abs(z + 2).max() < 0.2
+
+
+def test_profile_point_without_a_positive_definite_matrix_counts_as_infinite(independent):
+    # tails-dark-mixed (stress set) ended in numpy's LinAlgError from _logdet's Cholesky at one
+    # point of a component's profile: such a point has no likelihood and must count as +inf,
+    # the rest of the profile still decides; a profile with no such point is unchanged.
+    from clcgraph.backend import graph as G
+    from clcgraph.backend import noise as N
+
+    problem, truth, res, _ = independent
+    sig = np.array([res.noise["per_sensor"][i] for i in range(4)])
+    effects = res.noise["observation_effects"]
+    g, v = G.build(problem, G.Active.all(problem), res.rt_lidar0_sensor, res.rt_lidar0_board, lidar="range",
+                   sigma_lidar_m=sig, sigma_camera_px=sig, options=Config().solve,
+                   effects=N.effect_sigmas(problem, effects))
+    lin = N.Linearization(problem, g, v)
+    group = next(gr for gr in lin.groups if gr[0] == "effect")
+    base = {gr: (sig[gr[1]] if gr[0] == "white" else effects[gr[1]][gr[2]]) for gr in lin.groups}
+    floor = {gr: (N._white_floor(problem, gr) if gr[0] == "white" else N._FLOOR[gr[2]]) for gr in base}
+    w = {gr: 1.0 for gr in base}
+    # a weight of exactly 0 (an infinite sigma) is a genuinely singular normal matrix: numpy raises
+    with pytest.raises(np.linalg.LinAlgError):
+        lin.solve_and_trace({**w, group: 0.0}, trace=False)
+    assert N._m2l_or_inf(lambda: lin.solve_and_trace({**w, group: 0.0}, trace=False)[1]) == np.inf
+    honest = N._profile(lin, w, group, base, floor)
+    assert np.isfinite(honest)
+
+    class SingularAboveOneCentimetre:  # the real linearization, singular for sigmas > 1 cm / 10 mrad
+        groups = lin.groups
+
+        def solve_and_trace(self, weights, trace=True):
+            if base[group] / np.sqrt(weights.get(group, 1.0)) > 0.01:
+                weights = {**weights, group: 0.0}
+            return lin.solve_and_trace(weights, trace)
+
+    grid = floor[group] * 10.0 ** (np.arange(1, 10) / 3.0)
+    below = [lin.solve_and_trace({**w, group: (base[group] / s) ** 2}, trace=False)[1] for s in grid if s <= 0.01]
+    got = N._profile(SingularAboveOneCentimetre(), w, group, base, floor)
+    assert np.isfinite(got) and got <= min(below) + 1e-9
+    # nowhere positive definite: +inf, never an exception
+    class Singular:
+        groups = lin.groups
+
+        def solve_and_trace(self, weights, trace=True):
+            return lin.solve_and_trace({**weights, group: 0.0}, trace)
+
+    assert N._profile(Singular(), w, group, base, floor) == np.inf

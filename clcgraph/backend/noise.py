@@ -304,11 +304,22 @@ def _profile(lin: Linearization, w: dict, g, base: dict, floor: dict) -> float:
     log grid (3 per decade from the floor to 1000x it: 0.1 m or rad), then Foerstner's iteration
     from the best point."""
     grid = floor[g] * 10.0 ** (np.arange(1, 10) / 3.0)
-    m2l = [lin.solve_and_trace({**w, g: (base[g] / s) ** 2}, trace=False)[1] for s in grid]
+    m2l = [_m2l_or_inf(lambda: lin.solve_and_trace({**w, g: (base[g] / s) ** 2}, trace=False)[1]) for s in grid]
     best = int(np.argmin(m2l))
-    if best == 0:  # at the floor end: nothing to find
-        return float(m2l[0])
-    return min(float(m2l[best]), _vce(lin, {**w, g: (base[g] / grid[best]) ** 2}, {g}, base, floor)[2])
+    if best == 0 or not np.isfinite(m2l[best]):  # at the floor end (or nowhere positive definite): nothing to find
+        return float(m2l[best])
+    return min(float(m2l[best]), _m2l_or_inf(lambda: _vce(lin, {**w, g: (base[g] / grid[best]) ** 2}, {g}, base,
+                                                           floor)[2]))
+
+
+def _m2l_or_inf(evaluate) -> float:
+    """-2 log L_REML from ``evaluate()``, or +inf where the normal matrix at those weights is not
+    positive definite (numerically singular: a component's sigma so large that its effects
+    swallow a direction of the fit): no likelihood there, so the profile never picks it."""
+    try:
+        return float(evaluate())
+    except np.linalg.LinAlgError:
+        return float("inf")
 
 
 def estimate_components(problem, lin: Linearization, sig: np.ndarray, effects: dict, *, select: bool = True):

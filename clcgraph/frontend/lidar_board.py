@@ -29,6 +29,7 @@ SYNOPSIS
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from concurrent.futures import ThreadPoolExecutor
@@ -607,42 +608,97 @@ def segment_many(scans, options, lidar_options, board: BoardGeometry, *, sensor:
                              debug=None if debug is None else debug[k])
 
     jobs = jobs or min(2, os.cpu_count() or 1)
-    if jobs <= 1 or len(scans) < 4:
-        it = map(one, range(len(scans)))
-        found = list(progress(it, len(scans)) if progress else it)
-    else:
+
+    def all_scans(progress):
+        if jobs <= 1 or len(scans) < 4:
+            it = map(one, range(len(scans)))
+            return list(progress(it, len(scans)) if progress else it)
         # threads, not processes: numpy and scipy release the GIL in the heavy parts, and worker
         # processes would either fork a threaded process (deadlocks) or re-import the caller's
         # script (forkserver/spawn: a fleet script without a __main__ guard would run again)
         with ThreadPoolExecutor(max_workers=jobs) as ex:
             it = ex.map(one, range(len(scans)))
-            found = list(progress(it, len(scans)) if progress else it)
+            return list(progress(it, len(scans)) if progress else it)
+
+    found = all_scans(progress)
+    offsets = ring_range_offsets(found, scans)
+    if offsets is None:
+        return found
+    # A ring whose offset is comparable to point_plane_tolerance_m lost part of its returns to
+    # the plane's tolerance (those on the far side of its offset): its measured offset is short
+    # and the board keeps a biased subset. The scans are corrected and segmented again, and what
+    # is left of the offsets is measured on the complete boards.
+    scans = [with_ring_offsets(sc, *offsets) for sc in scans]
+    if debug is not None:
+        debug[:] = [Debug() for _ in debug]
+    found = all_scans(None)
     return correct_ring_offsets(found, scans)
 
 
 def correct_ring_offsets(found: list, scans: list) -> list:
     """``found`` (segment_board results per scan of one LIDAR) with each ring's own range offset,
-    measured on all the boards, taken out of the board points and planes.
+    measured on all the boards (``ring_range_offsets``), taken out of the board points and
+    planes; ``found`` unchanged when the offsets do not stand out of their standard errors."""
+    offsets = ring_range_offsets(found, scans)
+    if offsets is None:
+        return found
+    rings, offset = offsets
+    out = list(found)
+    for k, o in enumerate(found):
+        if not isinstance(o, LidarBoardObservation) or o.indices is None or scans[k].ring is None:
+            continue
+        q = _offset_points(np.asarray(o.points, float), np.asarray(scans[k].ring)[o.indices], rings, offset)
+        n, d, rms = fit_plane(q)
+        if d > 0:
+            n, d = -n, -d
+        out[k] = LidarBoardObservation(sensor=o.sensor, snapshot=o.snapshot, points=q, plane=np.r_[n, d], rms_m=rms,
+                                       indices=o.indices)
+    return out
+
+
+def with_ring_offsets(scan: LidarScan, rings: np.ndarray, offset: np.ndarray) -> LidarScan:
+    """``scan`` with each return of ring ``rings[j]`` moved ``offset[j]`` closer along its ray."""
+    if scan.ring is None:
+        return scan
+    pts = np.asarray(scan.points, float)
+    ok = np.all(np.isfinite(pts), axis=1)
+    pts = pts.copy()
+    pts[ok] = _offset_points(pts[ok], np.asarray(scan.ring)[ok], rings, offset)
+    return dataclasses.replace(scan, points=pts)
+
+
+def _offset_points(pts: np.ndarray, ring: np.ndarray, rings: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """Points of rings ``ring`` with ``offset`` (per ring of ``rings``; 0 for the others) taken
+    out of their ranges."""
+    j = np.clip(np.searchsorted(rings, ring), 0, len(rings) - 1)
+    off = np.where(rings[j] == ring, offset[j], 0.0)
+    r = np.linalg.norm(pts, axis=1)
+    return pts * np.where(r > 0, (r - off) / np.where(r > 0, r, 1.0), 1.0)[:, None]
+
+
+def ring_range_offsets(found: list, scans: list) -> tuple[np.ndarray, np.ndarray] | None:
+    """(ring numbers, each ring's range offset in m), measured on all the boards of ``found``
+    (segment_board results per scan of one LIDAR), or None when they do not stand out.
 
     Real lasers range with fixed offsets of their own (1-3 cm; the same in every scan): on one
     board they tilt and shift the plane by degrees and millimetres, differently for each board
     (which rings crossed it), errors the solver would take for independent noise. Each ring's
     offset is its returns' mean range beyond their board's plane, over all boards, alternating
     with the plane fits; what no board can tell apart from the planes (a common offset, one linear
-    in the rings' elevation) is left. Applied only where the offsets stand out of their own
-    standard errors (chi-square over the rings beyond 4 sigma of its dof), else ``found`` unchanged.
+    in the rings' elevation) is left. Only where the offsets stand out of their own standard
+    errors (chi-square over the rings beyond 4 sigma of its dof).
     """
     obs = [(k, o) for k, o in enumerate(found) if isinstance(o, LidarBoardObservation) and o.indices is not None
            and scans[k].ring is not None]
     if len(obs) < 3:
-        return found
+        return None
     pts = [np.asarray(o.points, float) for _, o in obs]
     rings = [np.asarray(scans[k].ring)[o.indices].astype(np.int64) for k, o in obs]
     all_rings = np.unique(np.concatenate(rings))
     rid = [np.searchsorted(all_rings, r) for r in rings]
     R = len(all_rings)
     if R < 4:
-        return found
+        return None
     rng_m = [np.linalg.norm(p, axis=1) for p in pts]
     u = [p / r[:, None] for p, r in zip(pts, rng_m)]
     elev = np.zeros(R)
@@ -673,15 +729,7 @@ def correct_ring_offsets(found: list, scans: list) -> list:
     ok = counts >= 2
     chi2 = float(np.sum(offset[ok] ** 2 / np.maximum(se2[ok], 1e-12)))
     if dof < 2 or chi2 <= dof + 4 * np.sqrt(2 * dof):
-        return found
+        return None
     log.info("ring range offsets of %s from %d boards: %s mm", scans[obs[0][0]].topic, len(obs),
              np.array2string(offset * 1e3, precision=0))
-    out = list(found)
-    for (k, o), p_u, r, ri in zip(obs, u, rng_m, rid):
-        q = p_u * (r - offset[ri])[:, None]
-        n, d, rms = fit_plane(q)
-        if d > 0:
-            n, d = -n, -d
-        out[k] = LidarBoardObservation(sensor=o.sensor, snapshot=o.snapshot, points=q, plane=np.r_[n, d], rms_m=rms,
-                                       indices=o.indices)
-    return out
+    return all_rings, offset
