@@ -56,17 +56,7 @@ def test_ring_offsets_measured_on_all_boards_are_taken_out():
 
 
 def _scans_with_hits(model, n=12):
-    T = np.eye(4)
-    T[2, 3] = 1.9
-    static = static_meshes(np.random.default_rng(0))
-    scans, hits, boards = [], [], []
-    for k in range(n):
-        rng = np.random.default_rng(k)
-        Tb = random_board_pose(rng, BOARD, T[:3, 3], tilt_max_deg=40, distance_m=(2.5, 9.0))
-        scan, hit = simulate_scan(model, T, make_scene(BOARD, Tb, rng, static=static), rng, stamp_ns=k, topic="/l")
-        scans.append(scan)
-        hits.append(hit)
-        boards.append(np.linalg.inv(T) @ Tb)
+    scans, boards, hits = board_scans(model, n, tilt_max_deg=40, distance_m=(2.5, 9.0), hits=True)
     return scans, hits, boards
 
 
