@@ -9,7 +9,7 @@ and from run to run with 2 threads. So those run on one thread; the steps that c
 point on its own (KD-tree construction: the same splits whatever the task order; per-point
 normals and covariances) keep ``threads``.
 
-Memory (measured, small_gicp 1.0): a PointCloud's points take 32 B per point, its KD-tree 32 B,
+Memory (measured with the installed small_gicp): a PointCloud's points take 32 B per point, its KD-tree 32 B,
 normals and covariances together 160 B (allocated only when estimated).
 """
 
