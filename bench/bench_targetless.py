@@ -90,7 +90,7 @@ def run_bag(duration_s: float = 60.0, small: bool = False, seed: int = 0, workdi
     from clcgraph.sim.drive import DrivePlan
 
     plan = DrivePlan.small(duration_s=duration_s) if small else DrivePlan(duration_s=duration_s)
-    tmp = Path(workdir or tempfile.mkdtemp(prefix="bench_targetless_"))
+    tmp = Path(workdir or tempfile.mkdtemp(prefix="bench_targetless_"))  # left there for a look
     bag = tmp / f"drive-{duration_s:g}s-{'small' if small else 'full'}-seed{seed}.bag"  # reused when there
     truth_file, out = bag.with_suffix(".truth.npy"), tmp / "out"
     top, side = plan.lidars[0].topic, plan.lidars[1].topic
@@ -139,7 +139,13 @@ def main(argv=None) -> int:
                     help="calibrate the simulated scans in this process (CPU s per stage; no bag reading, no report)")
     ap.add_argument("--workdir", default=None, help="where the bag and outputs go (a bag there is reused)")
     a = ap.parse_args([] if argv is None else argv)  # under `python -m bench`, sys.argv holds the filters
-    rows = run(a.duration, a.small) if a.in_memory else run_bag(a.duration, a.small, workdir=a.workdir)
+    if a.in_memory:
+        rows = run(a.duration, a.small)
+    elif a.workdir:
+        rows = run_bag(a.duration, a.small, workdir=a.workdir)
+    else:  # the bag (~25 MB per drive second) goes away with the run
+        with tempfile.TemporaryDirectory(prefix="bench_targetless_") as tmp:
+            rows = run_bag(a.duration, a.small, workdir=tmp)
     print(f"targetless benchmark: {a.duration:.0f} s drive ({'small' if a.small else 'full'} LIDARs), "
           f"{'in memory' if a.in_memory else 'from a bag, whole command'}")
     print(f"{'stage':<44} {'CPU [s]':>8} {'wall [s]':>9} {'x real time':>12} {'peak RSS [MB]':>14}")
