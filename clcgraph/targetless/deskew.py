@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import xi_log
+from ..geometry import skew, xi_log
 
 
 def twist_between(T_a: np.ndarray, T_b: np.ndarray, dt: float) -> np.ndarray:
@@ -29,6 +29,8 @@ def deskew(points: np.ndarray, time_s: np.ndarray | None, xi: np.ndarray) -> np.
         return np.asarray(points, float)
     p = np.asarray(points, float)
     tau = np.asarray(time_s, float)[:, None]
-    a = tau * xi[None, :3]
-    ap = np.cross(a, p)
-    return p + ap + 0.5 * np.cross(a, ap) + tau * xi[None, 3:] + 0.5 * np.cross(a, tau * xi[None, 3:])
+    # a x p with a = tau omega is tau (K p), K = skew(omega): 3x3 products instead of per-point crosses
+    K = skew(xi[:3])
+    v = xi[3:]
+    Kp = p @ K.T
+    return p + tau * (Kp + v) + (0.5 * tau * tau) * (Kp @ K.T + K @ v)

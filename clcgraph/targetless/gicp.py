@@ -8,6 +8,9 @@ sums in another order). Both changed the calibration in the last digits with the
 and from run to run with 2 threads. So those run on one thread; the steps that compute each
 point on its own (KD-tree construction: the same splits whatever the task order; per-point
 normals and covariances) keep ``threads``.
+
+Memory (measured with the installed small_gicp): a PointCloud's points take 32 B per point, its KD-tree 32 B,
+normals and covariances together 160 B (allocated only when estimated).
 """
 
 from __future__ import annotations
@@ -17,17 +20,34 @@ import numpy as np
 # Registration (correspondences + linearization + reduction) always runs single-threaded: its
 # OpenMP reduction is order-dependent (see above). bench/bench_targetless.py measures the cost.
 _REDUCTION_THREADS = 1
+NUM_NEIGHBORS = 10  # neighbours of a point's normal and covariance
 
 
-def preprocess(points: np.ndarray, leaf: float, *, threads: int, num_neighbors: int = 10):
+def preprocess(points: np.ndarray, leaf: float, *, threads: int):
     """(cloud, tree): (N,3) points voxel-downsampled to ``leaf`` (single-threaded: deterministic),
     then a KD-tree and per-point normals / covariances (``threads``: order-independent)."""
     import small_gicp
 
-    cloud = small_gicp.voxelgrid_sampling(np.ascontiguousarray(points, float), leaf, num_threads=1)
-    tree = small_gicp.KdTree(cloud, num_threads=threads)
-    small_gicp.estimate_normals_covariances(cloud, tree, num_neighbors=num_neighbors, num_threads=threads)
+    return prepared(small_gicp.voxelgrid_sampling(np.ascontiguousarray(points, float), leaf, num_threads=1),
+                    threads=threads)
+
+
+def prepared(points, *, threads: int, tree=None):
+    """(cloud, tree) of points already downsampled ((N,3) array or a PointCloud), with normals and
+    covariances; ``tree``: a KD-tree already built on the same points in the same order."""
+    import small_gicp
+
+    cloud = points if isinstance(points, small_gicp.PointCloud) else small_gicp.PointCloud(
+        np.ascontiguousarray(points, float))
+    tree = small_gicp.KdTree(cloud, num_threads=threads) if tree is None else tree
+    small_gicp.estimate_normals_covariances(cloud, tree, num_neighbors=NUM_NEIGHBORS, num_threads=threads)
     return cloud, tree
+
+
+def nearest(tree, points: np.ndarray):
+    """(squared distance (N,), index (N,)) of each point's nearest neighbour in ``tree``."""
+    idx, d2 = tree.batch_nearest_neighbor_search(np.ascontiguousarray(points, float), num_threads=1)
+    return np.asarray(d2), np.asarray(idx, np.int64)
 
 
 def align(target, source, tree=None, **kwargs):

@@ -76,14 +76,6 @@ def voxel_down(points: np.ndarray, leaf: float) -> np.ndarray:
     return np.asarray(cloud.points())[:, :3]
 
 
-def register(target, target_tree, source_pts: np.ndarray, T0: np.ndarray, *, kind: str = "GICP",
-             max_corr: float = 1.0, iters: int = 30, threads: int = 2, leaf: float = 0.2):
-    """small_gicp registration of (M,3) source points to a preprocessed target; returns RegistrationResult."""
-    src, _ = gicp.preprocess(source_pts, leaf, threads=threads)
-    return gicp.align(target, src, target_tree, init_T_target_source=T0, registration_type=kind,
-                      max_correspondence_distance=max_corr, max_iterations=iters)
-
-
 def voxel_pick(points: np.ndarray, leaf: float) -> np.ndarray:
     """Indices of one raw point per voxel (the first): downsampling that keeps each point's own
     time, so the picked points can still be deskewed (a centroid mixes times)."""
@@ -101,6 +93,7 @@ class LocalMap:
     Gaussian voxel map (VGICP, the NDT-like option; voxel size ``mapper_resolution``)."""
 
     def __init__(self, points: np.ndarray, leaf: float, o):
+        """``points``: (N,3) map points, downsampled here to ``leaf`` (once)."""
         self.o = o
         self.cloud, self.tree = gicp.preprocess(points, leaf, threads=o.mapper_num_threads)
         self.voxels = None
@@ -230,7 +223,7 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
             local_ids = (local_ids + [k])[-o.local_map_num_keyframes:]
             cloud = np.concatenate([res.frames[j].points @ res.frames[j].T_map_lidar[:3, :3].T
                                     + res.frames[j].T_map_lidar[:3, 3] for j in local_ids])
-            local = LocalMap(voxel_down(cloud, map_leaf), map_leaf, o)
+            local = LocalMap(cloud, map_leaf, o)
         T_last, last_stamp, twist = T, scan.stamp_ns, xi
     if res.n_scans < 3:
         raise DataError(f"{res.topic}: only {res.n_scans} scans; mapping needs a drive")

@@ -29,6 +29,7 @@ from ..determinism import single_threaded_blas
 from ..errors import DegenerateError, InputError
 from ..timing import StageClock
 from ..types import Problem, Result, Sensor, TargetlessRun
+from . import gicp
 from .calibration_frames import make_calibration_frames, nearest_to_keyframes
 from .keyframe_graph import fuse
 from .mapping import build_map
@@ -192,7 +193,7 @@ def _alignment_pictures(fds, before: np.ndarray, after: np.ndarray, o) -> dict:
         return pts @ T[:3, :3].T + T[:3, 3]
 
     def distances(T):
-        return np.concatenate([f.kdtree.query(moved(T, f.source_pts[::4]))[0] for f in fds])
+        return np.concatenate([np.sqrt(gicp.nearest(f.tree, moved(T, f.source_pts[::4]))[0]) for f in fds])
 
     return {"target": near(voxel_down(fd.target_pts, o.calibration_viz_leaf_size / 3)),
             "source_guess": near(moved(before, fd.source_pts)), "source_final": near(moved(after, fd.source_pts)),

@@ -23,7 +23,7 @@ import numpy as np
 
 from . import gicp
 from .deskew import deskew
-from .mapping import register, voxel_down
+from .mapping import voxel_down
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +33,7 @@ class TargetParts:
     """Which keyframe submaps made each voxel of a dense target (for the graph's links)."""
     leaf: float
     pair_codes: np.ndarray  # sorted unique voxel_code * 64 + group index
-    counts: np.ndarray  # raw points per (voxel, group)
+    counts: np.ndarray  # int32 raw points per (voxel, group)
     positions: np.ndarray  # group index -> keyframe position (index into MapResult.keyframe_ids)
     anchor: int  # keyframe position of the calibration frame's own keyframe
     T_anchor_kf: dict  # keyframe position -> (4,4) pose of its submap in the target's frame
@@ -41,16 +41,75 @@ class TargetParts:
 
 @dataclass
 class FrameData:
+    """One calibration frame's registration problem. Its dense target (~600k points on the 10 s
+    bench drive) is kept light: points, a KD-tree and the normals used so far (~90 B per point);
+    the GICP covariances (160 B per point) exist only while the frame is registered
+    (``gicp_target``, until ``release``). Source clouds are downsampled once per leaf size."""
     cf: object  # CalibrationFrame
-    target_pts: np.ndarray  # (M,3) dense, lidar0 frame at the scan stamp
+    target_pts: np.ndarray  # (M,3) float32 dense, lidar0 frame at the scan stamp (5 um at 80 m)
     source_pts: np.ndarray  # (N,3) deskewed sensor points
-    target: object = None  # small_gicp.PointCloud
-    tree: object = None
-    kdtree: object = None  # scipy cKDTree for scoring
+    tree: object = None  # small_gicp.KdTree of target_pts (same order)
     parts: TargetParts | None = None
     normals: np.ndarray | None = None  # (M,3) float32 target normals, computed where first needed (NaN before)
     raw_pts: np.ndarray | None = None  # (N,3) the cropped source before deskew, and its per-point times
     raw_time: np.ndarray | None = None
+    threads: int = 1
+    cloud: object = field(default=None, repr=False)  # small_gicp.PointCloud of target_pts (the tree's)
+    _sources: dict = field(default_factory=dict, repr=False)  # leaf -> preprocessed source cloud
+    _gicp: object = field(default=None, repr=False)  # target cloud with covariances, while registering
+
+    @classmethod
+    def make(cls, cf, target_pts: np.ndarray, source_pts: np.ndarray, *, threads: int = 1, **kw) -> "FrameData":
+        """A frame with the KD-tree of its (already downsampled) dense target."""
+        import small_gicp
+
+        tgt = np.ascontiguousarray(target_pts, np.float32)
+        cloud = small_gicp.PointCloud(tgt.astype(float))  # the same rounded points as target_pts
+        return cls(cf, tgt, np.asarray(source_pts, float), small_gicp.KdTree(cloud, num_threads=threads),
+                   normals=np.full(tgt.shape, np.nan, np.float32), threads=threads, cloud=cloud, **kw)
+
+    def set_source(self, source_pts: np.ndarray) -> None:
+        self.source_pts = source_pts
+        self._sources.clear()
+
+    def source_cloud(self, leaf: float):
+        if leaf not in self._sources:
+            self._sources[leaf] = gicp.preprocess(self.source_pts, leaf, threads=self.threads)[0]
+        return self._sources[leaf]
+
+    def gicp_target(self):
+        """The target with covariances (built on first use, until ``release``)."""
+        if self._gicp is None:
+            import small_gicp
+
+            self._gicp = gicp.prepared(small_gicp.PointCloud(self.target_pts.astype(float)), threads=self.threads,
+                                       tree=self.tree)[0]
+        return self._gicp
+
+    def release(self) -> None:
+        """Free what only registration needs (covariances, source clouds)."""
+        self._gicp = None
+        self._sources.clear()
+
+    def nearest(self, points: np.ndarray, max_dist: float):
+        """(distance (N,), target index (N,)) of each point's nearest target point; inf and -1
+        beyond ``max_dist``."""
+        d2, idx = gicp.nearest(self.tree, points)
+        far = ~(d2 <= max_dist * max_dist)
+        d = np.sqrt(d2)
+        d[far], idx[far] = np.inf, -1
+        return d, idx
+
+    def normals_at(self, idx: np.ndarray) -> np.ndarray:
+        """(N,3) float32 normals of target points ``idx``, from their ``gicp.NUM_NEIGHBORS`` nearest
+        target points (computed once per point, where first needed)."""
+        new = np.unique(idx[np.isnan(self.normals[idx, 0])])
+        if len(new):
+            nb, _ = self.tree.batch_knn_search(self.target_pts[new].astype(float), gicp.NUM_NEIGHBORS, num_threads=1)
+            q = self.target_pts[nb.astype(np.int64)].astype(float)
+            q -= q.mean(axis=1, keepdims=True)
+            self.normals[new] = np.linalg.eigh(np.einsum("pki,pkj->pij", q, q))[1][:, :, 0]  # least spread
+        return self.normals[idx]
 
 
 def voxel_codes(points: np.ndarray, leaf: float) -> np.ndarray:
@@ -89,7 +148,7 @@ def dense_target(mp, kid: int, T_map_lidar0: np.ndarray, o, *, max_frames: int =
         labels.append(np.full(len(f.points), np.searchsorted(positions, p), np.int64))
     allp = np.concatenate(clouds)
     pairs, counts = np.unique(voxel_codes(allp, leaf) * 64 + np.concatenate(labels), return_counts=True)
-    parts = TargetParts(leaf, pairs, counts, positions, kpos,
+    parts = TargetParts(leaf, pairs, counts.astype(np.int32), positions, kpos,
                         {int(p): Tinv @ mp.frames[mp.keyframe_ids[p]].T_map_lidar for p in positions})
     pts = voxel_down(allp, leaf)
     r = np.linalg.norm(pts, axis=1)
@@ -104,8 +163,6 @@ def _adjoint_to_sensor(T_lidar0_sensor: np.ndarray, xi: np.ndarray) -> np.ndarra
 
 def prepare_frames(chosen, mp, T_guess: np.ndarray, o, *, deskew_on: bool = True, progress=None) -> list:
     """Dense targets and deskewed, cropped sources for the selected calibration frames."""
-    from scipy.spatial import cKDTree
-
     out = []
     for cf in chosen:
         s = cf.scan
@@ -117,9 +174,8 @@ def prepare_frames(chosen, mp, T_guess: np.ndarray, o, *, deskew_on: bool = True
         if o.crop_z_calibration_pointclouds:
             zmax = (src @ T_guess[:3, :3].T + T_guess[:3, 3])[:, 2].max() + o.crop_z_calibration_pointclouds_value
             tgt = tgt[tgt[:, 2] <= zmax]
-        t, tree = gicp.preprocess(tgt, max(o.leaf_size_dense_map, 0.02), threads=o.mapper_num_threads)
-        tpts = np.asarray(t.points())[:, :3]
-        out.append(FrameData(cf, tpts, src, t, tree, cKDTree(tpts), parts, raw_pts=raw, raw_time=tau))
+        out.append(FrameData.make(cf, tgt, src, threads=o.mapper_num_threads, parts=parts, raw_pts=raw, raw_time=tau))
+        log.debug("frame at keyframe %d: dense target of %d points, source of %d", cf.keyframe_id, len(tgt), len(src))
         if progress is not None:
             progress(1)
     return out
@@ -129,7 +185,7 @@ def deskew_sources(frames, T_lidar0_sensor: np.ndarray) -> None:
     """Deskew the sources again with the mapping twist seen through T_lidar0_sensor: the guess's
     error tilts the sensor's velocity (2 deg of it biased every frame by ~0.7 mm in the simulator)."""
     for fd in frames:
-        fd.source_pts = deskew(fd.raw_pts, fd.raw_time, _adjoint_to_sensor(T_lidar0_sensor, fd.cf.twist_lidar0))
+        fd.set_source(deskew(fd.raw_pts, fd.raw_time, _adjoint_to_sensor(T_lidar0_sensor, fd.cf.twist_lidar0)))
 
 
 def score(frames, T: np.ndarray, o, *, sub: int = 4) -> float:
@@ -138,22 +194,20 @@ def score(frames, T: np.ndarray, o, *, sub: int = 4) -> float:
     tot, n = 0.0, 0
     for fd in frames:
         p = fd.source_pts[::sub] @ T[:3, :3].T + T[:3, 3]
-        d, _ = fd.kdtree.query(p, distance_upper_bound=o.calibration_eval_max_corr_distance)
-        d2 = np.minimum(np.where(np.isfinite(d), d * d, c2), c2)
+        d2 = np.minimum(gicp.nearest(fd.tree, p)[0], c2)
         tot += d2.sum()
         n += len(d2)
     return tot / max(n, 1)
 
 
 def _run(fd, T0, kind, corr, o, leaf):
-    if kind == "VGICP":  # needs a voxel map of the target at the correspondence distance
-        tgt, _ = gicp.preprocess(fd.target_pts, leaf, threads=o.mapper_num_threads)
-        src, _ = gicp.preprocess(fd.source_pts, leaf, threads=o.mapper_num_threads)
-        return gicp.align(gicp.voxel_map(tgt, corr), src, init_T_target_source=T0, max_correspondence_distance=corr,
-                          max_iterations=min(o.solver_iterations, 60)).T_target_source
-    r = register(fd.target, fd.tree, fd.source_pts, T0, kind=kind, max_corr=corr, iters=min(o.solver_iterations, 60),
-                 threads=o.mapper_num_threads, leaf=leaf)
-    return r.T_target_source
+    """T_lidar0_sensor from one registration of frame ``fd``'s source (downsampled to ``leaf``) from T0."""
+    kw = dict(init_T_target_source=T0, max_correspondence_distance=corr, max_iterations=min(o.solver_iterations, 60))
+    src = fd.source_cloud(leaf)
+    if kind == "VGICP":  # Gaussian voxels of the correspondence distance's size
+        return gicp.align(gicp.voxel_map(fd.gicp_target(), corr), src, **kw).T_target_source
+    target = fd.cloud if kind == "ICP" else fd.gicp_target()  # point-to-point ICP needs no covariances
+    return gicp.align(target, src, fd.tree, registration_type=kind, **kw).T_target_source
 
 
 # The ensemble stops once this many frames in a row registered (all three ways, from the best so
@@ -208,6 +262,7 @@ def ensemble(frames, T_guess: np.ndarray, o, *, progress=None):
             Ts.append(T)
             if s < best_s:
                 best, best_s = T, s
+        fd.release()  # the next frames' covariances need the memory
         if progress is not None:
             progress(1)
         in_a_row = in_a_row + 1 if agrees(fd, best, Ts, o) else 0
@@ -240,17 +295,10 @@ def plane_residuals(fd: FrameData, T: np.ndarray, max_corr: float, sub: int = 1)
     R, t = T[:3, :3], T[:3, 3]
     p = fd.source_pts[::sub]
     x = p @ R.T + t
-    d, idx = fd.kdtree.query(x, distance_upper_bound=max_corr)
+    d, idx = fd.nearest(x, max_corr)
     ok = np.isfinite(d)
     p, x, idx = p[ok], x[ok], idx[ok]
-    if fd.normals is None:
-        fd.normals = np.full(fd.target_pts.shape, np.nan, np.float32)
-    new = np.unique(idx[np.isnan(fd.normals[idx, 0])])
-    if len(new):
-        _, nb = fd.kdtree.query(fd.target_pts[new], k=10)
-        q = fd.target_pts[nb] - fd.target_pts[nb].mean(axis=1, keepdims=True)
-        fd.normals[new] = np.linalg.eigh(np.einsum("pki,pkj->pij", q, q))[1][:, :, 0]  # least spread
-    n = fd.normals[idx].astype(float)
+    n = fd.normals_at(idx).astype(float)
     m = n @ R  # R^T n
     J = np.c_[np.cross(p, m), m]  # d(n . (R p + t)) / d[omega, v]
     return J, np.einsum("pi,pi->p", n, x - fd.target_pts[idx]), idx
@@ -288,7 +336,7 @@ def influence(fd: FrameData, T: np.ndarray, o) -> dict:
     pa = fd.parts
     J, _, idx = plane_residuals(fd, T, o.max_corr_dist_fine)
     # share of each submap in each corresponding target voxel
-    code = voxel_codes(fd.target_pts[idx], pa.leaf) * 64
+    code = voxel_codes(fd.target_pts[idx].astype(float), pa.leaf) * 64
     lo = np.searchsorted(pa.pair_codes, code)
     hi = np.searchsorted(pa.pair_codes, code + 64)
     G = len(pa.positions)
@@ -314,12 +362,13 @@ def influence(fd: FrameData, T: np.ndarray, o) -> dict:
 def refine_per_frame(frames, T0: np.ndarray, o) -> list:
     """Fine GICP of each frame from T0; returns FrameMeasurement per frame (with its graph links)."""
     out = []
+    kw = dict(registration_type="GICP", max_iterations=min(o.solver_iterations, 60))
     for fd in frames:
-        r = register(fd.target, fd.tree, fd.source_pts, T0, kind="GICP", max_corr=o.max_corr_dist_fine,
-                     iters=min(o.solver_iterations, 60), threads=o.mapper_num_threads, leaf=0.05)
-        r = register(fd.target, fd.tree, fd.source_pts, r.T_target_source, kind="GICP",
-                     max_corr=o.max_corr_dist_ultra_fine, iters=min(o.solver_iterations, 60),
-                     threads=o.mapper_num_threads, leaf=0.05)
+        tgt, src = fd.gicp_target(), fd.source_cloud(0.05)
+        r = gicp.align(tgt, src, fd.tree, init_T_target_source=T0, max_correspondence_distance=o.max_corr_dist_fine, **kw)
+        r = gicp.align(tgt, src, fd.tree, init_T_target_source=r.T_target_source,
+                       max_correspondence_distance=o.max_corr_dist_ultra_fine, **kw)
+        fd.release()
         T = np.asarray(r.T_target_source)
         links = influence(fd, T, o) if fd.parts is not None else {}
         out.append(FrameMeasurement(T, np.asarray(r.H), int(r.num_inliers), float(r.error),
