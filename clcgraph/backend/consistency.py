@@ -500,6 +500,6 @@ def check(problem: Problem, lin: Linearized, *, alpha: float = FAMILY_ALPHA, ref
     if failures:
         raise SolveError(f"not self-consistent, no result written: {first}{more}; a wrong board association or a "
                          "moved sensor? check the boards with `clcgraph segment`/`detect`, or leave the snapshot "
-                         "out (replay --exclude)")
+                         "out (replay --exclude); --set solve.refuse_inconsistent=false writes it with this verdict")
     raise DegenerateError(f"not verifiable, no result written: {first}{more}; capture more boards that these "
-                          "sensors see together")
+                          "sensors see together (--set solve.refuse_inconsistent=false writes it with this verdict)")
