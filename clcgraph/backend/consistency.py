@@ -468,9 +468,11 @@ def check(problem: Problem, lin: Linearized, *, alpha: float = FAMILY_ALPHA, ref
         shares.append(h)
         if n_sig > _SILENT_SIGMAS:
             i, what, size, material = _shift_words(lin, u)
+            # no other board constrains it at all (e.g. a camera that saw 3 boards: each fixes the
+            # translation along the other two's normals' cross product): any error would pass
+            hidden = "an error of any size" if h > 1 - 1e-4 else f"an error of up to {size} ({n_sig:.0f} sigma)"
             unverified.append((not material, -n_sig, k, f"snapshot {k} alone carries {100 * h:.0f}% of the information on "
-                                         f"{lin.topics[i]} {what}: an error of up to {size} ({n_sig:.0f} sigma) there "
-                                         "would pass every check"))
+                                         f"{lin.topics[i]} {what}: {hidden} there would pass every check"))
     verdict["snapshots"]["max_leverage"] = max(shares, default=0.0)
     unverified.sort()
     verdict["unverified"] = [why for _, _, _, why in unverified]
