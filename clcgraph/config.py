@@ -222,13 +222,12 @@ class SolveOptions:
     # Self-consistency checks (backend/consistency.py): the chance that a consistent
     # calibration fails them; 0 turns the checks off.
     consistency_alpha: float = 1e-3
-    # A result that fails them is refused (exit 2, one line naming the sensor and direction).
-    # False: written with its verdict in calibration.yaml, the report and the summary table.
-    # The default for now: with the per-observation noise model (observation_effects) the
-    # leverage bound ("snapshot k alone carries 90 % of the information on ...") fires on most
-    # simulated captures and on one of the two real ACFR runs; refusing waits until that bound
-    # is understood with each observation's own error condensed.
-    refuse_inconsistent: bool = False
+    # A result that fails them is refused (exit 2, one line naming the snapshot, sensor and
+    # direction): never a silent wrong answer. That includes a direction one board alone
+    # determines (an error there would pass every check: capture more boards that constrain
+    # it). False: written with its verdict in calibration.yaml, the report and a line under
+    # the summary table.
+    refuse_inconsistent: bool = True
     # Each observation's own board-pose error (a LIDAR's plane tilt and offset, a camera's
     # board-pose jitter), its sigmas estimated from the data: real errors are correlated
     # within one observation (docs/uncertainty.md; on the real ACFR captures it brings the

@@ -334,6 +334,21 @@ def _dominant(lin: Linearized, x: np.ndarray) -> tuple[int, str, np.ndarray]:
     return best[1], best[2], best[3]
 
 
+def _shift_words(lin: Linearized, x: np.ndarray) -> tuple[int, str, str, bool]:
+    """(sensor, "translation along lidar0 -z and rotation about lidar0 x", "98 mm and 0.52 deg",
+    material) for the sensor carrying most of tangent shift x. Its other part is named too
+    when it is at least half as large (a rotation counted at _LEVER_M): a board's plane offset
+    moves a camera's height and tilts it together, and naming one would hide the other."""
+    i, _, _ = _dominant(lin, x)
+    rot, tr = _sensor_block_lidar0(lin, x, i)
+    parts = [(float(np.linalg.norm(tr)), f"translation along lidar0 {axis_words(tr)}", f"{1e3 * np.linalg.norm(tr):.0f} mm"),
+             (_LEVER_M * float(np.linalg.norm(rot)), f"rotation about lidar0 {axis_words(rot)}",
+              f"{np.degrees(np.linalg.norm(rot)):.2f} deg")]
+    parts.sort(key=lambda p: -p[0])
+    named = [p for p in parts if p[0] >= 0.5 * parts[0][0]]
+    return i, " and ".join(p[1] for p in named), " and ".join(p[2] for p in named), parts[0][0] > _MATERIAL_M
+
+
 def weakest_directions(problem: Problem, lin: Linearized, H: np.ndarray) -> dict:
     """Per non-reference sensor: its least-determined translation and rotation (1-sigma and
     the lidar0 axis in words), from the marginal covariance H^-1."""
@@ -451,14 +466,13 @@ def check(problem: Problem, lin: Linearized, *, alpha: float = FAMILY_ALPHA, ref
             continue
         n_sig, u, h = undetectable(lin, H, Hk, z_limit, Li=Li)
         shares.append(h)
-        i, what, vec = _dominant(lin, u)
-        mag = float(np.linalg.norm(vec))
         if n_sig > _SILENT_SIGMAS:
-            size = f"{1e3 * mag:.0f} mm" if what.startswith("t") else f"{np.degrees(mag):.2f} deg"
-            material = mag * (1.0 if what.startswith("t") else _LEVER_M) > _MATERIAL_M
+            i, what, size, material = _shift_words(lin, u)
+            # no other board constrains it at all (e.g. a camera that saw 3 boards: each fixes the
+            # translation along the other two's normals' cross product): any error would pass
+            hidden = "an error of any size" if h > 1 - 1e-4 else f"an error of up to {size} ({n_sig:.0f} sigma)"
             unverified.append((not material, -n_sig, k, f"snapshot {k} alone carries {100 * h:.0f}% of the information on "
-                                         f"{lin.topics[i]} {what} lidar0 {axis_words(vec)}: an error of up to "
-                                         f"{size} ({n_sig:.0f} sigma) there would pass every check"))
+                                         f"{lin.topics[i]} {what}: {hidden} there would pass every check"))
     verdict["snapshots"]["max_leverage"] = max(shares, default=0.0)
     unverified.sort()
     verdict["unverified"] = [why for _, _, _, why in unverified]
@@ -488,6 +502,6 @@ def check(problem: Problem, lin: Linearized, *, alpha: float = FAMILY_ALPHA, ref
     if failures:
         raise SolveError(f"not self-consistent, no result written: {first}{more}; a wrong board association or a "
                          "moved sensor? check the boards with `clcgraph segment`/`detect`, or leave the snapshot "
-                         "out (replay --exclude)")
+                         "out (replay --exclude); --set solve.refuse_inconsistent=false writes it with this verdict")
     raise DegenerateError(f"not verifiable, no result written: {first}{more}; capture more boards that these "
-                          "sensors see together")
+                          "sensors see together (--set solve.refuse_inconsistent=false writes it with this verdict)")
