@@ -86,3 +86,19 @@ def kill_once_pool(marker: Path, workers: int = 2):
             return super().submit(killed_once, str(marker), fn, *args, **kwargs)
 
     return lambda: KillOncePool(workers)
+
+
+def assert_same_bytes(a, b) -> None:
+    """Files ``a`` and ``b`` byte-identical; a text file's first differing lines in the message."""
+    import difflib
+    from pathlib import Path
+
+    ba, bb = Path(a).read_bytes(), Path(b).read_bytes()
+    if ba == bb:
+        return
+    try:
+        diff = difflib.unified_diff(ba.decode().splitlines(), bb.decode().splitlines(), str(a), str(b), n=0, lineterm="")
+        detail = "\n".join(list(diff)[:12])
+    except UnicodeDecodeError:
+        detail = f"{len(ba)} vs {len(bb)} bytes"
+    raise AssertionError(f"{a} differs from {b}:\n{detail}")

@@ -17,7 +17,7 @@ import pytest
 import yaml
 
 from clcgraph.cli import main
-from fleetsim import manifest_text
+from fleetsim import assert_same_bytes, manifest_text
 
 _RUN_FIELDS = ("time_s", "attempts", "resumed")  # how a run went, not what it found
 _SAME_BYTES = ("calibration.yaml", "problem.npz", "config.resolved.yaml")
@@ -90,7 +90,7 @@ def test_cluster_local_2_and_a_separate_scheduler_with_two_workers_give_the_seri
         assert _found(tmp_path / name) == want, name
         for v in ("knocked", "same"):
             for f in _SAME_BYTES:
-                assert (tmp_path / name / v / f).read_bytes() == (tmp_path / "serial" / v / f).read_bytes(), (name, v, f)
+                assert_same_bytes(tmp_path / name / v / f, tmp_path / "serial" / v / f)
     # the separate workers did the vehicles: each of the three ran on one of them, none in this process
     with distributed.Client(scheduler_and_two_workers, timeout="30s") as client:
         ran = client.run(lambda dask_worker: dask_worker.state.executed_count)

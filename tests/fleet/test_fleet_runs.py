@@ -16,7 +16,7 @@ import yaml
 from clcgraph.cli import main
 from clcgraph.errors import InputError
 from clcgraph.fleet import Manifest, SerialExecutor, calibrate_fleet
-from fleetsim import KNOCK_DEG, kill_once_pool, manifest_text, true_knock
+from fleetsim import KNOCK_DEG, assert_same_bytes, kill_once_pool, manifest_text, true_knock
 
 _RUN_FIELDS = ("time_s", "attempts", "resumed")  # how a run went, not what it found
 
@@ -99,7 +99,7 @@ def test_fleet_is_bit_identical_on_a_process_pool_with_a_killed_worker_and_on_da
     assert _found(dask) == want
     for out in (tmp_path / "pool", tmp_path / "dask"):
         for name in ("calibration.yaml", "problem.npz", "config.resolved.yaml"):
-            assert (out / "knocked" / name).read_bytes() == (serial_out / "knocked" / name).read_bytes(), name
+            assert_same_bytes(out / "knocked" / name, serial_out / "knocked" / name)
 
 
 @pytest.mark.slow
