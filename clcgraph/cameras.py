@@ -79,7 +79,7 @@ def intrinsics_covariance(model, path="the camera model") -> np.ndarray | None:
     from mrcal.model_analysis import _propagate_calibration_uncertainty  # mrcal 2.2's own propagation
 
     lensmodel = model.intrinsics()[0]
-    n = mrcal.lensmodel_num_params(lensmodel)
+    n = num_intrinsics(lensmodel)
     if not (inputs.get("do_optimize_intrinsics_core") or inputs.get("do_optimize_intrinsics_distortions")):
         return np.zeros((n, n))
     try:
@@ -88,7 +88,7 @@ def intrinsics_covariance(model, path="the camera model") -> np.ndarray | None:
             raise ValueError("its calibration's normal equations are singular")
         icam = model.icam_intrinsics()
         i0 = mrcal.state_index_intrinsics(icam, **inputs)
-        ncore = 4 if mrcal.lensmodel_metadata_and_config(lensmodel)["has_core"] else 0
+        ncore = 4 if lensmodel_metadata(lensmodel)["has_core"] else 0
         first = 0 if inputs.get("do_optimize_intrinsics_core") else ncore
         last = n if inputs.get("do_optimize_intrinsics_distortions") else ncore
         scale = np.ones(J.shape[1])
