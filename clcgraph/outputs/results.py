@@ -463,8 +463,3 @@ def load_result(out_dir: str | Path) -> Calibration:
         except (KeyError, ValueError, TypeError):
             _fail(path, f"base_link[{k}] needs T_base_link_sensor (4x4) and rt_base_link_sensor (6)")
     return Calibration(d, path)
-
-
-def sensors_from_calibration(cal: dict) -> list[Sensor]:
-    """Bare Sensor records (topic, kind) from a loaded calibration (no intrinsics)."""
-    return [Sensor(topic=s["topic"], kind=s["kind"]) for s in cal["sensors"]]
