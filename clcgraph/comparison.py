@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .config import SafeLoaderNoCollectionAliases
 from .errors import DataError, InputError
 from .types import Result
 
@@ -93,7 +94,7 @@ def _from_calibration_file(path: Path) -> PoseSet:
     import yaml
 
     try:
-        d = yaml.safe_load(path.read_text())
+        d = yaml.load(path.read_text(), Loader=SafeLoaderNoCollectionAliases)  # no alias bombs
     except OSError as e:
         raise InputError(f"{path}: cannot read the calibration ({e.strerror}); give an output directory of "
                          "clcgraph solve / targetless, a calibration.yaml or a bag") from None

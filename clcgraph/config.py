@@ -762,3 +762,11 @@ class SafeLoaderNoCollectionAliases(yaml.SafeLoader):
             if node is not None and not isinstance(node, yaml.ScalarNode):
                 raise yaml.YAMLError(f"alias *{event.anchor} of a mapping or list (not supported in config files)")
         return super().compose_node(parent, index)
+
+
+class SafeDumperNoAliases(yaml.SafeDumper):
+    """safe_dump that writes a list or mapping used twice out twice, never as an alias: the
+    files clcgraph writes load with SafeLoaderNoCollectionAliases."""
+
+    def ignore_aliases(self, data):
+        return True

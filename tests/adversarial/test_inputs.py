@@ -517,3 +517,23 @@ def test_fleet_manifest_and_rig_file_refuse_alias_bombs(tmp_path):
         with pytest.raises(InputError, match=r"alias \*a of a mapping or list") as e:
             load(path)
         assert str(path) in str(e.value) and "\n" not in str(e.value)
+
+
+def test_calibration_files_refuse_alias_bombs_and_ours_have_no_aliases(tmp_path):
+    """A calibration.yaml handed to load_result or compare is user YAML too: aliases of lists and
+    mappings are refused in one line naming the file; the writer never emits one (a list used
+    twice is written twice), so every calibration clcgraph wrote still loads."""
+    import yaml
+
+    from clcgraph import compare, load_result
+    from clcgraph.config import SafeDumperNoAliases
+    from clcgraph.errors import ClcgraphError
+
+    bomb = tmp_path / "calibration.yaml"
+    bomb.write_text("a: &a [x, x]\nb: &b [*a, *a]\nsensors: *b\n")
+    for load in (load_result, lambda p: compare(p, p)):
+        with pytest.raises(ClcgraphError, match=r"alias \*a of a mapping or list") as e:
+            load(bomb)
+        assert str(bomb) in str(e.value) and "\n" not in str(e.value)
+    shared = [1.0, 2.0]
+    assert "*" not in yaml.dump({"x": shared, "y": shared}, Dumper=SafeDumperNoAliases)
