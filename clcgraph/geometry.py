@@ -12,6 +12,8 @@ SYNOPSIS
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 _SMALL = 1e-7
@@ -30,6 +32,8 @@ def skew(v: np.ndarray) -> np.ndarray:
 def R_from_r(r: np.ndarray) -> np.ndarray:
     """Rodrigues vector(s) (...,3) -> rotation matrices (...,3,3)."""
     r = np.asarray(r, dtype=float)
+    if r.shape == (3,):
+        return _R_from_one_r(r)
     th2 = np.sum(r * r, axis=-1)[..., None, None]
     th = np.sqrt(th2)
     K = skew(r)
@@ -40,9 +44,32 @@ def R_from_r(r: np.ndarray) -> np.ndarray:
     return np.eye(3) + a * K + b * (K @ K)
 
 
+def _R_from_one_r(r: np.ndarray) -> np.ndarray:
+    """R_from_r of one (3,) vector in scalar arithmetic: the solver converts single poses tens of
+    thousands of times, where numpy's per-call overhead is most of the cost (equal to the
+    vectorized form to rounding; K K = r r^T - |r|^2 I)."""
+    x, y, z = r.tolist()
+    th2 = x * x + y * y + z * z
+    if not math.isfinite(th2):  # non-finite r: NaN out, quietly (as the vectorized form)
+        return np.full((3, 3), np.nan)
+    if th2 < _SMALL**2:
+        a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
+    else:
+        th = math.sqrt(th2)
+        a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
+    c = 1.0 - b * th2
+    return np.array([[c + b * x * x, b * x * y - a * z, b * x * z + a * y],
+                     [b * x * y + a * z, c + b * y * y, b * y * z - a * x],
+                     [b * x * z - a * y, b * y * z + a * x, c + b * z * z]])
+
+
 def r_from_R(R: np.ndarray) -> np.ndarray:
     """Rotation matrices (...,3,3) -> Rodrigues vectors (...,3), angle in [0, pi]."""
     R = np.asarray(R, dtype=float)
+    if R.shape == (3, 3):
+        one = _r_from_one_R(R)
+        if one is not None:
+            return one
     w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
     s = 0.5 * np.linalg.norm(w, axis=-1)  # sin(th)
     c = np.clip(0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0), -1.0, 1.0)  # cos(th)
@@ -65,6 +92,20 @@ def r_from_R(R: np.ndarray) -> np.ndarray:
         sgn = np.where(np.sum(a * w[near_pi], axis=-1) < 0, -1.0, 1.0)
         out[near_pi] = a * (sgn * th[near_pi])[..., None]
     return out
+
+
+def _r_from_one_R(R: np.ndarray):
+    """r_from_R of one (3,3) in scalar arithmetic (see _R_from_one_r), or None near 180 deg and
+    for non-finite R, where the vectorized form decides."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
+    w0, w1, w2 = r21 - r12, r02 - r20, r10 - r01
+    s = 0.5 * math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    c = min(max(0.5 * (r00 + r11 + r22 - 1.0), -1.0), 1.0)
+    if not (math.isfinite(s) and math.isfinite(c)) or (s < 1e-6 and c < 0):
+        return None
+    th = math.atan2(s, c)
+    f = th / (2 * s) if s >= 1e-6 else 0.5 + th * th / 12.0
+    return np.array([f * w0, f * w1, f * w2])
 
 
 def Rt_from_rt(rt: np.ndarray) -> np.ndarray:

@@ -84,3 +84,22 @@ def test_rpy_is_urdf_fixed_axes_and_round_trips():
     # gimbal lock: pitch +90 deg still reproduces the rotation
     R_lock = g.R_from_rpy(np.r_[0.3, np.pi / 2, -0.2])
     np.testing.assert_allclose(g.R_from_rpy(g.rpy_from_R(R_lock)), R_lock, atol=1e-9)
+
+
+def test_one_pose_fast_paths_equal_the_vectorized_forms():
+    # R_from_r / r_from_R take a scalar path for one (3,) / (3,3) (the solver's hot case): it
+    # must give the vectorized form's numbers at every scale, near 180 deg and for NaN
+    rng = np.random.default_rng(4)
+    axes = rng.normal(size=(50, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    r = np.concatenate([rng.normal(size=(50, 3)) * s for s in (0.0, 1e-9, 1e-7, 1e-4, 0.3, 3.0)]
+                       + [axes * (np.pi - e) for e in (0.0, 1e-9, 1e-5, 1e-2)])
+    R_all = g.R_from_r(r)
+    R_one = np.array([g.R_from_r(x) for x in r])
+    np.testing.assert_allclose(R_one, R_all, rtol=0, atol=2e-15)
+    np.testing.assert_allclose(np.array([g.r_from_R(x) for x in R_all]), g.r_from_R(R_all), rtol=0, atol=1e-15)
+    # the rotation survives the round trip (angle in [0, pi]) on both paths
+    np.testing.assert_allclose(g.R_from_r(np.array([g.r_from_R(x) for x in R_one])), R_all, atol=1e-9)
+    assert np.isnan(g.R_from_r(np.array([np.nan, 0, 0]))).all()
+    assert np.isnan(g.R_from_r(np.array([np.inf, 0, 0]))).all()
+    assert np.isnan(g.r_from_R(np.full((3, 3), np.nan))).all()

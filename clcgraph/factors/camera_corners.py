@@ -14,6 +14,8 @@ SYNOPSIS
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from .. import cameras
@@ -46,10 +48,18 @@ def _residual(T_cam, T_board, q_obs, ok, corners_b, lensmodel, intrinsics, want:
     return err, [J_c, J_b]
 
 
+@functools.lru_cache(maxsize=16)
+def _board_corners(board) -> np.ndarray:
+    """board.corners(), read-only, once per board (a solve builds thousands of factors)."""
+    c = board.corners()
+    c.setflags(write=False)
+    return c
+
+
 def _prepare(corners_px, board):
     q = np.array(corners_px, dtype=float).reshape(-1, 2)
     ok = np.all(np.isfinite(q), axis=1)
-    corners_b = board.corners()
+    corners_b = _board_corners(board)
     if len(corners_b) != len(q):
         raise ValueError(f"{len(q)} corners given for a {board.corners_x}x{board.corners_y} board")
     return np.where(ok[:, None], q, 0.0), ok, corners_b

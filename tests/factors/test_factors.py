@@ -264,3 +264,39 @@ def test_lidar_board_error_d_tilts_about_the_board_centre():
     e_tilt = fn([T_b, gtsam.Pose3(gtsam.Rot3.Rx(0.01), np.zeros(3))], False)[0]
     centre_row = np.isclose(xy[:, 1], 0.45)
     assert np.abs(e_tilt[centre_row]).max() < 1e-12 and np.abs(e_tilt[~centre_row]).min() > 1e-3
+
+
+def test_factor_reuses_its_last_evaluation_only_at_the_same_poses():
+    # make_factor keeps its last evaluation (the solve linearizes one graph at the same values
+    # several times): the same poses give the same error and Jacobians without a call, other
+    # poses a fresh evaluation, an error-only call never serves a Jacobian request
+    import gtsam
+
+    from clcgraph.factors.base import make_factor
+
+    calls = []
+
+    def fn(poses, want):
+        calls.append(want)
+        t = poses[0].translation()
+        return t.copy(), ([np.c_[np.zeros((3, 3)), poses[0].rotation().matrix()]] if want else None)
+
+    f = make_factor([gtsam.symbol("s", 1)], gtsam.noiseModel.Isotropic.Sigma(3, 0.5), fn)
+    v = gtsam.Values()
+    v.insert(gtsam.symbol("s", 1), gtsam.Pose3(gtsam.Rot3.Rz(0.3), np.array([1.0, 2.0, 3.0])))
+    e0 = f.error(v)
+    assert calls == [False]
+    assert f.error(v) == e0 and calls == [False]
+    A, b = f.linearize(v).jacobian()
+    assert calls == [False, True]
+    A2, b2 = f.linearize(v).jacobian()
+    assert calls == [False, True]
+    np.testing.assert_array_equal(A2, A)
+    np.testing.assert_array_equal(b2, b)
+    np.testing.assert_allclose(A[:, 3:], 2.0 * gtsam.Rot3.Rz(0.3).matrix())  # whitened by 1/0.5
+    w = gtsam.Values()
+    w.insert(gtsam.symbol("s", 1), gtsam.Pose3(gtsam.Rot3.Rz(0.3), np.array([1.0, 2.0, 3.5])))
+    assert f.error(w) == pytest.approx(0.5 * np.sum((np.array([1.0, 2.0, 3.5]) / 0.5) ** 2))
+    assert calls == [False, True, False]
+    f.linearize(w)
+    assert calls == [False, True, False, True]
