@@ -173,13 +173,12 @@ def _condensed(problem: Problem, ekey, parts) -> _Obs:
         raise _Unsupported(f"an observation error {ekey} on {len(boards)} boards and {len(sens)} sensors")
     order = [("s", k) for k in sens] + [("b", boards[0]), ekey]
     H, g = np.zeros((6 * len(order),) * 2), np.zeros(6 * len(order))
-    for A, b, cols in parts:
-        Af = np.zeros((A.shape[0], 6 * len(order)))
-        for j, key in enumerate(order):
-            if key in cols:
-                Af[:, 6 * j:6 * j + 6] = A[:, cols[key]]
-        H += Af.T @ Af
-        g += Af.T @ b
+    for A, b, cols in parts:  # each factor's A^T A scattered into the observation's columns (no padded copy of A)
+        src = np.concatenate([np.arange(cols[key].start, cols[key].stop) for key in order if key in cols])
+        dst = np.concatenate([np.arange(6 * j, 6 * j + 6) for j, key in enumerate(order) if key in cols])
+        As = A[:, src] if not np.array_equal(src, np.arange(A.shape[1])) else A
+        H[np.ix_(dst, dst)] += As.T @ As
+        g[dst] += As.T @ b
     Hxe = H[:-6, -6:]
     X = np.linalg.solve(H[-6:, -6:], np.c_[Hxe.T, g[-6:]])  # D's prior keeps H_ee positive definite
     Hc, gc = H[:-6, :-6] - Hxe @ X[:, :-1], g[:-6] - Hxe @ X[:, -1]

@@ -106,12 +106,13 @@ class Linearization:
         comp = components(problem)
         self.local: dict[int, dict] = {}  # snapshot -> {key: column offset after the sensors}
         self.terms = []
+        symbols: dict = {}  # key -> gtsam.Symbol, decoded once
         for f in range(g.size()):
             factor = g.at(f)
             lin = factor.linearize(values)
             A, b = lin.jacobian()
             keys = list(lin.keys())
-            syms = [gtsam.Symbol(k) for k in keys]
+            syms = [symbols[k] if k in symbols else symbols.setdefault(k, gtsam.Symbol(k)) for k in keys]
             chars = [chr(s.chr()) for s in syms]
             effect = next((k for k, c in zip(keys, chars) if c in "de"), None)
             snapshot = obs[effect].snapshot if effect is not None else \
@@ -129,11 +130,11 @@ class Linearization:
                 rows_of = {("effect", i, c): list(d) for c, d in comp[i].items()}
                 rows_of[None] = [d for d in range(6) if not any(d in x for x in comp[i].values())]
             elif effect is not None:
-                rows_of = {("white", obs_sensor[effect]): list(range(len(b)))}
+                rows_of = {("white", obs_sensor[effect]): None}  # None: every row (no copy of A)
             else:
-                rows_of = {None: list(range(len(b)))}
+                rows_of = {None: None}
             for group, rows in rows_of.items():
-                Ar, br = A[rows], b[rows]
+                Ar, br = (A, b) if rows is None else (A[rows], b[rows])
                 n = int(np.count_nonzero(np.any(Ar != 0, axis=1)))  # masked corners are zero rows
                 self.terms.append((snapshot, cols, group, Ar.T @ Ar, Ar.T @ br, float(br @ br), n))
         self.groups = sorted({t[2] for t in self.terms if t[2] is not None}, key=str)

@@ -19,7 +19,6 @@ import functools
 import numpy as np
 
 from .. import cameras
-from ..geometry import skew
 from .base import board_perturbed, isotropic, make_factor
 
 
@@ -32,20 +31,29 @@ def _residual(T_cam, T_board, q_obs, ok, corners_b, lensmodel, intrinsics, want:
         q, dq_dp, _ = cameras.project(p, lensmodel, intrinsics, get_gradients=True)
     else:
         q = cameras.project(p, lensmodel, intrinsics)
-    err = np.where(ok[:, None], q_obs - q, 0.0).reshape(-1)
+    err = q_obs - q
+    err[~ok] = 0.0
+    err = err.reshape(-1)
     if not want:
         return err, None
+    # d p / d xi_c = [[p]x, -I], d p / d xi_b = [-R_cb [c]x, R_cb]; with D = dq/dp (K,2,3),
+    # err = -q: rows D_i [p]x = D_i x p, and D R_cb [c]x likewise on G = D R_cb
     K = len(p)
-    dp_c = np.zeros((K, 3, 6))
-    dp_c[:, :, :3] = skew(p)  # d p / d omega_c = [p]x
-    dp_c[:, :, 3:] = -np.eye(3)
-    dp_b = np.zeros((K, 3, 6))
-    dp_b[:, :, :3] = -R_cb @ skew(corners_b)  # d p / d omega_b = -R_cb [c]x
-    dp_b[:, :, 3:] = R_cb
-    m = ok[:, None, None]
-    J_c = np.where(m, -dq_dp @ dp_c, 0.0).reshape(2 * K, 6)
-    J_b = np.where(m, -dq_dp @ dp_b, 0.0).reshape(2 * K, 6)
-    return err, [J_c, J_b]
+    G_b = dq_dp @ R_cb
+    J_c, J_b = np.empty((K, 2, 6)), np.empty((K, 2, 6))
+    J_c[:, :, :3] = _cross(p[:, None, :], dq_dp)  # -(D_i x p)
+    J_c[:, :, 3:] = dq_dp
+    J_b[:, :, :3] = _cross(G_b, corners_b[:, None, :])  # (G_i x c) = G_i [c]x
+    J_b[:, :, 3:] = -G_b
+    J_c[~ok], J_b[~ok] = 0.0, 0.0
+    return err, [J_c.reshape(2 * K, 6), J_b.reshape(2 * K, 6)]
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b over the last axis, broadcast (np.cross costs more for these small stacks)."""
+    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+                     a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
 
 
 @functools.lru_cache(maxsize=16)

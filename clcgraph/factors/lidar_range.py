@@ -39,16 +39,19 @@ def _residual(T_sensor, T_board, points: np.ndarray, want: bool, rng: np.ndarray
     a_raw = points @ n_s
     floor = rng * _MIN_COS
     clamped = np.abs(a_raw) < floor
-    a = np.where(clamped, np.where(a_raw < 0, -floor, floor), a_raw)
+    any_clamped = bool(clamped.any())  # rare: skip the selects when no ray grazes
+    a = np.where(clamped, np.where(a_raw < 0, -floor, floor), a_raw) if any_clamped else a_raw
     b = float(n @ (t_b - t_s))
     err = rng * (1.0 - b / a)
     if not want:
         return err, None
     # d err = |p| (b da - a db) / a^2
-    g_a = np.where(clamped, 0.0, rng * b / a**2)
     g_b = -rng / a
+    g_a = -b * g_b / a
+    if any_clamped:
+        g_a[clamped] = 0.0
     K = len(points)
-    q = points @ (R_b.T @ R_s).T  # R_b^T R_s p
+    q = points @ (R_b.T @ R_s)[:2].T  # the first two rows of R_b^T R_s p
     J_b = np.zeros((K, 6))
     # da/d omega_b = e3 x q ; db/d omega_b = e3 x (R_b^T (t_b - t_s)) ; db/d v_b = e3
     c = R_b.T @ (t_b - t_s)
