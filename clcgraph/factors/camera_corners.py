@@ -41,19 +41,19 @@ def _residual(T_cam, T_board, q_obs, ok, corners_b, lensmodel, intrinsics, want:
     K = len(p)
     G_b = dq_dp @ R_cb
     J_c, J_b = np.empty((K, 2, 6)), np.empty((K, 2, 6))
-    J_c[:, :, :3] = _cross(p[:, None, :], dq_dp)  # -(D_i x p)
+    _cross_into(J_c, p[:, None, :], dq_dp)  # -(D_i x p)
     J_c[:, :, 3:] = dq_dp
-    J_b[:, :, :3] = _cross(G_b, corners_b[:, None, :])  # (G_i x c) = G_i [c]x
+    _cross_into(J_b, G_b, corners_b[:, None, :])  # (G_i x c) = G_i [c]x
     J_b[:, :, 3:] = -G_b
     J_c[~ok], J_b[~ok] = 0.0, 0.0
     return err, [J_c.reshape(2 * K, 6), J_b.reshape(2 * K, 6)]
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a x b over the last axis, broadcast (np.cross costs more for these small stacks)."""
-    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
-                     a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+def _cross_into(out: np.ndarray, a: np.ndarray, b: np.ndarray) -> None:
+    """out[..., :3] = a x b over the last axis, broadcast (np.cross and np.stack cost more for these stacks)."""
+    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
+    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
+    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
 
 
 @functools.lru_cache(maxsize=16)
