@@ -15,6 +15,8 @@ Cases: the noise models
 each solved with and without the per-observation effects (solve.observation_effects).
 
     python bench/bench_uncertainty.py 67 per-observation:on     # the issue's >= 200 trials
+    python -m bench.mc_correlated      # every correlated error, their terms stated: 204 trials, 2 processes
+    python -m bench.mc_independent     # independent noise, default settings: 102 trials (inflation)
 
 Environment: ``CLCGRAPH_BENCH_LOG=trials.jsonl`` keeps every trial (errors, covariance and each
 consider term's columns: ``python -m bench.mc_table trials.jsonl "board flatness=0"`` re-judges

@@ -246,6 +246,15 @@ class SolveOptions:
     # One range offset common to all of a LIDAR's points (m, 1 sigma; its datasheet's
     # range accuracy is an upper bound, it includes the per-point noise).
     lidar_range_offset_m: float = 0.0
+    # Each laser's (ring's) own range offset (m) and elevation error (deg), 1 sigma, independent
+    # per ring. The frontend measures and removes the rings' relative range offsets; what no
+    # board can show stays (a common offset and one linear in elevation, which tilt every board
+    # alike) and is a consider term, as is the same part of the elevation errors.
+    lidar_ring_range_bias_m: float = 0.01
+    lidar_ring_elevation_deg: float = 0.1
+    # A camera's lens-model error: a smooth pixel-error field fixed in the image, the same for
+    # every board at the same image position (RMS px of the error vector, 1 sigma).
+    camera_lens_field_px: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -602,6 +611,9 @@ _RANGES = {
     "solve.max_stdev_m": "(0, inf)",
     "solve.board_flatness_m": "[0, 0.1]",
     "solve.lidar_range_offset_m": "[0, 1]",
+    "solve.lidar_ring_range_bias_m": "[0, 1]",
+    "solve.lidar_ring_elevation_deg": "[0, 5]",
+    "solve.camera_lens_field_px": "[0, 10]",
     "solve.max_stdev_deg": "(0, 180]",
     "sectors.n_sectors": "[1, 3600]",
     "sectors.threshold_valid_lidar_range_m": "[0, inf)",

@@ -19,6 +19,9 @@ from clcgraph.geometry import drt_dxi, rt_from_pose3
 from clcgraph.sim.observations import make_rig, simulate_problem
 
 
+NO_RING_TERMS = dict(lidar_ring_range_bias_m=0.0, lidar_ring_elevation_deg=0.0, camera_lens_field_px=0.0)
+
+
 def _solver(problem, options, sigma):
     """(solve(p, start) -> (rt of the variable sensors (ns,), values), rebuild(p) -> graph) at fixed sigmas."""
     import gtsam
@@ -44,7 +47,7 @@ def _solver(problem, options, sigma):
 @pytest.fixture(scope="module")
 def solved():
     truth_problem, truth = simulate_problem(rig=make_rig(1, 2), n_snapshots=10, seed=5)
-    options = Config().solve
+    options = dataclasses.replace(Config().solve, **NO_RING_TERMS)  # each test turns on its own term
     sigma = np.array([0.015 if s.is_lidar else 0.3 for s in truth_problem.sensors])
     solve, build, idx = _solver(truth_problem, options, sigma)
     rt_b = truth.rt_lidar0_board
@@ -101,6 +104,11 @@ def test_calibrate_adds_the_terms_and_reports_their_shares():
 
     base = Config().solve
     assert base.board_flatness_m == 0.001 and base.lidar_range_offset_m == 0.0  # the defaults (docs/uncertainty.md)
+    assert base.lidar_ring_range_bias_m == 0.01 and base.lidar_ring_elevation_deg == 0.1
+    assert base.camera_lens_field_px == 0.1
+    assert calibrate(problem, base).stats["uncertainty_terms"]["included"] == [
+        consider.MODEL_TERM, "board flatness", "ring range bias /lidar0", "ring elevation /lidar0", "lens field /cam0"]
+    base = dataclasses.replace(base, **NO_RING_TERMS)
     r0 = calibrate(problem, dataclasses.replace(base, board_flatness_m=0.0))
     r1 = calibrate(problem, dataclasses.replace(base, lidar_range_offset_m=0.01, board_flatness_m=0.003))
     t0 = r0.stats["uncertainty_terms"]
@@ -160,7 +168,7 @@ def test_intrinsics_term_matches_a_monte_carlo_over_the_intrinsics(tmp_path):
     rig = make_rig(1, 1)
     rig = dataclasses.replace(rig, sensors=(rig.sensors[0], cam))
     problem, truth = simulate_problem(rig=rig, n_snapshots=10, seed=3)
-    options = dataclasses.replace(Config().solve, board_flatness_m=0.0)
+    options = dataclasses.replace(Config().solve, board_flatness_m=0.0, **NO_RING_TERMS)
     sigma = np.array([0.015, 0.3])
     solve, build, idx = _solver(problem, options, sigma)
     x, values = solve(problem, truth.rt_lidar0_sensor, truth.rt_lidar0_board)
@@ -188,6 +196,128 @@ def test_intrinsics_term_matches_a_monte_carlo_over_the_intrinsics(tmp_path):
 def test_stated_sigmas_out_of_range_are_refused_naming_the_key():
     from clcgraph.config import ConfigError
 
-    for key in ("board_flatness_m", "lidar_range_offset_m"):
+    for key in ("board_flatness_m", "lidar_range_offset_m", "lidar_ring_range_bias_m", "lidar_ring_elevation_deg",
+                "camera_lens_field_px"):
         with pytest.raises(ConfigError, match=rf"'solve.{key}' must be in \["):
             Config.from_dict({"solve": {key: -0.001}})
+
+
+def _ring_residuals(problem, truth, sensor=0):
+    """Per ring of LIDAR ``sensor``: (elevation rad, mean range beyond the true board plane, count)."""
+    from clcgraph.backend.graph import residuals
+
+    lid, _ = residuals(problem, truth.rt_lidar0_sensor, truth.rt_lidar0_board)
+    e = np.concatenate([consider._elevations(o.points) for o in problem.lidar_observations if o.sensor == sensor])
+    r = np.concatenate([x for o, x in zip(problem.lidar_observations, lid) if o.sensor == sensor])
+    ring = np.round(np.degrees(e) / 2).astype(int)  # a VLP-16's rings are 2 deg apart
+    _, ring = np.unique(ring, return_inverse=True)
+    n = np.bincount(ring).astype(float)
+    return np.bincount(ring, e) / n, np.bincount(ring, r) / n, n
+
+
+def test_after_the_frontends_ring_correction_only_a_trend_over_elevation_is_left():
+    """2 cm per-ring range biases: the frontend's correction (applied by the simulator as `solve`
+    applies it) leaves a + b e over the rings' elevations, to < 1.5 mm, as the ring range term
+    assumes; without it the biases are per ring (the same test sees them, >> 1.5 mm)."""
+    from clcgraph.sim.observations import CorrelatedErrors
+
+    kw = dict(rig=make_rig(1, 1), n_snapshots=12, seed=4, sigma_lidar_m=0.01)
+    for correct, bound in ((True, (0.0, 1.5e-3)), (False, (5e-3, 0.05))):
+        p, t = simulate_problem(errors=CorrelatedErrors(ring_range_bias_m=0.02, frontend_ring_correction=correct), **kw)
+        e, m, n = _ring_residuals(p, t)
+        A = np.c_[np.ones_like(e), e]
+        coef = np.linalg.lstsq(A * np.sqrt(n)[:, None], m * np.sqrt(n), rcond=None)[0]
+        rest = np.sqrt(np.average((m - A @ coef) ** 2, weights=n))
+        assert bound[0] <= rest < bound[1], (correct, rest)
+        assert len(e) >= 8
+
+
+def test_rings_are_found_from_the_points_elevations():
+    problem, truth = simulate_problem(rig=make_rig(2, 0), n_snapshots=8, seed=2)
+    for sensor, model in make_rig(2, 0).lidars.items():
+        el, counts = consider.lidar_rings(problem, sensor)
+        seen = {int(r) for o in problem.lidar_observations if o.sensor == sensor
+                for r in np.argmin(np.abs(consider._elevations(o.points)[:, None] - model.elevations_rad), axis=1)}
+        assert len(el) == len(seen)  # every ring that met a board, none split or merged
+        np.testing.assert_allclose(el, np.asarray(model.elevations_rad)[sorted(seen)], atol=1e-9)
+        assert counts.sum() == sum(len(o.points) for o in problem.lidar_observations if o.sensor == sensor)
+
+
+def test_ring_trend_directions_are_the_covariance_of_the_unestimable_part():
+    """Draws of per-ring errors, their relative part taken out as the frontend takes it out
+    (point-weighted fit over the rings' elevations): what is left has the covariance the
+    directions give (2000 draws, within 10 %)."""
+    rng = np.random.default_rng(3)
+    el = np.radians(np.linspace(-15, 15, 16))[3:14]
+    n = rng.integers(50, 900, len(el)).astype(float)
+    dirs, e0 = consider.ring_trend_directions(el, n, 0.02)
+    A = np.c_[np.ones_like(el), el - e0]
+    b = rng.normal(0, 0.02, (2000, len(el)))
+    coef = np.linalg.solve(A.T @ (n[:, None] * A), A.T @ (n[:, None] * b.T)).T
+    C = np.cov(coef.T)
+    scale = np.sqrt(np.outer(np.diag(C), np.diag(C)))  # correlations to 0.1, variances to 10 %
+    assert np.all(np.abs(dirs.T @ dirs - C) <= 0.1 * scale), (dirs.T @ dirs, C)
+    # only the trend stays: a and b are far smaller than the ring sigma's share of one ring
+    assert np.sqrt(C[0, 0]) < 0.02 / np.sqrt(len(el)) * 1.5
+
+
+@pytest.mark.parametrize("name", ["ring range bias /lidar0", "ring elevation /lidar0"])
+def test_ring_term_sensitivity_matches_a_resolve_of_the_moved_measurements(solved, name):
+    problem, truth, options, sigma, solve, build, idx, x, values = solved
+    opts = dataclasses.replace(options, board_flatness_m=0.0, lidar_ring_range_bias_m=0.03 * (name[5] == "r"),
+                               lidar_ring_elevation_deg=0.3 * (name[5] == "e"))
+    rt_s = truth.rt_lidar0_sensor.copy()
+    for a, i in enumerate(idx):
+        rt_s[i] = x[6 * a:6 * a + 6]
+    rt_b = np.array([rt_from_pose3(values.atPose3(G.board_key(k))) for k in range(len(truth.rt_lidar0_board))])
+    terms = consider.consider_terms(problem, lambda p: build(p, rt_s, rt_b)[0], values, opts)
+    assert set(terms) == {name}
+    cols = _rt_columns(terms, x, idx)[name]
+    dirs, e0 = consider.ring_trend_directions(*consider.lidar_rings(problem, 0),
+                                              0.03 if name[5] == "r" else np.radians(0.3))
+    assert cols.shape[1] == len(dirs) == 2
+    for d, pred in zip(dirs, cols.T):
+        moved = consider._ring_range_moves(problem, 0, e0, d) if name[5] == "r" else \
+            consider._ring_elevation_moves(problem, values, 0, e0, d)
+        dx = solve(moved, rt_s, rt_b)[0] - x
+        assert np.linalg.norm(dx[3:6]) > 1e-4  # the move is measurable
+        assert np.linalg.norm(pred - dx) < 0.03 * np.linalg.norm(dx), (pred, dx)
+
+
+def test_lens_field_term_in_closed_form_is_the_relinearized_one_and_a_resolve(solved):
+    """The lens-field term's closed form (only b moves: the corners over sigma, through the
+    Schur complement) against a relinearization per mode, and one mode against a re-solve."""
+    from clcgraph.backend.noise import Linearization
+
+    problem, truth, options, sigma, solve, build, idx, x, values = solved
+    opts = dataclasses.replace(options, board_flatness_m=0.0, camera_lens_field_px=0.5)
+    rt_s = truth.rt_lidar0_sensor.copy()
+    for a, i in enumerate(idx):
+        rt_s[i] = x[6 * a:6 * a + 6]
+    rt_b = np.array([rt_from_pose3(values.atPose3(G.board_key(k))) for k in range(len(truth.rt_lidar0_board))])
+    rebuild = lambda p: build(p, rt_s, rt_b)[0]  # noqa: E731
+    terms = consider.consider_terms(problem, rebuild, values, opts)
+    assert set(terms) == {"lens field /cam0", "lens field /cam1"}
+    S, r0, _ = Linearization(problem, rebuild(problem), values).reduced()
+    cam = problem.sensors.index(next(s for s in problem.sensors if s.topic == "/cam1"))
+    modes = consider.lens_field_modes(problem.sensors[cam].imagersize, 0.5)
+    got = terms["lens field /cam1"]
+    assert got.shape[1] == 2 * len(modes) >= 10
+    for j in (0, 1, 2 * len(modes) - 1):
+        moved = consider._lens_moves(problem, cam, modes[j // 2], j % 2, 1.0)
+        want = np.linalg.solve(S, Linearization(moved, rebuild(moved), values).reduced()[1] - r0)
+        np.testing.assert_allclose(got[:, j], want, rtol=1e-6, atol=1e-9 * np.abs(want).max())
+    moved = consider._lens_moves(problem, cam, modes[0], 0, 1.0)
+    dx = solve(moved, rt_s, rt_b)[0] - x
+    pred = _rt_columns({"m": got[:, :1]}, x, idx)["m"][:, 0]
+    assert np.linalg.norm(dx) > 1e-5 and np.linalg.norm(pred - dx) < 0.03 * np.linalg.norm(dx), (pred, dx)
+
+
+def test_lens_field_modes_carry_the_fields_covariance():
+    """The modes' outer products against the field's kernel at random image points."""
+    rng = np.random.default_rng(0)
+    q = rng.uniform([0, 0], [1024, 768], (300, 2))
+    F = np.array([m(q) for m in consider.lens_field_modes((1024, 768), 0.3)])
+    K = 0.3**2 / 2 * consider.lens_field_kernel((q[:, None, 0] - q[None, :, 0]) / 1024) * \
+        consider.lens_field_kernel((q[:, None, 1] - q[None, :, 1]) / 768)
+    assert np.all(np.abs(F.T @ F - K) < 0.2 * K[0, 0]) and 0.9 < np.median(np.diag(F.T @ F) / np.diag(K)) <= 1.0

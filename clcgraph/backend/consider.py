@@ -24,6 +24,20 @@ The sigmas stated by the user (solve options):
   along their rays, corners off the plane and are reprojected.
 - ``lidar_range_offset_m``: one range offset common to every point of a LIDAR (one term per
   LIDAR).
+- ``lidar_ring_range_bias_m``, ``lidar_ring_elevation_deg``: each laser's (ring's) own range
+  offset and elevation error, independent per ring with that sigma. The frontend measures the
+  rings' range offsets on the boards and takes them out (frontend/lidar_board.py,
+  ``ring_range_offsets``), all but what no set of planes can tell apart from the board poses:
+  their point-weighted fit ``a + b e`` over the rings' elevations e. That part stays, and so
+  does the same fit of the elevation errors (their relative part is either taken for range
+  offsets or differs from board to board: the per-observation model's). So per LIDAR two
+  terms of two directions each: the 1-sigma directions of ``Cov(a, b) = sigma^2 (A'WA)^-1
+  A'W^2A (A'WA)^-1`` (A = [1, e] over the rings the boards met, W their point counts).
+
+- ``camera_lens_field_px``: a lens-model error field, the same at the same image position in
+  every board (RMS of the pixel error vector; lens_field_kernel's smoothness): the leading
+  eigenmodes of its covariance, per pixel axis (the residuals are linear in the corners: a
+  one-sided difference per mode).
 
 SYNOPSIS
     terms = consider_terms(problem, rebuild, values, options)   # {name: (ns, m) J_c sigma_c, tangent}
@@ -102,6 +116,115 @@ def _range_moves(problem: Problem, sensor: int, h: float):
     return dataclasses.replace(problem, lidar_observations=tuple(lidar))
 
 
+# Rings are told apart by their elevations: within one ring the points' elevations differ by far
+# less (a beam's origin offset from the sensor's: < 0.02 deg over a board) than between rings
+# (>= 0.125 deg on the densest 128-ring units); merged rings only make the terms larger.
+RING_GAP_RAD = np.radians(0.06)
+
+
+def _elevations(points: np.ndarray) -> np.ndarray:
+    return np.arcsin(np.clip(points[:, 2] / np.linalg.norm(points, axis=1), -1.0, 1.0))
+
+
+def lidar_rings(problem: Problem, sensor: int) -> tuple[np.ndarray, np.ndarray]:
+    """(R,) elevations (rad) of the rings of LIDAR ``sensor`` that met its boards, and (R,) their point counts."""
+    e = np.sort(np.concatenate([_elevations(o.points) for o in problem.lidar_observations if o.sensor == sensor]))
+    ring = np.r_[0, np.cumsum(np.diff(e) > RING_GAP_RAD)]
+    counts = np.bincount(ring).astype(float)
+    return np.bincount(ring, e) / counts, counts
+
+
+def ring_trend_directions(elevations: np.ndarray, counts: np.ndarray, sigma: float) -> tuple[np.ndarray, float]:
+    """((m, 2) the 1-sigma directions (a, b) of what is left of per-ring errors of ``sigma`` each
+    once their relative part is taken out: their point-weighted least-squares fit a + b e
+    (b per rad of elevation) over the rings (``elevations``, ``counts``); ``e`` from the
+    rings' weighted mean e0, so a and b are nearly independent; m = 1 with a single ring), e0."""
+    e = elevations - np.average(elevations, weights=counts)
+    A = np.c_[np.ones_like(e), e] if len(e) > 1 and np.ptp(e) > 0 else np.ones((len(e), 1))
+    Ninv = np.linalg.inv(A.T @ (counts[:, None] * A))
+    C = sigma**2 * Ninv @ (A.T @ (counts[:, None] ** 2 * A)) @ Ninv
+    out = intrinsics_directions(C)
+    return np.c_[out, np.zeros((len(out), 2 - out.shape[1]))], np.average(elevations, weights=counts)
+
+
+def _ring_range_moves(problem: Problem, sensor: int, e0: float, ab: np.ndarray):
+    """The observations with LIDAR ``sensor``'s ranges ``a + b (e - e0)`` longer at elevation e."""
+    def moved(o):
+        r = np.linalg.norm(o.points, axis=1, keepdims=True)
+        return dataclasses.replace(o, points=o.points * (1 + (ab[0] + ab[1] * (_elevations(o.points) - e0))[:, None] / r))
+    lidar = [moved(o) if o.sensor == sensor else o for o in problem.lidar_observations]
+    return dataclasses.replace(problem, lidar_observations=tuple(lidar))
+
+
+def _ring_elevation_moves(problem: Problem, values, sensor: int, e0: float, ab: np.ndarray):
+    """The observations with LIDAR ``sensor``'s rays really leaving ``a + b (e - e0)`` (rad) higher
+    than reported: each range is where the raised ray meets its board's plane (at the solution),
+    the point still reported along the nominal ray."""
+    rt_s = _poses(problem, values)
+    lidar = []
+    for o in problem.lidar_observations:
+        rt_b = _board_rt(values, o.snapshot)
+        if o.sensor != sensor or rt_b is None:
+            lidar.append(o)
+            continue
+        rt_sensor_board = compose_rt(invert_rt(rt_s[sensor]), rt_b)
+        n = R_from_r(rt_sensor_board[:3])[:, 2]
+        r = np.linalg.norm(o.points, axis=1)
+        u = o.points / r[:, None]
+        e = _elevations(o.points)
+        up = np.c_[-np.sin(e)[:, None] * u[:, :2] / np.maximum(np.cos(e), 1e-9)[:, None], np.cos(e)]  # du/de
+        de = ab[0] + ab[1] * (e - e0)
+        raised = np.cos(de)[:, None] * u + np.sin(de)[:, None] * up
+        cos, cos_raised = u @ n, raised @ n
+        ratio = np.where(np.abs(cos_raised) > 0.05, cos / np.where(np.abs(cos_raised) > 0.05, cos_raised, 1.0), 1.0)
+        lidar.append(dataclasses.replace(o, points=o.points * ratio[:, None]))
+    return dataclasses.replace(problem, lidar_observations=tuple(lidar))
+
+
+def lens_field_kernel(d: np.ndarray) -> np.ndarray:
+    """Correlation along one image axis of a lens-model error field, at ``d`` (fractions of the
+    image): a field of spatial frequencies between 0.5 and 1.5 cycles across the image (what a
+    lens model's fit leaves: no constant shift or scale, which the intrinsics absorb; nothing as
+    fine as the corners' spacing), i.e. ``E cos(2 pi f d)`` for f uniform in [0.5, 1.5]."""
+    d = np.asarray(d, float)
+    x = np.where(np.abs(d) < 1e-9, 1.0, d)
+    return np.where(np.abs(d) < 1e-9, 1.0, (np.sin(3 * np.pi * x) - np.sin(np.pi * x)) / (2 * np.pi * x))
+
+
+LENS_GRID = (16, 12)  # nodes over the image; >= 3 per cycle at the field's highest frequency
+LENS_MODES_VARIANCE = 0.95  # share of the field's variance the modes kept carry
+
+
+def lens_field_modes(imagersize, rms_px: float):
+    """[(K,2) -> (K,) 1-sigma field of one pixel axis at image points] for a smooth lens-model
+    error field of ``rms_px`` (RMS of the error vector, both axes; lens_field_kernel in x and y):
+    the leading eigenmodes on a grid, extended to any point by the field's own regression
+    (Nystrom: the grid's kernel inverted over each mode)."""
+    w, h = imagersize
+    gx, gy = np.meshgrid(np.linspace(0, 1, LENS_GRID[0]), np.linspace(0, 1, LENS_GRID[1]))
+    grid = np.c_[gx.ravel(), gy.ravel()]
+
+    def k(a, b):
+        return lens_field_kernel(a[:, None, 0] - b[None, :, 0]) * lens_field_kernel(a[:, None, 1] - b[None, :, 1])
+
+    lam, V = np.linalg.eigh(k(grid, grid))
+    lam, V = lam[::-1], V[:, ::-1]
+    m = int(np.searchsorted(np.cumsum(lam) / lam.sum(), LENS_MODES_VARIANCE)) + 1
+    var = rms_px**2 / 2  # per axis
+    return [lambda q, v=V[:, j], l=lam[j]: np.sqrt(var) * (k(np.c_[q[:, 0] / w, q[:, 1] / h], grid) @ v) / np.sqrt(l)
+            for j in range(m)]
+
+
+def _lens_moves(problem: Problem, sensor: int, mode, axis: int, h: float):
+    """The observations with camera ``sensor``'s corners moved by ``h`` times a lens-field mode along ``axis``."""
+    def moved(o):
+        dq = np.zeros_like(o.corners_px)
+        dq[:, axis] = h * mode(o.corners_px)
+        return dataclasses.replace(o, corners_px=o.corners_px + dq)
+    camera = [moved(o) if o.sensor == sensor else o for o in problem.camera_observations]
+    return dataclasses.replace(problem, camera_observations=tuple(camera))
+
+
 def _intrinsics_moved(problem: Problem, sensor: int, delta: np.ndarray):
     """The problem with camera ``sensor``'s intrinsics moved by ``delta``."""
     sensors = list(problem.sensors)
@@ -135,21 +258,96 @@ def consider_terms(problem: Problem, build, values, options, S: np.ndarray | Non
             if s.is_lidar:
                 wanted[f"range offset {s.topic}"] = [
                     lambda sign, i=i: _range_moves(problem, i, sign * options.lidar_range_offset_m)]
+    ring_terms = (("ring range bias", options.lidar_ring_range_bias_m, _ring_range_moves),
+                  ("ring elevation", np.radians(options.lidar_ring_elevation_deg),
+                   lambda p, i, e0, ab: _ring_elevation_moves(p, values, i, e0, ab)))
+    for i, s in enumerate(problem.sensors):
+        if not s.is_lidar or not any(o.sensor == i for o in problem.lidar_observations):
+            continue
+        rings = lidar_rings(problem, i)
+        for name, sigma, move in ring_terms:
+            if sigma > 0:
+                dirs, e0 = ring_trend_directions(*rings, sigma)
+                wanted[f"{name} {s.topic}"] = [lambda sign, i=i, e0=e0, d=d, move=move: move(problem, i, e0, sign * d)
+                                               for d in dirs]
+    lens = {}  # camera -> its lens field's modes: residuals linear in the corners, done in closed form
+    if options.camera_lens_field_px > 0:
+        for i, s in enumerate(problem.sensors):
+            if s.is_camera and any(o.sensor == i for o in problem.camera_observations):
+                lens[i] = lens_field_modes(s.imagersize, options.camera_lens_field_px)
     for i, s in enumerate(problem.sensors):
         if s.is_camera and s.intrinsics_covariance is not None and np.any(s.intrinsics_covariance):
             wanted[f"intrinsics {s.topic}"] = [lambda sign, i=i, d=d: _intrinsics_moved(problem, i, sign * d)
                                               for d in intrinsics_directions(s.intrinsics_covariance)]
-    if not wanted:
+    if not wanted and not lens:
         return {}
     if S is None:
         S = Linearization(problem, build(problem), values).reduced()[0]
+    out = {f"lens field {problem.sensors[i].topic}": np.linalg.solve(S, dr)
+           for i, dr in _lens_field_dr(problem, build, values, lens).items()}
+    if not wanted:
+        return out
 
     def r_of(p):
         return Linearization(p, build(p), values).reduced()[1]
 
     # linear in c far beyond 1 sigma: a central difference at +-1 sigma
-    return {name: np.stack([np.linalg.solve(S, (r_of(moved(1)) - r_of(moved(-1))) / 2) for moved in dirs], axis=1)
-            for name, dirs in wanted.items()}
+    return {**{name: np.stack([np.linalg.solve(S, (r_of(moved(1)) - r_of(moved(-1))) / 2) for moved in dirs], axis=1)
+               for name, dirs in wanted.items()}, **out}
+
+
+def _lens_field_dr(problem: Problem, build, values, lens: dict) -> dict:
+    """{camera: (ns, m) the change of the sensor-only vector r when its corners move along each
+    of its lens-field modes (both pixel axes)}, in closed form: a camera factor's residual is
+    linear in its corners (whitened ``(q - project) / sigma``), so only b moves, by the moved
+    corners over sigma, and r by ``sum_k dv_s - B_k L_k^-1 dv_local`` over the snapshots (the
+    Schur complement ``reduced`` uses). Same numbers as a relinearization per mode, far cheaper."""
+    import gtsam
+
+    from .noise import Linearization
+
+    if not lens:
+        return {}
+    g = build(problem)
+    lin = Linearization(problem, g, values)
+    ns = lin.ns
+    _, batches, _ = lin._batches()
+    gain = {}  # snapshot -> (K = B L^-1 (ns, nl), n)
+    for ks, n, Mg, vg, *_ in batches:
+        wv = np.ones(Mg.shape[1])
+        S_k, r_k, iL, B, _ = lin._eliminate((Mg @ wv).reshape(len(ks), n, n), (vg @ wv).reshape(len(ks), n))
+        for b, k in enumerate(ks):
+            gain[k] = B[b] @ iL[b]
+    sensor_col = {G.sensor_key(i): 6 * a for a, i in enumerate(lin.variable_sensors)}
+    obs = {(o.sensor, o.snapshot): o for o in problem.camera_observations}
+    out = {i: np.zeros((ns, 2 * len(modes))) for i, modes in lens.items()}
+    for f in range(g.size()):
+        factor = g.at(f)
+        keys = list(factor.keys())
+        syms = [gtsam.Symbol(k) for k in keys]
+        chars = [chr(x.chr()) for x in syms]
+        cam = [i for i in lens if G.sensor_key(i) in keys]
+        if not cam or "b" not in chars or "PriorFactor" in type(factor).__name__:
+            continue
+        i = cam[0]
+        k = next(int(x.index()) for x, c in zip(syms, chars) if c == "b")
+        A, _ = factor.linearize(values).jacobian()
+        q = obs[(i, k)].corners_px
+        dq = np.stack([np.c_[m(q), np.zeros(len(q))] if a == 0 else np.c_[np.zeros(len(q)), m(q)]
+                       for m in lens[i] for a in (0, 1)], axis=-1).reshape(2 * len(q), -1)  # (rows, modes)
+        db = -_whiten(factor, np.nan_to_num(dq))  # undetected corners: zero rows of A
+        cols = np.concatenate([np.arange(6) + (sensor_col[key] if c == "s" else ns + lin.local[k][key])
+                               for key, c in zip(keys, chars)])
+        dv = np.zeros((ns + 6 * len(lin.local[k]), dq.shape[1]))
+        np.add.at(dv, cols, A.T @ db)
+        out[i] += dv[:ns] - gain[k] @ dv[ns:]
+    return out
+
+
+def _whiten(factor, e: np.ndarray) -> np.ndarray:
+    """(rows, m) columns of an unwhitened error change, whitened by the factor's noise model."""
+    model = factor.noiseModel()
+    return np.stack([model.whiten(np.ascontiguousarray(c)) for c in e.T], axis=1)
 
 
 MODEL_TERM = "noise and per-observation errors"

@@ -62,6 +62,9 @@ class CorrelatedErrors:
     mixed_pixel_m: float = 0.0  # the board-edge point of each ring is up to this much farther
     corner_bias_px: float = 0.0  # sd of one shift of all corners, per (camera, board) (0.1-0.3 px)
     lens_field_px: float = 0.0  # amplitude of a smooth pixel-error field per camera (0.2-0.5 px)
+    # the frontend's per-ring range-offset correction (frontend/lidar_board.ring_range_offsets)
+    # applied to the LIDAR observations, as `clcgraph solve` applies it to a real capture's
+    frontend_ring_correction: bool = True
 
     @classmethod
     def realistic(cls) -> "CorrelatedErrors":
@@ -259,6 +262,7 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
     if errors.board_warp_m:
         corners_b = np.c_[corners_b[:, :2], board_warp(board, corners_b[:, :2], errors.board_warp_m)]
     lidar_obs, camera_obs, boards = [], [], []
+    rings_of = {}  # (sensor, snapshot) -> (K,) ring of each point
     k = 0
     attempts = 0
     while k < n_snapshots:
@@ -275,6 +279,7 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
                 if len(p) >= min_points and len(np.unique(ring)) >= min_rings:
                     plane, rms = plane_fit(p)
                     lo.append(LidarBoardObservation(sensor=i, snapshot=k, points=p, plane=plane, rms_m=rms))
+                    rings_of[(i, k)] = ring
             else:
                 pc = transform(rt_s_b, corners_b)
                 q = cameras.project(pc, s.lensmodel, s.intrinsics)
@@ -293,6 +298,8 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
         camera_obs += co
         boards.append(rt_b)
         k += 1
+    if errors.frontend_ring_correction and (errors.ring_range_bias_m or errors.ring_elevation_deg):
+        lidar_obs = _ring_corrected(lidar_obs, rings_of, sensors)
     corrupted = []
     if corrupt_fraction > 0:
         lidar_obs, camera_obs, corrupted = _corrupt(lidar_obs, camera_obs, corrupt_fraction, rng)
@@ -304,6 +311,25 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
         lidar_visibility_points=vis,
     )
     return problem, Truth(rts, np.array(boards), tuple(corrupted))
+
+
+def _ring_corrected(lidar_obs: list, rings_of: dict, sensors) -> list:
+    """``lidar_obs`` with each LIDAR's per-ring range offsets measured on its boards and taken out
+    by the frontend's own correction (what `clcgraph solve` does after segmenting a capture)."""
+    import dataclasses
+
+    from ..frontend.lidar_board import correct_ring_offsets
+    from ..types import LidarScan
+
+    out = list(lidar_obs)
+    for i in sorted({o.sensor for o in lidar_obs}):
+        mine = [j for j, o in enumerate(lidar_obs) if o.sensor == i]
+        found = [dataclasses.replace(lidar_obs[j], indices=np.arange(len(lidar_obs[j].points))) for j in mine]
+        scans = [LidarScan(topic=sensors[i].topic, stamp_ns=0, points=o.points, valid=np.ones(len(o.points), bool),
+                           ring=rings_of[(i, o.snapshot)]) for o in found]
+        for j, o in zip(mine, correct_ring_offsets(found, scans)):
+            out[j] = dataclasses.replace(o, indices=None)
+    return out
 
 
 def _corrupt(lidar_obs, camera_obs, fraction, rng):
