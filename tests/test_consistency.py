@@ -260,6 +260,8 @@ def test_height_resting_on_one_pitched_board_is_refused(n_pitched):
                                                   r"information on /cam0 translation along lidar0 -?z") as e:
             calibrate(p, REFUSING)
         assert "\n" not in str(e.value)
+        # what to do about it, in the user's words: the height needs boards pitched up and down
+        assert "capture more boards that /cam0 and the other sensors see together, pitched up and down" in str(e.value)
         return
     r = calibrate(p, REFUSING)
     assert r.stats["consistency"]["passed"]

@@ -348,6 +348,24 @@ def _shift_words(lin: Linearized, x: np.ndarray) -> tuple[int, str, str, bool]:
     return i, " and ".join(p[1] for p in named), " and ".join(p[2] for p in named), parts[0][0] > _MATERIAL_M
 
 
+def recapture_hint(lin: Linearized, x: np.ndarray) -> str:
+    """What to capture so that no single board carries tangent shift x, in the user's words.
+    A LIDAR sees only the board's plane, so a translation is fixed by boards whose normals
+    have a part along it: a height by boards pitched up or down, a sideways offset by boards
+    turned left or right; a rotation by boards whose normals differ from each other."""
+    i, _, _ = _dominant(lin, x)
+    rot, tr = _sensor_block_lidar0(lin, x, i)
+    if np.linalg.norm(tr) >= _LEVER_M * np.linalg.norm(rot):
+        d = np.abs(tr) / max(np.linalg.norm(tr), 1e-300)
+        if d[2] >= 0.5:
+            how = "pitched up and down (faces toward the sky or the ground), not only upright"
+        else:
+            how = f"whose faces point along lidar0 {axis_words(tr).lstrip('-')} (turned left and right, near and far)"
+    else:
+        how = "tilted in different directions (pitched up and down, turned left and right)"
+    return f"capture more boards that {lin.topics[i]} and the other sensors see together, {how}"
+
+
 def weakest_directions(problem: Problem, lin: Linearized, H: np.ndarray) -> dict:
     """Per non-reference sensor: its least-determined translation and rotation (1-sigma and
     the lidar0 axis in words), from the marginal covariance H^-1."""
@@ -471,10 +489,11 @@ def check(problem: Problem, lin: Linearized, *, alpha: float = FAMILY_ALPHA, ref
             # translation along the other two's normals' cross product): any error would pass
             hidden = "an error of any size" if h > 1 - 1e-4 else f"an error of up to {size} ({n_sig:.0f} sigma)"
             unverified.append((not material, -n_sig, k, f"snapshot {k} alone carries {100 * h:.0f}% of the information on "
-                                         f"{lin.topics[i]} {what}: {hidden} there would pass every check"))
+                                         f"{lin.topics[i]} {what}: {hidden} there would pass every check",
+                               recapture_hint(lin, u)))
     verdict["snapshots"]["max_leverage"] = max(shares, default=0.0)
     unverified.sort()
-    verdict["unverified"] = [why for _, _, _, why in unverified]
+    verdict["unverified"] = [why for _, _, _, why, _ in unverified]
     unverified = [u for u in unverified if not u[0]]  # the material ones refuse the result
     for k, c in snap_tests.items():
         if c.p < limit:
@@ -488,7 +507,7 @@ def check(problem: Problem, lin: Linearized, *, alpha: float = FAMILY_ALPHA, ref
     log.info("consistency: %d checks, worst snapshot %s", m, verdict["snapshots"].get("worst_sigma"))
     failures.sort()
     verdict["failures"] = [why for _, why in failures]
-    verdict["unverifiable"] = [why for _, _, _, why in unverified]
+    verdict["unverifiable"] = [why for _, _, _, why, _ in unverified]
     verdict["passed"] = not failures and not unverified
     if verdict["passed"]:
         return verdict
@@ -502,5 +521,5 @@ def check(problem: Problem, lin: Linearized, *, alpha: float = FAMILY_ALPHA, ref
         raise SolveError(f"not self-consistent, no result written: {first}{more}; a wrong board association or a "
                          "moved sensor? check the boards with `clcgraph segment`/`detect`, or leave the snapshot "
                          "out (replay --exclude); --set solve.refuse_inconsistent=false writes it with this verdict")
-    raise DegenerateError(f"not verifiable, no result written: {first}{more}; capture more boards that these "
-                          "sensors see together (--set solve.refuse_inconsistent=false writes it with this verdict)")
+    raise DegenerateError(f"not verifiable, no result written: {first}{more}; {unverified[0][4]} "
+                          "(--set solve.refuse_inconsistent=false writes it with this verdict)")

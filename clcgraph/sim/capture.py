@@ -11,8 +11,9 @@ Two schemes, as people record them:
 a scan one rotation after its stamp, a frame 20-35 ms after), so log order is not stamp
 order across topics; off: log time = stamp.
 Board poses are drawn 2.5-9 m from a sensor (a board smaller than 1.3 m proportionally
-closer; half of them in front of a camera), tilted up
-to ``tilt_max_deg``, and kept if >= 2 sensors see the board (>= 3 rings / the whole corner
+closer; half of them in front of a camera), tilted up to ``tilt_max_deg`` (about random axes, or
+with ``planned_tilts`` as a careful person plans: pitched up and down, turned left and right in
+turn), and kept if >= 2 sensors see the board (>= 3 rings / the whole corner
 grid). /tf_static holds base_link -> every sensor frame, off the truth by ``tf_error``
 (deg, m) like a CAD drawing. ``truth.yaml`` next to the bags has the true poses.
 
@@ -37,7 +38,7 @@ from .bag_writer import FORMATS, BagWriter, LogDelays
 from .camera import render
 from .lidar import simulate_scan
 from .rig import Rig, load_rig
-from .scene import make_scene, random_board_pose, static_meshes
+from .scene import make_scene, planned_tilt, random_board_pose, static_meshes
 
 log = logging.getLogger(__name__)
 
@@ -46,11 +47,13 @@ DEMO_RIG = Path(__file__).resolve().parents[2] / "data" / "synthetic" / "demo-ri
 DEMO_DIR = DEMO_RIG.parent / "demo"
 
 
-def _board_pose(rng, rig: Rig, tilt_max_deg: float, vertical: bool = False, max_distance_m=None) -> np.ndarray:
+def _board_pose(rng, rig: Rig, tilt_max_deg: float, vertical: bool = False, max_distance_m=None,
+                tilt_towards_rad=None) -> np.ndarray:
     """T_world_board: in front of a random camera (half the time) or anywhere around a LIDAR;
     2.5-9 m away for a 1.3 m board, a smaller board proportionally closer (as people hold it).
     ``vertical``: the board plane exactly vertical (``random_board_pose``); ``max_distance_m``: at
-    most this far (a capture plan for a low-resolution camera)."""
+    most this far (a capture plan for a low-resolution camera); ``tilt_towards_rad``: the planned
+    tilt (``planned_tilt``)."""
     far = max(4.0, 9.0 * min(1.0, float(np.hypot(*rig.board.size_m)) / np.hypot(1.3, 1.3)))
     if max_distance_m is not None:
         far = min(far, float(max_distance_m))
@@ -58,10 +61,10 @@ def _board_pose(rng, rig: Rig, tilt_max_deg: float, vertical: bool = False, max_
         cam = rig.cameras[rng.integers(len(rig.cameras))]
         fwd = cam.T_base_sensor[:3, :3] @ R_from_r(rng.normal(0, 0.25, 3)) @ np.array([0.0, 0.0, 1.0])
         return random_board_pose(rng, rig.board, cam.T_base_sensor[:3, 3], tilt_max_deg=tilt_max_deg, forward=fwd,
-                                 distance_m=(2.5, far), vertical=vertical)
+                                 distance_m=(2.5, far), vertical=vertical, tilt_towards_rad=tilt_towards_rad)
     L = rig.lidars[rng.integers(len(rig.lidars))]
     return random_board_pose(rng, rig.board, L.T_base_sensor[:3, 3], tilt_max_deg=tilt_max_deg,
-                             distance_m=(2.5, far), vertical=vertical)
+                             distance_m=(2.5, far), vertical=vertical, tilt_towards_rad=tilt_towards_rad)
 
 
 def _lowest_z(rig: Rig, T: np.ndarray) -> float:
@@ -134,13 +137,17 @@ def _write(w: BagWriter, rig: Rig, scans, images):
 def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str = "ros1", continuous: bool = False,
              tilt_max_deg: float = 40.0, tf_error=(1.0, 0.03), hold_s: float = 2.0, move_s: float = 1.0,
              camera_hz: float = 5.0, clutter: bool = True, compress: bool = False, log_delays: bool = True,
-             vertical_boards: bool = False, max_distance_m: float | None = None, force: bool = False) -> dict:
+             vertical_boards: bool = False, max_distance_m: float | None = None, planned_tilts: bool = False,
+             force: bool = False) -> dict:
     """Simulate a capture session of the rig in ``rig_yaml`` into ``out_dir`` (replaced atomically).
     ``compress``: lz4-compressed ROS1 bags (as `rosbag record --lz4` writes them).
     ``log_delays``: drivers' log times (see the module docstring); False: log time = stamp.
     ``vertical_boards``: every board plane exactly vertical (one LIDAR's height then unobservable).
     ``max_distance_m``: boards at most this far from the sensor they are shown to (default 9 m
     for a 1.3 m board), e.g. for a low-resolution camera whose squares must stay >= ~5 px.
+    ``planned_tilts``: boards tilted as a careful person plans them (``planned_tilt``: pitched up
+    and down, turned left and right in turn, by half to all of ``tilt_max_deg``); False: each
+    about a random axis by up to ``tilt_max_deg`` (as the demo and the stress set were simulated).
     ``force``: replace ``out_dir`` even if it is not a previous simulated session.
 
     Returns the truth dict that is also written to ``out_dir/truth.yaml``.
@@ -169,7 +176,8 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
         t_ns = T0_NS
         for k in progress(range(n_poses), desc="simulating board poses", unit="pose"):
             for _ in range(200):
-                T_board = _board_pose(rng, rig, tilt_max_deg, vertical_boards, max_distance_m)
+                T_board = _board_pose(rng, rig, tilt_max_deg, vertical_boards, max_distance_m,
+                                      planned_tilt(k) if planned_tilts else None)
                 if _lowest_z(rig, T_board) < 0.15:
                     continue
                 if continuous:

@@ -26,6 +26,7 @@ import numpy as np
 from .. import cameras
 from ..geometry import R_from_r, R_from_rpy, compose_rt, invert_rt, rt_from_R_t, transform
 from ..types import BoardGeometry, CameraBoardObservation, LidarBoardObservation, Problem, Sensor
+from .scene import planned_tilt
 
 T0_NS = 1_700_000_000_000_000_000
 
@@ -139,9 +140,10 @@ def make_rig(n_lidars: int = 2, n_cameras: int = 3) -> Rig:
 
 
 def _board_pose(rng, board: BoardGeometry, range_m, tilt_max_deg, vertical_only, vertical_jitter_deg,
-                azimuth_rad=(-0.45, 0.45), origin=(0.0, 0.0, 0.0)):
+                azimuth_rad=(-0.45, 0.45), origin=(0.0, 0.0, 0.0), tilt_towards_rad=None):
     """rt_lidar0_board for a board facing ``origin`` (lidar0 coordinates) from ``range_m``
-    away, at an azimuth in ``azimuth_rad`` (lidar0's +x is 0)."""
+    away, at an azimuth in ``azimuth_rad`` (lidar0's +x is 0); ``tilt_towards_rad``: a planned
+    tilt (sim.scene.planned_tilt) by half to all of ``tilt_max_deg``, else a random one."""
     rho = rng.uniform(*range_m)
     az = rng.uniform(*azimuth_rad)
     c = np.array([rho * np.cos(az), rho * np.sin(az), rng.uniform(-0.4, 0.6)])
@@ -158,9 +160,13 @@ def _board_pose(rng, board: BoardGeometry, range_m, tilt_max_deg, vertical_only,
         R = R_from_r(tilt) @ R
     else:
         axis = rng.normal(size=3)
+        tilt = rng.uniform(0, 1)  # drawn either way: the later draws stay those of the seed
+        if tilt_towards_rad is not None:  # about the board's horizontal (pitch) or vertical (yaw) axis
+            axis = np.cos(tilt_towards_rad) * x + np.sin(tilt_towards_rad) * y
+            tilt = 0.5 + 0.5 * tilt
         axis -= (axis @ z) * z
         axis /= np.linalg.norm(axis)
-        R = R_from_r(axis * np.radians(rng.uniform(0, tilt_max_deg))) @ R
+        R = R_from_r(axis * np.radians(tilt * tilt_max_deg)) @ R
         R = R @ R_from_r(np.array([0, 0, np.radians(rng.uniform(-20, 20))]))  # roll in the board plane
     xmin, xmax, ymin, ymax = board.extent()
     centre_b = np.array([(xmin + xmax) / 2, (ymin + ymax) / 2, 0.0])
@@ -228,7 +234,7 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
                      vertical_jitter_deg: float = 2.0, corrupt_fraction: float = 0.0,
                      lidar_only: bool = False, min_rings: int = 3, min_points: int = 20,
                      azimuth_rad: tuple[float, float] = (-0.45, 0.45), origin=(0.0, 0.0, 0.0),
-                     errors: CorrelatedErrors = CorrelatedErrors()):
+                     errors: CorrelatedErrors = CorrelatedErrors(), planned_tilts: bool = False):
     """A Problem with noisy board observations of ``rig`` and its Truth (see module doc).
 
     ``sigma_lidar_m``: one range sigma, or one per LIDAR (in sensor order).
@@ -239,6 +245,8 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
     ``lidar_only`` drops the rig's cameras. A snapshot is kept if >= 2 sensors saw it.
     ``azimuth_rad``, ``origin``: the boards face ``origin`` from those azimuths (lidar0 axes).
     ``errors``: the correlated errors to add (CorrelatedErrors; default none).
+    ``planned_tilts``: boards tilted as a careful person plans them (sim.scene.planned_tilt:
+    pitched up and down, turned left and right in turn) instead of about random axes.
     """
     rig = rig or make_rig()
     rng = np.random.default_rng(seed)
@@ -269,7 +277,8 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
         attempts += 1
         if attempts > 50 * n_snapshots:
             raise RuntimeError("the rig sees too few of the simulated board poses")
-        rt_b = _board_pose(rng, board, range_m, tilt_max_deg, vertical_only, vertical_jitter_deg, azimuth_rad, origin)
+        rt_b = _board_pose(rng, board, range_m, tilt_max_deg, vertical_only, vertical_jitter_deg, azimuth_rad, origin,
+                           planned_tilt(k) if planned_tilts else None)
         lo, co = [], []
         for i, s in enumerate(sensors):
             rt_s_b = compose_rt(invert_rt(rts[i]), rt_b)

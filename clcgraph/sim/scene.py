@@ -129,11 +129,15 @@ def segment_mesh(r: float, a: np.ndarray, b: np.ndarray):
 
 
 def random_board_pose(rng, board: BoardGeometry, origin, *, tilt_max_deg: float = 45.0, distance_m=(2.5, 9.0),
-                      height_m=(0.9, 1.9), forward=None, vertical: bool = False) -> np.ndarray:
+                      height_m=(0.9, 1.9), forward=None, vertical: bool = False,
+                      tilt_towards_rad: float | None = None) -> np.ndarray:
     """T_world_board: held ``distance_m`` from ``origin`` (toward ``forward``, else a random azimuth),
     facing it, tilted up to ``tilt_max_deg`` about a random in-plane axis and rolled +-20 deg.
     ``vertical``: the board plane exactly vertical (normal horizontal), turned up to
-    ``tilt_max_deg`` about the vertical only."""
+    ``tilt_max_deg`` about the vertical only. ``tilt_towards_rad``: a planned tilt instead (a
+    careful person's capture plan, ``planned_tilt``): about the in-plane axis at that angle
+    from the board's horizontal one (0, pi: pitched up or down; +-pi/2: turned left or right),
+    by half to all of ``tilt_max_deg``."""
     xmin, xmax, ymin, ymax = board.extent()
     centre_b = np.array([(xmin + xmax) / 2, (ymin + ymax) / 2, 0.0])
     o = np.asarray(origin, float)
@@ -152,14 +156,27 @@ def random_board_pose(rng, board: BoardGeometry, origin, *, tilt_max_deg: float 
     y /= np.linalg.norm(y)
     R = np.c_[np.cross(y, z), y, z]
     axis = rng.normal(size=3)
+    tilt = rng.uniform(0, 1)  # drawn either way: the later draws stay those of the seed
     if vertical:
         axis = np.array([0.0, 0.0, np.sign(axis[2]) or 1.0])
+    elif tilt_towards_rad is not None:  # about the board's horizontal (pitch) or vertical (yaw) axis
+        axis = np.cos(tilt_towards_rad) * R[:, 0] + np.sin(tilt_towards_rad) * R[:, 1]
+        tilt = 0.5 + 0.5 * tilt
     axis -= (axis @ z) * z
-    R = R_from_r(axis / np.linalg.norm(axis) * np.radians(rng.uniform(0, tilt_max_deg))) @ R
+    R = R_from_r(axis / np.linalg.norm(axis) * np.radians(tilt * tilt_max_deg)) @ R
     R = R @ R_from_r(np.array([0.0, 0.0, np.radians(rng.uniform(-20, 20))]))
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, c - R @ centre_b
     return T
+
+
+def planned_tilt(k: int) -> float:
+    """The tilt direction (rad, ``random_board_pose``'s ``tilt_towards_rad``) of board pose k of
+    a careful capture: each pose turned a golden angle (137.5 deg) from the last, so any few
+    consecutive poses hold boards pitched up and down and turned left and right. A LIDAR sees
+    only the board's plane, so its height relative to another sensor comes from pitched boards
+    alone: a capture of upright boards and one pitched rests that height on one board."""
+    return float(np.radians(137.50776405) * k)
 
 
 @dataclass

@@ -117,3 +117,24 @@ board: {corners: [10, 10], square_m: 0.1, size_m: [1.3, 1.3]}
         assert np.all((delay[t] >= 0.1) & (delay[t] <= 0.112)), t
     stamps = [s for _, _, s in msgs]
     assert stamps != sorted(stamps)  # log order (as read) differs from stamp order across topics
+
+
+def test_planned_tilts_pitch_boards_up_and_down():
+    """A careful capture plan holds boards pitched up and boards pitched down (a LIDAR's height
+    relative to another sensor comes from pitched boards only); the first board stands where the
+    seed's random capture puts it (the plan changes the tilt, not the draws; later boards differ,
+    as the noise draws follow the points each sensor sees)."""
+    from clcgraph.geometry import R_from_r
+    from clcgraph.sim.observations import make_rig, simulate_problem
+    from clcgraph.types import BoardGeometry
+
+    rig = make_rig(1, 1)
+    _, planned = simulate_problem(rig=rig, n_snapshots=12, seed=4, planned_tilts=True)
+    _, random = simulate_problem(rig=rig, n_snapshots=12, seed=4)
+    nz = np.array([R_from_r(b[:3])[2, 2] for b in planned.rt_lidar0_board])
+    assert (nz > 0.3).sum() >= 3 and (nz < -0.3).sum() >= 3, nz
+    xmin, xmax, ymin, ymax = BoardGeometry().extent()
+    centre = np.array([(xmin + xmax) / 2, (ymin + ymax) / 2, 0.0])
+    at = [[R_from_r(b[:3]) @ centre + b[3:] for b in t.rt_lidar0_board] for t in (planned, random)]
+    np.testing.assert_allclose(at[0][0], at[1][0], atol=1e-9)
+    assert not np.allclose(planned.rt_lidar0_board[0], random.rt_lidar0_board[0])
