@@ -40,13 +40,17 @@ N_SNAPSHOTS = 12
 CASES = ("independent", "per-observation", "all")  # bench_uncertainty's noise models
 # per-observation + one of the errors fixed for a whole capture, at its CorrelatedErrors.realistic() size
 ONE_FIXED = {"+ring-bias": "ring_range_bias_m", "+ring-elevation": "ring_elevation_deg", "+lens-field": "lens_field_px"}
-ALL_CASES = (*CASES, *ONE_FIXED)
+# the same errors, but the capture-fixed ones drawn once per pair (vehicle) and equal in its captures:
+# the same sensor units calibrated twice, as a fleet sees them ("all" and "+..." draw them anew: a unit swap)
+SAME_UNITS = {"same-units": "all", **{f"{c} same-units": c for c in ONE_FIXED}}
+ALL_CASES = (*CASES, *ONE_FIXED, *SAME_UNITS)
 
 
 def _errors(case: str):
     from bench.bench_uncertainty import _errors as errors_of
     from clcgraph.sim.observations import CorrelatedErrors
 
+    case = SAME_UNITS.get(case, case)
     if case in ONE_FIXED:
         field = ONE_FIXED[case]
         return dataclasses.replace(errors_of("per-observation"), **{field: getattr(CorrelatedErrors.realistic(), field)})
@@ -84,10 +88,11 @@ def pair(case: str, k: int, *, seed0: int = 50_000, rig_shape=RIG_SHAPE, n_snaps
 
     rig, errors, cfg = make_rig(*rig_shape), _errors(case), Config()
     seed = seed0 + 1000 * ALL_CASES.index(case) + 3 * k
+    units = seed + 1_000_000 if case in SAME_UNITS else None  # the pair's sensor units, in all its captures
     cpu = time.process_time()
 
     def solve(r, s):
-        problem, truth = simulate_problem(rig=r, n_snapshots=n_snapshots, seed=s, errors=errors)
+        problem, truth = simulate_problem(rig=r, n_snapshots=n_snapshots, seed=s, errors=errors, fixed_errors_seed=units)
         return api.calibrate(problem, cfg), truth
 
     try:

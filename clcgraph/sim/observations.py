@@ -225,7 +225,7 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
                      vertical_jitter_deg: float = 2.0, corrupt_fraction: float = 0.0,
                      lidar_only: bool = False, min_rings: int = 3, min_points: int = 20,
                      azimuth_rad: tuple[float, float] = (-0.45, 0.45), origin=(0.0, 0.0, 0.0),
-                     errors: CorrelatedErrors = CorrelatedErrors()):
+                     errors: CorrelatedErrors = CorrelatedErrors(), fixed_errors_seed: int | None = None):
     """A Problem with noisy board observations of ``rig`` and its Truth (see module doc).
 
     ``sigma_lidar_m``: one range sigma, or one per LIDAR (in sensor order).
@@ -236,6 +236,8 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
     ``lidar_only`` drops the rig's cameras. A snapshot is kept if >= 2 sensors saw it.
     ``azimuth_rad``, ``origin``: the boards face ``origin`` from those azimuths (lidar0 axes).
     ``errors``: the correlated errors to add (CorrelatedErrors; default none).
+    ``fixed_errors_seed``: draw the errors fixed for the capture (per ring, per camera) from this
+    seed instead of ``seed``: two captures with the same one are made by the same sensor units.
     """
     rig = rig or make_rig()
     rng = np.random.default_rng(seed)
@@ -248,12 +250,13 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
         lidars = {keep.index(i): m for i, m in rig.lidars.items()}
     else:
         lidars = dict(rig.lidars)
-    # the correlated errors' fixed parts: per LIDAR ring, per camera
-    ring_bias = {i: rng.normal(0, errors.ring_range_bias_m, len(m.elevations_rad)) if errors.ring_range_bias_m else None
+    # the correlated errors' fixed parts: per LIDAR ring, per camera (properties of the sensor units)
+    frng = rng if fixed_errors_seed is None else np.random.default_rng(fixed_errors_seed)
+    ring_bias = {i: frng.normal(0, errors.ring_range_bias_m, len(m.elevations_rad)) if errors.ring_range_bias_m else None
                  for i, m in lidars.items()}
-    ring_elevation = {i: rng.normal(0, np.radians(errors.ring_elevation_deg), len(m.elevations_rad))
+    ring_elevation = {i: frng.normal(0, np.radians(errors.ring_elevation_deg), len(m.elevations_rad))
                       if errors.ring_elevation_deg else None for i, m in lidars.items()}
-    lens_field = {i: _lens_field(rng, s.imagersize, errors.lens_field_px) for i, s in enumerate(sensors)
+    lens_field = {i: _lens_field(frng, s.imagersize, errors.lens_field_px) for i, s in enumerate(sensors)
                   if s.is_camera and errors.lens_field_px}
     corners_b = board.corners()
     if errors.board_warp_m:
