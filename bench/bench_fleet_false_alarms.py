@@ -43,6 +43,10 @@ ONE_FIXED = {"+ring-bias": "ring_range_bias_m", "+ring-elevation": "ring_elevati
 # the same errors, but the capture-fixed ones drawn once per pair (vehicle) and equal in its captures:
 # the same sensor units calibrated twice, as a fleet sees them ("all" and "+..." draw them anew: a unit swap)
 SAME_UNITS = {"same-units": "all", **{f"{c} same-units": c for c in ONE_FIXED}}
+# ... and the same board poses too (noise and per-observation errors still drawn anew): does what is
+# left of the fixed errors in the difference come from the two captures' different board poses?
+SAME_BOARDS = {"same-units same-boards": "all"}
+SAME_UNITS.update(SAME_BOARDS)
 ALL_CASES = (*CASES, *ONE_FIXED, *SAME_UNITS)
 
 
@@ -89,10 +93,12 @@ def pair(case: str, k: int, *, seed0: int = 50_000, rig_shape=RIG_SHAPE, n_snaps
     rig, errors, cfg = make_rig(*rig_shape), _errors(case), Config()
     seed = seed0 + 1000 * ALL_CASES.index(case) + 3 * k
     units = seed + 1_000_000 if case in SAME_UNITS else None  # the pair's sensor units, in all its captures
+    boards = seed + 2_000_000 if case in SAME_BOARDS else None  # ... and its board poses
     cpu = time.process_time()
 
     def solve(r, s):
-        problem, truth = simulate_problem(rig=r, n_snapshots=n_snapshots, seed=s, errors=errors, fixed_errors_seed=units)
+        problem, truth = simulate_problem(rig=r, n_snapshots=n_snapshots, seed=s, errors=errors, fixed_errors_seed=units,
+                                          board_poses_seed=boards)
         return api.calibrate(problem, cfg), truth
 
     try:

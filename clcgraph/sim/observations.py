@@ -225,7 +225,8 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
                      vertical_jitter_deg: float = 2.0, corrupt_fraction: float = 0.0,
                      lidar_only: bool = False, min_rings: int = 3, min_points: int = 20,
                      azimuth_rad: tuple[float, float] = (-0.45, 0.45), origin=(0.0, 0.0, 0.0),
-                     errors: CorrelatedErrors = CorrelatedErrors(), fixed_errors_seed: int | None = None):
+                     errors: CorrelatedErrors = CorrelatedErrors(), fixed_errors_seed: int | None = None,
+                     board_poses_seed: int | None = None):
     """A Problem with noisy board observations of ``rig`` and its Truth (see module doc).
 
     ``sigma_lidar_m``: one range sigma, or one per LIDAR (in sensor order).
@@ -238,6 +239,8 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
     ``errors``: the correlated errors to add (CorrelatedErrors; default none).
     ``fixed_errors_seed``: draw the errors fixed for the capture (per ring, per camera) from this
     seed instead of ``seed``: two captures with the same one are made by the same sensor units.
+    ``board_poses_seed``: draw the board poses from this seed instead (noise and the per-board
+    errors still from ``seed``): the same boards captured again.
     """
     rig = rig or make_rig()
     rng = np.random.default_rng(seed)
@@ -261,6 +264,7 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
     corners_b = board.corners()
     if errors.board_warp_m:
         corners_b = np.c_[corners_b[:, :2], board_warp(board, corners_b[:, :2], errors.board_warp_m)]
+    brng = rng if board_poses_seed is None else np.random.default_rng(board_poses_seed)
     lidar_obs, camera_obs, boards = [], [], []
     k = 0
     attempts = 0
@@ -268,7 +272,7 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
         attempts += 1
         if attempts > 50 * n_snapshots:
             raise RuntimeError("the rig sees too few of the simulated board poses")
-        rt_b = _board_pose(rng, board, range_m, tilt_max_deg, vertical_only, vertical_jitter_deg, azimuth_rad, origin)
+        rt_b = _board_pose(brng, board, range_m, tilt_max_deg, vertical_only, vertical_jitter_deg, azimuth_rad, origin)
         lo, co = [], []
         for i, s in enumerate(sensors):
             rt_s_b = compose_rt(invert_rt(rts[i]), rt_b)

@@ -249,3 +249,15 @@ def test_the_simulators_sensor_units_keep_their_capture_fixed_errors_between_cap
     assert seen.sum() >= 8
     np.testing.assert_allclose(a[seen], b[seen], atol=1e-9)  # the same units
     assert np.std(a[seen] - c[seen]) > 0.01  # other units: independent 2 cm biases
+
+
+def test_the_simulators_board_poses_seed_captures_the_same_boards_again_with_fresh_noise():
+    from clcgraph.sim.observations import CorrelatedErrors, make_rig, simulate_problem
+
+    rig, errors = make_rig(2, 1), CorrelatedErrors.realistic()
+    (pa, ta), (pb, tb), (_, tc) = (simulate_problem(rig=rig, n_snapshots=4, seed=s, errors=errors, fixed_errors_seed=5,
+                                                    board_poses_seed=b) for s, b in ((1, 9), (2, 9), (1, 10)))
+    np.testing.assert_array_equal(ta.rt_lidar0_board, tb.rt_lidar0_board)
+    assert not np.allclose(ta.rt_lidar0_board, tc.rt_lidar0_board)
+    a, b = pa.lidar_observations[0].points, pb.lidar_observations[0].points
+    assert a.shape == b.shape and 0.005 < np.std(np.linalg.norm(a, axis=1) - np.linalg.norm(b, axis=1)) < 0.05  # fresh noise
