@@ -14,7 +14,10 @@ bow, mixed pixels, per-board corner bias: errors that differ from board to board
 (+ per-ring range bias and elevation error and a lens-model field, fixed for a whole capture
 and drawn anew for the next one: what the per-observation model does not describe); and, to
 tell which of those three matters, ``+ring-bias``, ``+ring-elevation``, ``+lens-field``: the
-per-observation errors plus that one alone (``--cases``). Captures are
+per-observation errors plus that one alone (``--cases``). ``same-units`` (and ``+... same-units``)
+draw the capture-fixed errors once per pair, equal in its captures (the knocked one too): the same
+sensor units calibrated twice, as a fleet sees them, where the other cases are a unit swap;
+``same-units same-boards`` also captures the same board poses again. Captures are
 small (backend-level simulator: no scene, no bags; ``make_rig(2, 1)``: lidar0, a 32-ring
 LIDAR and a camera, 12 snapshots), so hundreds of solves fit on two cores.
 
