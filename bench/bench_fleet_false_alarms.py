@@ -14,7 +14,10 @@ bow, mixed pixels, per-board corner bias: errors that differ from board to board
 (+ per-ring range bias and elevation error and a lens-model field, fixed for a whole capture
 and drawn anew for the next one: what the per-observation model does not describe); and, to
 tell which of those three matters, ``+ring-bias``, ``+ring-elevation``, ``+lens-field``: the
-per-observation errors plus that one alone (``--cases``). Captures are
+per-observation errors plus that one alone (``--cases``). ``same-units`` (and ``+... same-units``)
+draw the capture-fixed errors once per pair, equal in its captures (the knocked one too): the same
+sensor units calibrated twice, as a fleet sees them, where the other cases are a unit swap;
+``same-units same-boards`` also captures the same board poses again. Captures are
 small (backend-level simulator: no scene, no bags; ``make_rig(2, 1)``: lidar0, a 32-ring
 LIDAR and a camera, 12 snapshots), so hundreds of solves fit on two cores.
 
@@ -40,13 +43,21 @@ N_SNAPSHOTS = 12
 CASES = ("independent", "per-observation", "all")  # bench_uncertainty's noise models
 # per-observation + one of the errors fixed for a whole capture, at its CorrelatedErrors.realistic() size
 ONE_FIXED = {"+ring-bias": "ring_range_bias_m", "+ring-elevation": "ring_elevation_deg", "+lens-field": "lens_field_px"}
-ALL_CASES = (*CASES, *ONE_FIXED)
+# the same errors, but the capture-fixed ones drawn once per pair (vehicle) and equal in its captures:
+# the same sensor units calibrated twice, as a fleet sees them ("all" and "+..." draw them anew: a unit swap)
+SAME_UNITS = {"same-units": "all", **{f"{c} same-units": c for c in ONE_FIXED}}
+# ... and the same board poses too (noise and per-observation errors still drawn anew): does what is
+# left of the fixed errors in the difference come from the two captures' different board poses?
+SAME_BOARDS = {"same-units same-boards": "all"}
+SAME_UNITS.update(SAME_BOARDS)
+ALL_CASES = (*CASES, *ONE_FIXED, *SAME_UNITS)
 
 
 def _errors(case: str):
     from bench.bench_uncertainty import _errors as errors_of
     from clcgraph.sim.observations import CorrelatedErrors
 
+    case = SAME_UNITS.get(case, case)
     if case in ONE_FIXED:
         field = ONE_FIXED[case]
         return dataclasses.replace(errors_of("per-observation"), **{field: getattr(CorrelatedErrors.realistic(), field)})
@@ -84,10 +95,13 @@ def pair(case: str, k: int, *, seed0: int = 50_000, rig_shape=RIG_SHAPE, n_snaps
 
     rig, errors, cfg = make_rig(*rig_shape), _errors(case), Config()
     seed = seed0 + 1000 * ALL_CASES.index(case) + 3 * k
+    units = seed + 1_000_000 if case in SAME_UNITS else None  # the pair's sensor units, in all its captures
+    boards = seed + 2_000_000 if case in SAME_BOARDS else None  # ... and its board poses
     cpu = time.process_time()
 
     def solve(r, s):
-        problem, truth = simulate_problem(rig=r, n_snapshots=n_snapshots, seed=s, errors=errors)
+        problem, truth = simulate_problem(rig=r, n_snapshots=n_snapshots, seed=s, errors=errors, fixed_errors_seed=units,
+                                          board_poses_seed=boards)
         return api.calibrate(problem, cfg), truth
 
     try:

@@ -73,6 +73,7 @@ class VehicleJob:
     config: object = None  # clcgraph.config.Config
     previous: str | None = None
     out: str = ""
+    code: str | None = None  # the caller's code_fingerprint(): a worker running other code refuses the job
 
 
 class _LineDict(dict):
@@ -219,23 +220,52 @@ class Manifest:
 
     def jobs(self, out) -> list[VehicleJob]:
         out = Path(out).absolute()
-        return [VehicleJob(**v, out=str(out / v["id"])) for v in self.vehicles]
+        return [VehicleJob(**v, out=str(out / v["id"]), code=CODE) for v in self.vehicles]
 
 
 # ---------------------------------------------------------------- one vehicle (runs on a worker)
 
 
+def code_fingerprint() -> str:
+    """A hash of clcgraph's source files as they are on disk now (16 hex digits)."""
+    import hashlib
+
+    root = Path(__file__).parent
+    h = hashlib.sha256()
+    for f in sorted(root.rglob("*.py")):
+        h.update(f.relative_to(root).as_posix().encode() + b"\0" + f.read_bytes() + b"\0")
+    return h.hexdigest()[:16]
+
+
+# Taken when this module is imported: the code this process runs. A worker started later (a pool
+# process, a Dask worker) imports it again; if the files changed in between (an update, a checkout
+# during a run, another install on a cluster machine) the two differ, and the worker would give
+# other numbers without a word.
+CODE = code_fingerprint()
+
+
 def run_vehicle(job: VehicleJob) -> dict:
     """Calibrate one vehicle into ``job.out`` and return its summary row (``vehicle_row``); a
-    failure of the vehicle's own (bad bag, degenerate capture) is the row's one-line ``error``."""
-    from . import progress
+    failure of the vehicle's own (bad bag, degenerate capture) is the row's one-line ``error``.
 
+    Every stage (reading, detection, solve, writing, comparisons) runs with single-threaded
+    BLAS: the engines start their workers with different BLAS thread counts (Dask's set
+    OPENBLAS_NUM_THREADS=1, a process pool inherits the caller's), and so can earlier work in
+    the same process; the same vehicle must give the same bytes on each of them."""
+    from . import progress
+    from .determinism import single_threaded_blas
+
+    if job.code is not None and job.code != CODE:
+        return {**_failed(job, f"this worker runs other clcgraph code than the caller (code {CODE}, the caller's "
+                               f"{job.code}): every worker needs the same install, started after the last update"),
+                "time_s": 0.0}
     t0 = time.perf_counter()
     was = progress.is_enabled()
     progress.set_enabled(False)  # one bar, the fleet's, in the calling process
     try:
-        _calibrate(job)
-        row = vehicle_row(job)
+        with single_threaded_blas():
+            _calibrate(job)
+            row = vehicle_row(job)
     except ClcgraphError as e:
         row = _failed(job, str(e))
     except Exception as e:  # noqa: BLE001 - a bug on one vehicle must not stop the fleet

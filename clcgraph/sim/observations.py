@@ -234,7 +234,8 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
                      vertical_jitter_deg: float = 2.0, corrupt_fraction: float = 0.0,
                      lidar_only: bool = False, min_rings: int = 3, min_points: int = 20,
                      azimuth_rad: tuple[float, float] = (-0.45, 0.45), origin=(0.0, 0.0, 0.0),
-                     errors: CorrelatedErrors = CorrelatedErrors(), planned_tilts: bool = False):
+                     errors: CorrelatedErrors = CorrelatedErrors(), planned_tilts: bool = False,
+                     fixed_errors_seed: int | None = None, board_poses_seed: int | None = None):
     """A Problem with noisy board observations of ``rig`` and its Truth (see module doc).
 
     ``sigma_lidar_m``: one range sigma, or one per LIDAR (in sensor order).
@@ -247,6 +248,10 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
     ``errors``: the correlated errors to add (CorrelatedErrors; default none).
     ``planned_tilts``: boards tilted as a careful person plans them (sim.scene.planned_tilt:
     pitched up and down, turned left and right in turn) instead of about random axes.
+    ``fixed_errors_seed``: draw the errors fixed for the capture (per ring, per camera) from this
+    seed instead of ``seed``: two captures with the same one are made by the same sensor units.
+    ``board_poses_seed``: draw the board poses from this seed instead (noise and the per-board
+    errors still from ``seed``): the same boards captured again.
     """
     rig = rig or make_rig()
     rng = np.random.default_rng(seed)
@@ -259,16 +264,18 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
         lidars = {keep.index(i): m for i, m in rig.lidars.items()}
     else:
         lidars = dict(rig.lidars)
-    # the correlated errors' fixed parts: per LIDAR ring, per camera
-    ring_bias = {i: rng.normal(0, errors.ring_range_bias_m, len(m.elevations_rad)) if errors.ring_range_bias_m else None
+    # the correlated errors' fixed parts: per LIDAR ring, per camera (properties of the sensor units)
+    frng = rng if fixed_errors_seed is None else np.random.default_rng(fixed_errors_seed)
+    ring_bias = {i: frng.normal(0, errors.ring_range_bias_m, len(m.elevations_rad)) if errors.ring_range_bias_m else None
                  for i, m in lidars.items()}
-    ring_elevation = {i: rng.normal(0, np.radians(errors.ring_elevation_deg), len(m.elevations_rad))
+    ring_elevation = {i: frng.normal(0, np.radians(errors.ring_elevation_deg), len(m.elevations_rad))
                       if errors.ring_elevation_deg else None for i, m in lidars.items()}
-    lens_field = {i: _lens_field(rng, s.imagersize, errors.lens_field_px) for i, s in enumerate(sensors)
+    lens_field = {i: _lens_field(frng, s.imagersize, errors.lens_field_px) for i, s in enumerate(sensors)
                   if s.is_camera and errors.lens_field_px}
     corners_b = board.corners()
     if errors.board_warp_m:
         corners_b = np.c_[corners_b[:, :2], board_warp(board, corners_b[:, :2], errors.board_warp_m)]
+    brng = rng if board_poses_seed is None else np.random.default_rng(board_poses_seed)
     lidar_obs, camera_obs, boards = [], [], []
     rings_of = {}  # (sensor, snapshot) -> (K,) ring of each point
     k = 0
@@ -277,7 +284,7 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
         attempts += 1
         if attempts > 50 * n_snapshots:
             raise RuntimeError("the rig sees too few of the simulated board poses")
-        rt_b = _board_pose(rng, board, range_m, tilt_max_deg, vertical_only, vertical_jitter_deg, azimuth_rad, origin,
+        rt_b = _board_pose(brng, board, range_m, tilt_max_deg, vertical_only, vertical_jitter_deg, azimuth_rad, origin,
                            planned_tilt(k) if planned_tilts else None)
         lo, co = [], []
         for i, s in enumerate(sensors):

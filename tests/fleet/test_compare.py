@@ -216,3 +216,48 @@ def test_real_resolves_the_reported_covariance_makes_the_rate_right():
         for stats in (pairs, to_truth):
             lo, hi = chi2.ppf([5e-4, 1 - 5e-4], 6 * len(stats))
             assert lo <= sum(stats) <= hi, (topic, sum(stats), 6 * len(stats), stats)
+
+
+def test_the_simulators_sensor_units_keep_their_capture_fixed_errors_between_captures():
+    """bench_fleet_false_alarms' "same-units" mode: with one ``fixed_errors_seed`` two captures (other
+    board poses, other noise) have the same per-ring range biases; another seed draws other ones."""
+    from clcgraph.geometry import R_from_r, compose_rt, invert_rt
+    from clcgraph.sim.observations import CorrelatedErrors, make_rig, simulate_problem
+
+    rig, errors = make_rig(2, 0), CorrelatedErrors(ring_range_bias_m=0.02)
+    elevations = rig.lidars[1].elevations_rad
+
+    def ring_biases(seed, units):
+        """Per ring of /lidar1: measured minus true range of its board points (noise-free capture)."""
+        problem, truth = simulate_problem(rig=rig, n_snapshots=6, seed=seed, errors=errors, sigma_lidar_m=0.0,
+                                          fixed_errors_seed=units)
+        bias = np.full(len(elevations), np.nan)
+        for o in problem.lidar_observations:
+            if o.sensor != 1:
+                continue
+            rt_s_b = compose_rt(invert_rt(truth.rt_lidar0_sensor[1]), truth.rt_lidar0_board[o.snapshot])
+            n = R_from_r(rt_s_b[:3])[:, 2]
+            rho = np.linalg.norm(o.points, axis=1)
+            true_rho = (n @ rt_s_b[3:]) / (o.points @ n / rho)
+            ring = np.argmin(np.abs(np.arcsin(o.points[:, 2] / rho)[:, None] - elevations), axis=1)
+            bias[ring] = rho - true_rho
+        return problem, bias
+
+    (pa, a), (pb, b), (_, c) = ring_biases(1, 7), ring_biases(2, 7), ring_biases(3, 8)
+    assert not np.allclose(pa.lidar_observations[0].points[:3], pb.lidar_observations[0].points[:3])  # other captures
+    seen = np.isfinite(a) & np.isfinite(b) & np.isfinite(c)
+    assert seen.sum() >= 8
+    np.testing.assert_allclose(a[seen], b[seen], atol=1e-9)  # the same units
+    assert np.std(a[seen] - c[seen]) > 0.01  # other units: independent 2 cm biases
+
+
+def test_the_simulators_board_poses_seed_captures_the_same_boards_again_with_fresh_noise():
+    from clcgraph.sim.observations import CorrelatedErrors, make_rig, simulate_problem
+
+    rig, errors = make_rig(2, 1), CorrelatedErrors.realistic()
+    (pa, ta), (pb, tb), (_, tc) = (simulate_problem(rig=rig, n_snapshots=4, seed=s, errors=errors, fixed_errors_seed=5,
+                                                    board_poses_seed=b) for s, b in ((1, 9), (2, 9), (1, 10)))
+    np.testing.assert_array_equal(ta.rt_lidar0_board, tb.rt_lidar0_board)
+    assert not np.allclose(ta.rt_lidar0_board, tc.rt_lidar0_board)
+    a, b = pa.lidar_observations[0].points, pb.lidar_observations[0].points
+    assert a.shape == b.shape and 0.005 < np.std(np.linalg.norm(a, axis=1) - np.linalg.norm(b, axis=1)) < 0.05  # fresh noise

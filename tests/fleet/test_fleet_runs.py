@@ -205,3 +205,45 @@ def test_a_vehicle_whose_worker_is_lost_twice_is_retried_once_then_reported(tmp_
     # a serial run of the same fleet: the vehicle's own error (no such bag), first attempt
     (row,) = calibrate_fleet(tmp_path / "m.yaml", tmp_path / "out", SerialExecutor())["vehicles"]
     assert row["attempts"] == 1 and "a.bag: no such bag" in row["error"]
+
+
+def test_every_stage_of_a_vehicle_runs_with_single_threaded_blas_whatever_the_process_had(monkeypatch, tmp_path):
+    """The engines start workers with different BLAS thread counts (a Dask nanny sets
+    OPENBLAS_NUM_THREADS=1, a process pool inherits the caller's), and earlier work in a process
+    can leave another count behind: reading and detection, not only the solve, must not see it."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    import clcgraph.api
+    from clcgraph.errors import DataError
+    from clcgraph.fleet import run_vehicle
+
+    seen = []
+
+    def read_problem(*args, **kwargs):  # the frontend's entry: record the BLAS threads, then stop
+        seen.extend(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+        raise DataError("stopped after reading")
+
+    monkeypatch.setattr(clcgraph.api, "read_problem", read_problem)
+    (tmp_path / "m.yaml").write_text("defaults: {topics: [/l, /c]}\nvehicles:\n  - {id: a, bags: a.bag}\n")
+    (job,) = Manifest.load(tmp_path / "m.yaml").jobs(tmp_path / "out")
+    with threadpool_limits(limits=2, user_api="blas"):  # what a pool worker on 2 cores starts with
+        row = run_vehicle(job)
+    assert row["error"] == "stopped after reading"
+    assert seen and set(seen) == {1}, seen
+
+
+def test_a_worker_running_other_clcgraph_code_refuses_the_vehicle(tmp_path):
+    """A worker that imported clcgraph after its files changed (an update or a checkout during the
+    run, another install on a cluster machine) would give other bytes without a word."""
+    import dataclasses
+
+    from clcgraph.fleet import CODE, code_fingerprint, run_vehicle
+
+    (tmp_path / "m.yaml").write_text("defaults: {topics: [/l, /c]}\nvehicles:\n  - {id: a, bags: a.bag}\n")
+    (job,) = Manifest.load(tmp_path / "m.yaml").jobs(tmp_path / "out")
+    assert job.code == CODE == code_fingerprint()  # the caller's code travels with the job
+    row = run_vehicle(dataclasses.replace(job, code="0123456789abcdef"))
+    assert row["status"] == "failed" and "other clcgraph code than the caller" in row["error"]
+    assert "0123456789abcdef" in row["error"] and CODE in row["error"] and "\n" not in row["error"]
+    assert not (tmp_path / "out").exists()  # nothing started
+    assert "a.bag: no such bag" in run_vehicle(job)["error"]  # the same code: the vehicle's own error
