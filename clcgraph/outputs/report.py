@@ -431,41 +431,61 @@ def _clouds_figure(result, inputs) -> tuple[str, bytes] | None:
                                 "half_size": (p.board.width_m / 2, p.board.height_m / 2)})
 
 
-def _figures(result: Result, inputs, checks: dict) -> list[tuple[str, str, bytes]]:
-    """[(name, caption, png)] of every figure, in report order; a failing one is logged and left out."""
+# Rough CPU cost of each picture relative to the others (the 24-pose bench capture): the drawing
+# processes take the costly ones first, so they finish together. Only the schedule depends on it.
+_COST = {"sectors.png": 9, "clouds-before-after.png": 6, "camera-residuals-and-coverage.png": 5,
+         "lidar-residuals.png": 4, "residuals-per-snapshot.png": 3}
+
+
+def _figure_jobs(result: Result, inputs) -> list[tuple[str, object]]:
+    """[(name, job)] of every figure but the LIDAR points on the camera images, in report order; a
+    job returns [(name, caption, png)] (none when there is nothing to draw)."""
     from . import plots
 
     p = result.problem
-    out = []
 
-    def add(name, caption, fn):
+    def clouds():
+        c = _clouds_figure(result, inputs)
+        return [("clouds-before-after.png", c[0], c[1])] if c else []
+
+    def camera_residuals():
+        vec = ev.camera_residual_vectors(result)
+        cams = [{**c, **vec.get(c["sensor"], {"corners": np.concatenate([np.reshape(x, (-1, 2)) for x in c["corners"]]),
+                                              "residuals": None})} for c in _coverage(result)]
+        return [("camera-residuals-and-coverage.png", "", _png(plots.plot_camera_residuals_and_coverage, cams))] if cams else []
+
+    def lidar_residuals():
+        geo = ev.lidar_residual_geometry(result)
+        return [("lidar-residuals.png", "", _png(plots.plot_lidar_residuals, [
+            {"title": f"{i}: {p.sensors[i].topic}", **v} for i, v in sorted(geo.items())]))] if geo else []
+
+    jobs = [("clouds-before-after.png", clouds), ("camera-residuals-and-coverage.png", camera_residuals),
+            ("lidar-residuals.png", lidar_residuals)]
+    jobs += [(name, lambda name=name, fn=fn: [(name, "", _png(fn, result))]) for name, fn in plots.PLOTS.items()]
+    return jobs
+
+
+def _figures(result: Result, inputs, checks: dict, first=None) -> list[tuple[str, str, bytes]]:
+    """[(name, caption, png)] of every figure, in report order; a failing one is logged and left out.
+    The figures are drawn by two processes (outputs/drawing.py). ``first``: work of this process that
+    the pictures do not need, done while the other process already draws; ``checks`` (what the LIDAR
+    points on the camera images show) may be filled by it: those pictures are drawn after it, here."""
+    from .drawing import draw_concurrently
+
+    on_camera: list = []
+
+    def here():
+        if first is not None:
+            first()
         try:
-            out.append((name, caption, fn()))
+            on_camera.extend(_lidar_on_camera_figures(result, inputs, checks))
         except Exception:  # a diagnostic figure must never lose the calibration
-            log.exception("could not draw %s", name)
+            log.exception("could not draw the LIDAR points on the camera images")
 
-    try:
-        out += _lidar_on_camera_figures(result, inputs, checks)
-    except Exception:
-        log.exception("could not draw the LIDAR points on the camera images")
-    try:
-        clouds = _clouds_figure(result, inputs)
-        if clouds:
-            out.append(("clouds-before-after.png", clouds[0], clouds[1]))
-    except Exception:
-        log.exception("could not draw the clouds before / after")
-    vec = ev.camera_residual_vectors(result)
-    cams = [{**c, **vec.get(c["sensor"], {"corners": np.concatenate([np.reshape(x, (-1, 2)) for x in c["corners"]]),
-                                          "residuals": None})} for c in _coverage(result)]
-    if cams:
-        add("camera-residuals-and-coverage.png", "", lambda: _png(plots.plot_camera_residuals_and_coverage, cams))
-    geo = ev.lidar_residual_geometry(result)
-    if geo:
-        add("lidar-residuals.png", "", lambda: _png(plots.plot_lidar_residuals, [
-            {"title": f"{i}: {p.sensors[i].topic}", **v} for i, v in sorted(geo.items())]))
-    for name, fn in plots.PLOTS.items():
-        add(name, "", lambda fn=fn: _png(fn, result))
-    return out
+    jobs = _figure_jobs(result, inputs)
+    order = sorted(range(len(jobs)), key=lambda k: -_COST.get(jobs[k][0], 1))
+    drawn = draw_concurrently([job for _, job in jobs], names=[name for name, _ in jobs], first=here, order=order)
+    return on_camera + [f for figs in drawn for f in figs]
 
 
 def _coverage(result) -> list[dict]:
@@ -578,16 +598,20 @@ def report_html(result: Result, *, title: str = "clcgraph calibration", inputs: 
     """The whole self-contained HTML text (figures embedded)."""
     rms, noise = result.rms, result.noise
     used = int(np.sum(np.all(np.isfinite(np.asarray(result.rt_lidar0_board, float).reshape(-1, 6)), axis=1)))
-    checks = {"solved": ev.lidar_board_in_images(result)}
-    rts = _all_rts(result, inputs)
-    if "nominal /tf_static" in rts:
-        nom = np.array([rts["nominal /tf_static"].get(i, rt) for i, rt in enumerate(result.rt_lidar0_sensor)])
-        checks["nominal /tf_static"] = ev.lidar_board_in_images(result, rt_lidar0_sensor=nom)
+    checks: dict = {}
+
+    def board_checks():  # while the other process draws
+        checks["solved"] = ev.lidar_board_in_images(result)
+        rts = _all_rts(result, inputs)
+        if "nominal /tf_static" in rts:
+            nom = np.array([rts["nominal /tf_static"].get(i, rt) for i, rt in enumerate(result.rt_lidar0_sensor)])
+            checks["nominal /tf_static"] = ev.lidar_board_in_images(result, rt_lidar0_sensor=nom)
+
+    figures = _figures(result, inputs, checks, first=board_checks)
     coverage = _coverage(result)
     for c in coverage:
         if c["coverage"].get("warning"):
             log.warning("camera %s: %s", c["title"], c["coverage"]["warning"])
-    figures = _figures(result, inputs, checks)
     parts = [
         f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title><style>{_CSS}</style></head><body>",
         f"<h1>{html.escape(title)}</h1>",
