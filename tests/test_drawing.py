@@ -71,3 +71,27 @@ def test_one_cpu_or_a_daemon_draws_everything_here(monkeypatch):
 def test_order_must_be_a_permutation():
     with pytest.raises(ValueError, match="permutation"):
         draw_concurrently([_job(0), _job(1)], order=[0, 0])
+
+
+def test_leaving_a_drawing_early_stops_its_child():
+    import multiprocessing
+
+    t0 = time.perf_counter()
+    with pytest.raises(RuntimeError, match="the solve failed"):
+        with drawing.Drawing([lambda: time.sleep(60) or [], lambda: time.sleep(60) or []]):
+            time.sleep(0.2)  # the child is in its first job
+            raise RuntimeError("the solve failed")
+    assert time.perf_counter() - t0 < 20 and not multiprocessing.active_children()
+
+
+def test_report_writer_writes_the_report_write_report_writes(tmp_path):
+    from test_outputs import make_result
+
+    from clcgraph.outputs.report import report_writer, write_report
+
+    result = make_result()
+    a = write_report(result, tmp_path / "a", title="rig")
+    with report_writer(result, title="rig") as write:
+        (tmp_path / "other-files").write_text("written while the pictures are drawn")
+        b = write(tmp_path / "b")
+    assert b.name == "report.html" and a.read_bytes() == b.read_bytes()

@@ -3,6 +3,9 @@
 SYNOPSIS
     figures = draw_concurrently([lambda: [("a.png", "", png_bytes)], ...], first=lambda: ...)
     # [job's result, ...] in the jobs' order; ``first`` runs here before this process takes jobs
+    with Drawing(jobs) as drawing:      # the same in two steps: the child starts at once
+        ...                             # other work of this process
+        figures = drawing.results()
 
 Each job is a call returning a list (the pictures it drew); a job that raises is logged and gives
 [] (a diagnostic picture must never lose the calibration). The two processes take the next job
@@ -60,49 +63,80 @@ def _child(jobs, names, order, counter, conn) -> None:
     conn.close()
 
 
+class Drawing:
+    """Jobs drawn by this process and a forked child together, the child starting at once.
+
+    SYNOPSIS
+        with Drawing(jobs, names=names, order=order) as drawing:   # the child starts drawing here
+            ...                                   # this process's other work, overlapping it
+            results = drawing.results()           # this process takes jobs too, then collects all
+
+    ``names``: what each job draws (for the log when one fails); ``order``: the jobs' indices in
+    the order they are taken (the longest first: the two processes then finish together). Leaving
+    the block without ``results()`` (an error) stops the child.
+    """
+
+    def __init__(self, jobs: Sequence[Callable[[], list]], *, names: Sequence[str] | None = None,
+                 order: Sequence[int] | None = None):
+        import multiprocessing
+
+        self.jobs = list(jobs)
+        self.names = list(names) if names is not None else [f"picture {k}" for k in range(len(self.jobs))]
+        self.order = list(order) if order is not None else list(range(len(self.jobs)))
+        if sorted(self.order) != list(range(len(self.jobs))):
+            raise ValueError(f"order {self.order} is not a permutation of the {len(self.jobs)} jobs")
+        self.child = None
+        if len(self.jobs) > 1 and _cpus() > 1 and "fork" in multiprocessing.get_all_start_methods() \
+                and not multiprocessing.current_process().daemon:
+            ctx = multiprocessing.get_context("fork")
+            self.counter = ctx.Value("i", 0)
+            self.receive, send = ctx.Pipe(duplex=False)
+            self.child = ctx.Process(target=_child, args=(self.jobs, self.names, self.order, self.counter, send),
+                                     daemon=True, name="clcgraph-draw")
+            self.child.start()
+            send.close()
+
+    def __enter__(self) -> "Drawing":
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        self.close(wait=False)
+        return False
+
+    def close(self, *, wait: bool = True) -> None:
+        """Let the child end (``wait``: it has sent what it drew) or stop it (its pictures are not wanted)."""
+        if self.child is None:
+            return
+        self.receive.close()
+        if wait:
+            self.child.join(timeout=10)
+        if self.child.is_alive():
+            self.child.kill()
+            self.child.join()
+        self.child = None
+
+    def results(self) -> list[list]:
+        """Every job's result (a list), in the jobs' order; this process draws its share now."""
+        if self.child is None:
+            return [_run(job, what) for job, what in zip(self.jobs, self.names)]
+        done = {}
+        while (n := _take(self.counter)) < len(self.jobs):
+            k = self.order[n]
+            done[k] = _run(self.jobs[k], self.names[k])
+        try:
+            done.update(self.receive.recv())
+        except (EOFError, OSError):
+            log.warning("the report's drawing process ended early (exit code %s): drawing its pictures here",
+                        self.child.exitcode)
+        self.close()
+        return [done[k] if k in done else _run(self.jobs[k], self.names[k]) for k in range(len(self.jobs))]
+
+
 def draw_concurrently(jobs: Sequence[Callable[[], list]], *, names: Sequence[str] | None = None,
                       first: Callable[[], object] | None = None, order: Sequence[int] | None = None) -> list[list]:
-    """Every job's result (a list), in order, drawn by this process and a forked child together.
-
-    ``names``: what each job draws (for the log when one fails); ``first``: work of this process
-    that the jobs do not need (it runs while the child already draws); ``order``: the jobs' indices
-    in the order they are taken (the longest first: the two processes then finish together)."""
-    import multiprocessing
-
-    jobs = list(jobs)
-    names = list(names) if names is not None else [f"picture {k}" for k in range(len(jobs))]
-    order = list(order) if order is not None else list(range(len(jobs)))
-    if sorted(order) != list(range(len(jobs))):
-        raise ValueError(f"order {order} is not a permutation of the {len(jobs)} jobs")
-    fork = len(jobs) > 1 and _cpus() > 1 and "fork" in multiprocessing.get_all_start_methods() \
-        and not multiprocessing.current_process().daemon
-    if not fork:
+    """``Drawing(jobs, names=names, order=order).results()``, with ``first`` (work of this process that
+    the jobs do not need) done while the child already draws."""
+    with Drawing(jobs, names=names, order=order) as drawing:
         if first is not None:
             first()
-        return [_run(job, what) for job, what in zip(jobs, names)]
-    ctx = multiprocessing.get_context("fork")
-    counter = ctx.Value("i", 0)
-    receive, send = ctx.Pipe(duplex=False)
-    child = ctx.Process(target=_child, args=(jobs, names, order, counter, send), daemon=True, name="clcgraph-draw")
-    child.start()
-    send.close()
-    try:
-        if first is not None:
-            first()
-        done = {}
-        while (n := _take(counter)) < len(jobs):
-            done[order[n]] = _run(jobs[order[n]], names[order[n]])
-        try:
-            theirs = receive.recv()
-        except (EOFError, OSError):
-            theirs = {}
-            log.warning("the report's drawing process ended early (exit code %s): drawing its pictures here",
-                        child.exitcode)
-        done.update(theirs)
-    finally:
-        receive.close()
-        child.join(timeout=10)
-        if child.is_alive():
-            child.kill()
-            child.join()
-    return [done[k] if k in done else _run(jobs[k], names[k]) for k in range(len(jobs))]
+        return drawing.results()

@@ -15,6 +15,7 @@ SYNOPSIS
 from __future__ import annotations
 
 import base64
+import contextlib
 import html
 import io
 import logging
@@ -465,27 +466,31 @@ def _figure_jobs(result: Result, inputs) -> list[tuple[str, object]]:
     return jobs
 
 
-def _figures(result: Result, inputs, checks: dict, first=None) -> list[tuple[str, str, bytes]]:
-    """[(name, caption, png)] of every figure, in report order; a failing one is logged and left out.
-    The figures are drawn by two processes (outputs/drawing.py). ``first``: work of this process that
-    the pictures do not need, done while the other process already draws; ``checks`` (what the LIDAR
-    points on the camera images show) may be filled by it: those pictures are drawn after it, here."""
-    from .drawing import draw_concurrently
-
-    on_camera: list = []
-
-    def here():
-        if first is not None:
-            first()
-        try:
-            on_camera.extend(_lidar_on_camera_figures(result, inputs, checks))
-        except Exception:  # a diagnostic figure must never lose the calibration
-            log.exception("could not draw the LIDAR points on the camera images")
+def start_figures(result: Result, inputs):
+    """An ``outputs.drawing.Drawing`` of the report's figures (all but the LIDAR points on the camera
+    images, drawn by ``_figures``), its second process drawing from now on."""
+    from .drawing import Drawing
 
     jobs = _figure_jobs(result, inputs)
     order = sorted(range(len(jobs)), key=lambda k: -_COST.get(jobs[k][0], 1))
-    drawn = draw_concurrently([job for _, job in jobs], names=[name for name, _ in jobs], first=here, order=order)
-    return on_camera + [f for figs in drawn for f in figs]
+    return Drawing([job for _, job in jobs], names=[name for name, _ in jobs], order=order)
+
+
+def _figures(result: Result, inputs, checks: dict, first=None, drawing=None) -> list[tuple[str, str, bytes]]:
+    """[(name, caption, png)] of every figure, in report order; a failing one is logged and left out.
+    The figures are drawn by two processes (``drawing``: ``start_figures``, started earlier; else here).
+    ``first``: work of this process that the pictures do not need, done while the other process
+    already draws; ``checks`` (what the LIDAR points on the camera images show) may be filled by it:
+    those pictures are drawn after it, here."""
+    with drawing if drawing is not None else start_figures(result, inputs) as d:
+        if first is not None:
+            first()
+        try:
+            on_camera = _lidar_on_camera_figures(result, inputs, checks)
+        except Exception:  # a diagnostic figure must never lose the calibration
+            log.exception("could not draw the LIDAR points on the camera images")
+            on_camera = []
+        return on_camera + [f for figs in d.results() for f in figs]
 
 
 def _coverage(result) -> list[dict]:
@@ -594,8 +599,10 @@ def jk_n(result: Result) -> int:
     return int(result.jackknife.get("n_snapshots", 0))
 
 
-def report_html(result: Result, *, title: str = "clcgraph calibration", inputs: "ev.ReportInputs | None" = None) -> str:
-    """The whole self-contained HTML text (figures embedded)."""
+def report_html(result: Result, *, title: str = "clcgraph calibration", inputs: "ev.ReportInputs | None" = None,
+                drawing=None) -> str:
+    """The whole self-contained HTML text (figures embedded); ``drawing``: ``start_figures(result, inputs)``
+    started earlier (the pictures drawn while the caller did other work)."""
     rms, noise = result.rms, result.noise
     used = int(np.sum(np.all(np.isfinite(np.asarray(result.rt_lidar0_board, float).reshape(-1, 6)), axis=1)))
     checks: dict = {}
@@ -607,7 +614,7 @@ def report_html(result: Result, *, title: str = "clcgraph calibration", inputs: 
             nom = np.array([rts["nominal /tf_static"].get(i, rt) for i, rt in enumerate(result.rt_lidar0_sensor)])
             checks["nominal /tf_static"] = ev.lidar_board_in_images(result, rt_lidar0_sensor=nom)
 
-    figures = _figures(result, inputs, checks, first=board_checks)
+    figures = _figures(result, inputs, checks, first=board_checks, drawing=drawing)
     coverage = _coverage(result)
     for c in coverage:
         if c["coverage"].get("warning"):
@@ -655,13 +662,35 @@ def write_report(result: Result, out_dir, *, title: str = "clcgraph calibration"
                  inputs: "ev.ReportInputs | None" = None) -> Path:
     """Write ``out_dir/report.html``: one file, figures embedded, nothing else needed to open it;
     the one report entry point of both methods (a targetless result: report_targetless.py)."""
+    with report_writer(result, title=title, inputs=inputs) as write:
+        return write(out_dir)
+
+
+@contextlib.contextmanager
+def report_writer(result: Result, *, title: str = "clcgraph calibration", inputs: "ev.ReportInputs | None" = None):
+    """``write_report`` in two steps: on entry the figures start drawing in a second process
+    (target-based); the call it yields, ``write(out_dir) -> path``, writes the report. Work the
+    caller does in between (the other result files) overlaps the drawing; leaving the block
+    without writing stops it.
+
+    SYNOPSIS
+        with report_writer(result, inputs=inputs) as write:
+            ...                       # e.g. calibration.yaml, problem.npz
+            write("out/")             # out/report.html
+    """
     if result.method == "targetless":
         from .report_targetless import write_targetless_report
 
-        return write_targetless_report(result, out_dir, title=title.replace("calibration", "targetless calibration"),
-                                       inputs=inputs)
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    path = out_dir / "report.html"
-    path.write_text(report_html(result, title=title, inputs=inputs))
-    return path
+        yield lambda out_dir: write_targetless_report(result, out_dir, inputs=inputs,
+                                                      title=title.replace("calibration", "targetless calibration"))
+        return
+
+    def write(out_dir) -> Path:
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        path = out_dir / "report.html"
+        path.write_text(report_html(result, title=title, inputs=inputs, drawing=drawing))
+        return path
+
+    with start_figures(result, inputs) as drawing:
+        yield write
