@@ -95,3 +95,22 @@ def test_report_writer_writes_the_report_write_report_writes(tmp_path):
         (tmp_path / "other-files").write_text("written while the pictures are drawn")
         b = write(tmp_path / "b")
     assert b.name == "report.html" and a.read_bytes() == b.read_bytes()
+
+
+def test_a_stuck_child_is_stopped_and_its_pictures_drawn_here(monkeypatch, caplog):
+    import multiprocessing
+
+    monkeypatch.setattr(drawing, "_PATIENCE_S", 1.0)
+    parent = os.getpid()
+
+    def stuck_in_child():  # as on a lock another thread held at the fork
+        if os.getpid() != parent:
+            time.sleep(60)
+        return [("s.png", "", b"s")]
+
+    t0 = time.perf_counter()
+    with caplog.at_level(logging.WARNING):
+        out = draw_concurrently([stuck_in_child, _job(1)], first=lambda: time.sleep(0.5))
+    assert out == [[("s.png", "", b"s")], _job(1)()]
+    assert "sent nothing in 1 s" in caplog.text
+    assert time.perf_counter() - t0 < 20 and not multiprocessing.active_children()

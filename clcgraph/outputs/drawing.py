@@ -20,9 +20,15 @@ from __future__ import annotations
 
 import logging
 import os
+import time
 from typing import Callable, Sequence
 
 log = logging.getLogger(__name__)
+
+# How long this process waits for the child once its own share is drawn: this much, plus this
+# factor times the time its own share took (on a loaded machine both processes are slow alike).
+_PATIENCE_S = 30.0
+_PATIENCE_FACTOR = 4.0
 
 
 def _cpus() -> int:
@@ -120,15 +126,22 @@ class Drawing:
         if self.child is None:
             return [_run(job, what) for job, what in zip(self.jobs, self.names)]
         done = {}
+        t0 = time.perf_counter()
         while (n := _take(self.counter)) < len(self.jobs):
             k = self.order[n]
             done[k] = _run(self.jobs[k], self.names[k])
+        # the child's last job takes about as long as one of ours: far longer means it is stuck (a
+        # lock another thread held when it was forked), and its pictures are drawn here instead
+        patience = _PATIENCE_S + _PATIENCE_FACTOR * (time.perf_counter() - t0)
         try:
-            done.update(self.receive.recv())
+            if self.receive.poll(patience):
+                done.update(self.receive.recv())
+            else:
+                log.warning("the report's drawing process sent nothing in %.0f s: drawing its pictures here", patience)
         except (EOFError, OSError):
             log.warning("the report's drawing process ended early (exit code %s): drawing its pictures here",
                         self.child.exitcode)
-        self.close()
+        self.close(wait=len(done) == len(self.jobs))  # all delivered: it is exiting; else stop it
         return [done[k] if k in done else _run(self.jobs[k], self.names[k]) for k in range(len(self.jobs))]
 
 
