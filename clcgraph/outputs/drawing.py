@@ -39,11 +39,14 @@ def _cpus() -> int:
 
 
 def _run(job: Callable[[], list], what: str) -> list:
+    t0 = time.process_time()
     try:
         return list(job())
     except Exception:  # noqa: BLE001 - a picture less, never a lost calibration
         log.exception("could not draw %s", what)
         return []
+    finally:
+        log.debug("process %d drew %s in %.2f s CPU", os.getpid(), what, time.process_time() - t0)
 
 
 def _take(counter) -> int:
