@@ -12,7 +12,7 @@ Each job is a call returning a list (the pictures it drew); a job that raises is
 from a shared counter, so the split follows what each job costs on the machine as it is. The
 child is forked (no imports, no copy of the data: it already has matplotlib and the result) and
 sends its pictures back as bytes when the list is done; whatever it did not deliver (it died,
-or was killed) is drawn here. Nothing is forked where fork is unavailable, in a daemonic
+was killed, or sent nothing long after this process finished its share) is drawn here. Nothing is forked where fork is unavailable, in a daemonic
 process (a pool's worker may not have children), or with one CPU: then every job runs here.
 """
 
