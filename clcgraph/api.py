@@ -484,18 +484,20 @@ def write_outputs(result: Result, out_dir, config=None, *, force: bool = False, 
     draw, nominal poses); without it, ``gather_report_inputs(result, config)`` gathers them from the bags the
     result names (the same report as `clcgraph solve`'s)."""
     from .outputs.dump import save_problem
-    from .outputs.report import write_report
+    from .outputs.report import report_writer
     from .outputs.results import write_results
 
     cfg = _config(config)
-    return write_results(
-        result, out_dir, config=cfg,
-        problem_dump=(lambda problem, path: save_problem(path, problem, cfg)) if result.method == "target" else None,
-        extra_files={"report.html": lambda path: write_report(
-            result, path.parent, inputs=report_inputs if report_inputs is not None else gather_report_inputs(
-                result, cfg, call=f"clcgraph.write_outputs(result, {str(out_dir)!r})"))},
-        force=force,
-    )
+    inputs = report_inputs if report_inputs is not None else gather_report_inputs(
+        result, cfg, call=f"clcgraph.write_outputs(result, {str(out_dir)!r})")
+    # the report's pictures are drawn (in a second process) while the other files are written
+    with report_writer(result, inputs=inputs) as write_report:
+        return write_results(
+            result, out_dir, config=cfg,
+            problem_dump=(lambda problem, path: save_problem(path, problem, cfg)) if result.method == "target" else None,
+            extra_files={"report.html": lambda path: write_report(path.parent)},
+            force=force,
+        )
 
 
 def calibrate_bags(bags, topics: Sequence[str], models: Sequence[str | Path] = (), *, out=None,

@@ -15,6 +15,7 @@ SYNOPSIS
 from __future__ import annotations
 
 import base64
+import contextlib
 import html
 import io
 import logging
@@ -431,41 +432,65 @@ def _clouds_figure(result, inputs) -> tuple[str, bytes] | None:
                                 "half_size": (p.board.width_m / 2, p.board.height_m / 2)})
 
 
-def _figures(result: Result, inputs, checks: dict) -> list[tuple[str, str, bytes]]:
-    """[(name, caption, png)] of every figure, in report order; a failing one is logged and left out."""
+# Rough CPU cost of each picture relative to the others (the 24-pose bench capture): the drawing
+# processes take the costly ones first, so they finish together. Only the schedule depends on it.
+_COST = {"sectors.png": 9, "clouds-before-after.png": 6, "camera-residuals-and-coverage.png": 5,
+         "lidar-residuals.png": 4, "residuals-per-snapshot.png": 3}
+
+
+def _figure_jobs(result: Result, inputs) -> list[tuple[str, object]]:
+    """[(name, job)] of every figure but the LIDAR points on the camera images, in report order; a
+    job returns [(name, caption, png)] (none when there is nothing to draw)."""
     from . import plots
 
     p = result.problem
-    out = []
 
-    def add(name, caption, fn):
+    def clouds():
+        c = _clouds_figure(result, inputs)
+        return [("clouds-before-after.png", c[0], c[1])] if c else []
+
+    def camera_residuals():
+        vec = ev.camera_residual_vectors(result)
+        cams = [{**c, **vec.get(c["sensor"], {"corners": np.concatenate([np.reshape(x, (-1, 2)) for x in c["corners"]]),
+                                              "residuals": None})} for c in _coverage(result)]
+        return [("camera-residuals-and-coverage.png", "", _png(plots.plot_camera_residuals_and_coverage, cams))] if cams else []
+
+    def lidar_residuals():
+        geo = ev.lidar_residual_geometry(result)
+        return [("lidar-residuals.png", "", _png(plots.plot_lidar_residuals, [
+            {"title": f"{i}: {p.sensors[i].topic}", **v} for i, v in sorted(geo.items())]))] if geo else []
+
+    jobs = [("clouds-before-after.png", clouds), ("camera-residuals-and-coverage.png", camera_residuals),
+            ("lidar-residuals.png", lidar_residuals)]
+    jobs += [(name, lambda name=name, fn=fn: [(name, "", _png(fn, result))]) for name, fn in plots.PLOTS.items()]
+    return jobs
+
+
+def start_figures(result: Result, inputs):
+    """An ``outputs.drawing.Drawing`` of the report's figures (all but the LIDAR points on the camera
+    images, drawn by ``_figures``), its second process drawing from now on."""
+    from .drawing import Drawing
+
+    jobs = _figure_jobs(result, inputs)
+    order = sorted(range(len(jobs)), key=lambda k: -_COST.get(jobs[k][0], 1))
+    return Drawing([job for _, job in jobs], names=[name for name, _ in jobs], order=order)
+
+
+def _figures(result: Result, inputs, checks: dict, first=None, drawing=None) -> list[tuple[str, str, bytes]]:
+    """[(name, caption, png)] of every figure, in report order; a failing one is logged and left out.
+    The figures are drawn by two processes (``drawing``: ``start_figures``, started earlier; else here).
+    ``first``: work of this process that the pictures do not need, done while the other process
+    already draws; ``checks`` (what the LIDAR points on the camera images show) may be filled by it:
+    those pictures are drawn after it, here."""
+    with drawing if drawing is not None else start_figures(result, inputs) as d:
+        if first is not None:
+            first()
         try:
-            out.append((name, caption, fn()))
+            on_camera = _lidar_on_camera_figures(result, inputs, checks)
         except Exception:  # a diagnostic figure must never lose the calibration
-            log.exception("could not draw %s", name)
-
-    try:
-        out += _lidar_on_camera_figures(result, inputs, checks)
-    except Exception:
-        log.exception("could not draw the LIDAR points on the camera images")
-    try:
-        clouds = _clouds_figure(result, inputs)
-        if clouds:
-            out.append(("clouds-before-after.png", clouds[0], clouds[1]))
-    except Exception:
-        log.exception("could not draw the clouds before / after")
-    vec = ev.camera_residual_vectors(result)
-    cams = [{**c, **vec.get(c["sensor"], {"corners": np.concatenate([np.reshape(x, (-1, 2)) for x in c["corners"]]),
-                                          "residuals": None})} for c in _coverage(result)]
-    if cams:
-        add("camera-residuals-and-coverage.png", "", lambda: _png(plots.plot_camera_residuals_and_coverage, cams))
-    geo = ev.lidar_residual_geometry(result)
-    if geo:
-        add("lidar-residuals.png", "", lambda: _png(plots.plot_lidar_residuals, [
-            {"title": f"{i}: {p.sensors[i].topic}", **v} for i, v in sorted(geo.items())]))
-    for name, fn in plots.PLOTS.items():
-        add(name, "", lambda fn=fn: _png(fn, result))
-    return out
+            log.exception("could not draw the LIDAR points on the camera images")
+            on_camera = []
+        return on_camera + [f for figs in d.results() for f in figs]
 
 
 def _coverage(result) -> list[dict]:
@@ -574,20 +599,26 @@ def jk_n(result: Result) -> int:
     return int(result.jackknife.get("n_snapshots", 0))
 
 
-def report_html(result: Result, *, title: str = "clcgraph calibration", inputs: "ev.ReportInputs | None" = None) -> str:
-    """The whole self-contained HTML text (figures embedded)."""
+def report_html(result: Result, *, title: str = "clcgraph calibration", inputs: "ev.ReportInputs | None" = None,
+                drawing=None) -> str:
+    """The whole self-contained HTML text (figures embedded); ``drawing``: ``start_figures(result, inputs)``
+    started earlier (the pictures drawn while the caller did other work)."""
     rms, noise = result.rms, result.noise
     used = int(np.sum(np.all(np.isfinite(np.asarray(result.rt_lidar0_board, float).reshape(-1, 6)), axis=1)))
-    checks = {"solved": ev.lidar_board_in_images(result)}
-    rts = _all_rts(result, inputs)
-    if "nominal /tf_static" in rts:
-        nom = np.array([rts["nominal /tf_static"].get(i, rt) for i, rt in enumerate(result.rt_lidar0_sensor)])
-        checks["nominal /tf_static"] = ev.lidar_board_in_images(result, rt_lidar0_sensor=nom)
+    checks: dict = {}
+
+    def board_checks():  # while the other process draws
+        checks["solved"] = ev.lidar_board_in_images(result)
+        rts = _all_rts(result, inputs)
+        if "nominal /tf_static" in rts:
+            nom = np.array([rts["nominal /tf_static"].get(i, rt) for i, rt in enumerate(result.rt_lidar0_sensor)])
+            checks["nominal /tf_static"] = ev.lidar_board_in_images(result, rt_lidar0_sensor=nom)
+
+    figures = _figures(result, inputs, checks, first=board_checks, drawing=drawing)
     coverage = _coverage(result)
     for c in coverage:
         if c["coverage"].get("warning"):
             log.warning("camera %s: %s", c["title"], c["coverage"]["warning"])
-    figures = _figures(result, inputs, checks)
     parts = [
         f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title><style>{_CSS}</style></head><body>",
         f"<h1>{html.escape(title)}</h1>",
@@ -631,13 +662,35 @@ def write_report(result: Result, out_dir, *, title: str = "clcgraph calibration"
                  inputs: "ev.ReportInputs | None" = None) -> Path:
     """Write ``out_dir/report.html``: one file, figures embedded, nothing else needed to open it;
     the one report entry point of both methods (a targetless result: report_targetless.py)."""
+    with report_writer(result, title=title, inputs=inputs) as write:
+        return write(out_dir)
+
+
+@contextlib.contextmanager
+def report_writer(result: Result, *, title: str = "clcgraph calibration", inputs: "ev.ReportInputs | None" = None):
+    """``write_report`` in two steps: on entry the figures start drawing in a second process
+    (target-based); the call it yields, ``write(out_dir) -> path``, writes the report. Work the
+    caller does in between (the other result files) overlaps the drawing; leaving the block
+    without writing stops it.
+
+    SYNOPSIS
+        with report_writer(result, inputs=inputs) as write:
+            ...                       # e.g. calibration.yaml, problem.npz
+            write("out/")             # out/report.html
+    """
     if result.method == "targetless":
         from .report_targetless import write_targetless_report
 
-        return write_targetless_report(result, out_dir, title=title.replace("calibration", "targetless calibration"),
-                                       inputs=inputs)
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    path = out_dir / "report.html"
-    path.write_text(report_html(result, title=title, inputs=inputs))
-    return path
+        yield lambda out_dir: write_targetless_report(result, out_dir, inputs=inputs,
+                                                      title=title.replace("calibration", "targetless calibration"))
+        return
+
+    def write(out_dir) -> Path:
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        path = out_dir / "report.html"
+        path.write_text(report_html(result, title=title, inputs=inputs, drawing=drawing))
+        return path
+
+    with start_figures(result, inputs) as drawing:
+        yield write
