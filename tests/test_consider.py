@@ -104,8 +104,9 @@ def test_calibrate_adds_the_terms_and_reports_their_shares():
 
     base = Config().solve
     assert base.board_flatness_m == 0.001 and base.lidar_range_offset_m == 0.0  # the defaults (docs/uncertainty.md)
-    assert base.lidar_ring_range_bias_m == 0.01 and base.lidar_ring_elevation_deg == 0.1
-    assert base.camera_lens_field_px == 0.1
+    assert base.lidar_ring_range_bias_m == base.lidar_ring_elevation_deg == base.camera_lens_field_px == 0.0
+    base = dataclasses.replace(base, lidar_ring_range_bias_m=0.01, lidar_ring_elevation_deg=0.1,
+                               camera_lens_field_px=0.1)  # the units' figures, as a user states them
     assert calibrate(problem, base).stats["uncertainty_terms"]["included"] == [
         consider.MODEL_TERM, "board flatness", "ring range bias /lidar0", "ring elevation /lidar0", "lens field /cam0"]
     base = dataclasses.replace(base, **NO_RING_TERMS)
