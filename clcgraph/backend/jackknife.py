@@ -50,7 +50,7 @@ def _axes(C_model: np.ndarray, C_jk: np.ndarray, scale: float, expected_var) -> 
     E, var = expected_var(V)
     dof = 2 * E**2 / np.maximum(var, 1e-300)  # Satterthwaite: the jackknife variance ~ E chi2_dof / dof
     safe = np.where(model > 0, model, 1.0)
-    centre = np.sqrt(E) / safe
+    centre = np.sqrt(np.maximum(E, 0.0)) / safe  # E < 0 is rounding, along a direction one board alone holds
     with np.errstate(invalid="ignore"):  # chi2.ppf's own formula; NaN where dof is not positive
         q = np.stack([np.where(dof > 0, 2 * gammaincinv(dof / 2, p), np.nan) for p in (0.025, 0.975)], axis=1) / dof[:, None]
     return {"axes": V.T, "model": model * scale, "jackknife": jk * scale,
