@@ -100,8 +100,9 @@ class SegmentationOptions:
     max_gap_points_stage3: int = 5
     # Post-processing checks.
     # Board sizes come from the 'board' section (the physical board, border included).
-    # A plane with more than this share of its points outside a board-sized rectangle continues
-    # past the board (a wall, a car); a smaller share touching it (a hand) is cut off.
+    # A plane whose rings run on past the board's fitted rectangle by more than this share of
+    # their returns continues past the board (a wall, a car); a smaller share touching it (a hand)
+    # is cut off, and pieces of ring wholly beside it (a person in its plane) are dropped.
     max_outside_fraction: float = 0.1
     # ...and no board is larger than this across (m; None: the diagonal of board.size_m plus the
     # edges' blooming by a point spacing).

@@ -11,7 +11,9 @@ Three stages, as in the clc seed, vectorized per scan:
    one plane are split by RANSAC; a plane needs segments from >= ``min_rings`` rings.
 3. Points: each candidate plane collects the contiguous coplanar returns of its rings and the
    rings next to it (gaps < ``max_gap_points_stage3``, no range jump). The board is then what
-   fits a board-sized rectangle (``max_outside_fraction`` may stick out: a hand), keeping one
+   fits the board's rectangle where the rest of the scan's rays show it can be (``board_outline``:
+   pieces of ring beside it in its plane, a person, are dropped; no more than
+   ``max_outside_fraction`` of its rings' returns may run on past it: a wall does), keeping one
    unbroken piece per ring, flat to within the range noise (``max_plane_rms_sigmas`` times the
    larger of the scan's and the plane's own along-ring noise), not too small, not a sliver, and
    crossed by a ring over most of its width once its rings span most of its height (a body or a
@@ -39,6 +41,7 @@ import numpy as np
 
 from ..planes import fit_plane, ransac_plane
 from ..types import BoardGeometry, LidarBoardObservation, LidarScan, Rejected
+from .board_outline import fit_outline, scan_rays
 from .lidar_preprocess import Rings, neighbour_steps, prepare, session_masks, typical_step
 
 STAGE = "segmentation"
@@ -257,32 +260,6 @@ def _in_plane(points: np.ndarray, n: np.ndarray) -> np.ndarray:
     return np.c_[points @ u, points @ np.cross(n, u)]
 
 
-def _board_window(points: np.ndarray, n: np.ndarray, sx: float, sy: float, slack: float) -> np.ndarray:
-    """(N,) mask of the points inside the board-sized rectangle (in-plane, any rotation) that
-    holds the most of them: coplanar things touching the board (a hand, a body at the plane's
-    crossing line) stay outside it."""
-    q = _in_plane(points, n)
-    ang = np.radians(np.arange(0, 180, 3.0))
-    p1 = q @ np.stack([np.cos(ang), np.sin(ang)])  # (N, angles): along each rotated axis
-    p2 = q @ np.stack([-np.sin(ang), np.cos(ang)])
-    e1, e2 = np.sort(p1, axis=0), np.sort(p2, axis=0)
-
-    def window(e, length):
-        # per angle: the start of the length-long interval holding the most points
-        j = np.stack([np.searchsorted(e[:, k], e[:, k] + length, side="right") for k in range(e.shape[1])], 1)
-        i = np.argmax(j - np.arange(len(e))[:, None], axis=0)
-        return e[i, np.arange(e.shape[1])]
-
-    best, best_mask = -1, None
-    for lx, ly in {(sx, sy), (sy, sx)}:
-        s1, s2 = window(e1, lx + slack), window(e2, ly + slack)
-        inside = (p1 >= s1) & (p1 <= s1 + lx + slack) & (p2 >= s2) & (p2 <= s2 + ly + slack)
-        k = int(np.argmax(inside.sum(axis=0)))
-        if inside[:, k].sum() > best:
-            best, best_mask = inside[:, k].sum(), inside[:, k]
-    return best_mask
-
-
 def _extents(points: np.ndarray, n: np.ndarray) -> tuple[float, float]:
     """(diameter, width): the largest in-plane extent over 36 directions, and the smallest."""
     q = _in_plane(points, n)
@@ -306,10 +283,10 @@ def _chord_and_height(pts: np.ndarray, ring: np.ndarray, n: np.ndarray) -> tuple
     return float((x[ends] - x[starts]).max()), float(np.ptp(y))
 
 
-def _main_piece_per_ring(pts: np.ndarray, ring: np.ndarray, step: float, o) -> np.ndarray:
-    """(N,) mask keeping, in each ring, the longest piece unbroken by a 3D jump of more than
-    ``max_jump_spacings`` point spacings: a body or post beside the board, crossing its plane,
-    falls away."""
+def _ring_pieces(pts: np.ndarray, ring: np.ndarray, step: float, o) -> np.ndarray:
+    """(N,) piece number per point: the points of one ring in azimuth order, cut wherever a 3D
+    jump exceeds ``max_jump_spacings`` point spacings (a body or post beside the board, crossing
+    its plane, is a piece of its own)."""
     az = np.arctan2(pts[:, 1], pts[:, 0])
     az0 = np.arctan2(np.sin(az).mean(), np.cos(az).mean())
     az = (az - az0 + np.pi) % (2 * np.pi) - np.pi
@@ -317,16 +294,21 @@ def _main_piece_per_ring(pts: np.ndarray, ring: np.ndarray, step: float, o) -> n
     p, r = pts[order], ring[order]
     jump = np.linalg.norm(np.diff(p, axis=0), axis=1)
     limit = _max_jump(np.linalg.norm(p[:-1], axis=1), step, o)
-    piece = np.r_[0, np.cumsum((jump > limit) | (r[1:] != r[:-1]))]
+    piece = np.empty(len(pts), np.int64)
+    piece[order] = np.r_[0, np.cumsum((jump > limit) | (r[1:] != r[:-1]))]
+    return piece
+
+
+def _main_piece_per_ring(pts: np.ndarray, ring: np.ndarray, step: float, o) -> np.ndarray:
+    """(N,) mask keeping, in each ring, its longest piece (``_ring_pieces``)."""
+    piece = _ring_pieces(pts, ring, step, o)
     size = np.bincount(piece)
-    ring_of_piece = np.zeros(len(size), r.dtype)
-    ring_of_piece[piece] = r
+    ring_of_piece = np.zeros(len(size), ring.dtype)
+    ring_of_piece[piece] = ring
     best = {}
     for k in np.argsort(size):  # ascending: the largest piece of each ring is written last
         best[ring_of_piece[k]] = k
-    keep = np.empty(len(pts), bool)
-    keep[order] = np.isin(piece, list(best.values()))
-    return keep
+    return np.isin(piece, list(best.values()))
 
 
 def _local_noise(pts: np.ndarray, ring: np.ndarray, k: int) -> float:
@@ -360,10 +342,11 @@ def _rms_about_ring_offsets(pts: np.ndarray, ring: np.ndarray, n: np.ndarray, d:
 
 
 def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: float, noise_m: float, o,
-             intensity: np.ndarray | None = None):
+             intensity: np.ndarray | None = None, others: np.ndarray | None = None):
     """Whether ``pts`` (with their ring ranks and ``intensity``) are the board: (None or why not,
-    the refit plane (n, d, rms), the mask of the points kept). The plane and its flatness are
-    judged with the dark squares' range walk removed (``dark_square_correction``)."""
+    the refit plane (n, d, rms), the mask of the points kept). ``others``: the scan's other
+    returns, whose rays tell where the board is not (``fit_outline``). The plane and its flatness
+    are judged with the dark squares' range walk removed (``dark_square_correction``)."""
     keep = np.ones(len(pts), bool)
     n, d, rms = fit_plane(pts)
     c = pts.mean(axis=0)
@@ -373,9 +356,22 @@ def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: floa
     spacing_m = float(np.linalg.norm(pts, axis=1).mean() * step)
     slack = 0.05 + 2.0 * spacing_m
     max_size = o.max_plane_size_m if o.max_plane_size_m is not None else float(np.hypot(sx + slack, sy + slack))
-    keep = _board_window(pts, n, sx, sy, slack)
-    if (~keep).mean() > o.max_outside_fraction:
-        return (f"{at} is {_extents(pts, n)[0]:.2f} m across, {(~keep).mean():.0%} of it outside any "
+    others = np.zeros((0, 3)) if others is None else others
+    keep = fit_outline(pts, others, n, d, size_m=(sx, sy), step_rad=step, plane_tol_m=o.point_plane_tolerance_m).inside
+    if keep.sum() >= 3 and not keep.all():  # again on the plane of what fits: the rest may have tilted it
+        n, d, _ = fit_plane(pts[keep])
+        keep = fit_outline(pts, others, n, d, size_m=(sx, sy), step_rad=step,
+                           plane_tol_m=o.point_plane_tolerance_m).inside
+    # Pieces of ring outside the board's rectangle are dropped (a person beside it, in its plane);
+    # a plane whose rings run on past the rectangle is not a board (a wall, a car).
+    piece = _ring_pieces(pts, ring, step, o)
+    touching = np.isin(piece, piece[keep])
+    beyond = (touching & ~keep).sum() / max(touching.sum(), 1)
+    if keep.sum() < o.points_per_segment * o.min_rings:
+        return (f"{at}: only {keep.sum()} of its {len(pts)} returns fit a {sx:.2f} x {sy:.2f} m rectangle where "
+                f"the scan shows no board missing"), (n, d, rms), keep
+    if beyond > o.max_outside_fraction:
+        return (f"{at} is {_extents(pts, n)[0]:.2f} m across, {beyond:.0%} of it outside any "
                 f"{sx:.2f} x {sy:.2f} m rectangle: a wall, car, person or the board touching something"), (n, d, rms), keep
     # coplanar things crossing the board plane (a body, a hand) drift off it away from the crossing
     for _ in range(2):
@@ -482,10 +478,14 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
             if len(rows) >= len(members) // 2:
                 pieces.append((rows, n, d))
     found = []
+    # every ray of the scan, those that returned nothing included: where one passed behind a
+    # candidate plane, no board was in its way
+    rays = scan_rays(scan, step)
     intensity = None if scan.intensity is None else np.asarray(scan.intensity, float)[R.index]
     for rows in _merge(pieces, R.points, o.point_plane_tolerance_m, float(np.hypot(*board.size_m))):
         why, plane, keep = _verdict(R.points[rows], rank[rows], board, step, noise, o,
-                                    None if intensity is None else intensity[rows])
+                                    None if intensity is None else intensity[rows],
+                                    rays.points[rays.away_from(R.index[rows])])
         rows = rows[keep]
         if o.debug_region is not None:
             c = R.points[rows].mean(axis=0) if len(rows) else np.full(3, np.nan)

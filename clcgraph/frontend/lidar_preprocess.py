@@ -73,6 +73,44 @@ def prepare(scan: LidarScan, *, min_range_m: float, max_range_m: float, exclude:
     return Rings(idx, r, az[order], rng[idx], p[idx], np.r_[starts, len(idx)], ring_ids)
 
 
+def ring_neighbours(R: Rings) -> tuple[np.ndarray, np.ndarray]:
+    """(previous, next): per point of ``R``, the position in ``R`` of its neighbour along its
+    ring in azimuth order (wrapping around; a ring of one point is its own neighbour)."""
+    n = len(R.index)
+    nxt, prv = np.arange(1, n + 1), np.arange(-1, n - 1)
+    if n:
+        nxt[R.starts[1:] - 1] = R.starts[:-1]
+        prv[R.starts[:-1]] = R.starts[1:] - 1
+    return prv, nxt
+
+
+def missed_rays(R: Rings, step: float, *, limit: int = 1_000_000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rays that returned nothing: the azimuth steps missing between consecutive returns of
+    a ring (wrapping around), each at its neighbours' mean elevation. ``R``: every valid return
+    of a scan (``prepare`` without range limits); ``step``: the azimuth step (rad). Returns
+    ((K,3) unit directions, (K,) the position in ``R`` of the return just before each (-1 unless
+    it is the first missed ray of its gap), and of the return just after (-1 unless the last));
+    at most ``limit`` rays (a scan mostly of sky)."""
+    none = (np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64))
+    if not len(R.index):
+        return none
+    _, nxt = ring_neighbours(R)
+    daz = (R.azimuth[nxt] - R.azimuth) % (2 * np.pi)
+    last = R.starts[1:] - 1
+    daz[last] = np.where(np.diff(R.starts) > 1, daz[last], 2 * np.pi)
+    n_miss = np.maximum(np.rint(daz / step).astype(np.int64) - 1, 0)
+    n_miss = np.minimum(n_miss, np.maximum(limit - np.r_[0, np.cumsum(n_miss)[:-1]], 0))
+    if not n_miss.sum():
+        return none
+    g = np.repeat(np.arange(len(n_miss)), n_miss)
+    m = np.arange(len(g)) - np.repeat(np.cumsum(n_miss) - n_miss, n_miss) + 1  # 1..n_miss within a gap
+    az = R.azimuth[g] + daz[g] * m / (n_miss[g] + 1)
+    u = R.points / R.range[:, None]
+    el = (np.arcsin(np.clip(u[g, 2], -1, 1)) + np.arcsin(np.clip(u[nxt[g], 2], -1, 1))) / 2
+    dirs = np.c_[np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)]
+    return dirs, np.where(m == 1, g, -1), np.where(m == n_miss[g], nxt[g], -1)
+
+
 def neighbour_steps(R: Rings) -> np.ndarray:
     """Azimuth steps (rad) between consecutive returns of the same ring."""
     d = np.diff(R.azimuth)

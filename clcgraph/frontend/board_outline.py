@@ -1,0 +1,247 @@
+"""The board's known rectangle fitted in its plane to one LIDAR scan: which of the plane's
+returns are the board, and which only touch its plane beside it (a person, a hand, a post).
+
+Every return of the scan is put where its ray crosses the board's plane (so a long-ranging
+mixed pixel at an edge stays at the edge). The plane's returns pull the rectangle over them;
+returns *behind* the plane push it away: their ray passed through the plane there, so no board
+was in the way. Returns in front of the plane (an arm, the person holding the board) say
+nothing: the board may be hidden behind them. The rectangle (the board's width x height, any
+in-plane rotation) is placed where it holds the most plane returns less the behind-returns
+inside it; a ring's first ray past the plane's returns does not count (it lies within a point
+spacing of the edge, and mixed pixels sit there: ``ScanRays.away_from``). A plane return is the
+board when it lies within the rectangle, or within half its point spacing along its ring plus
+the search grid's cell of it (the edge lies between a ring's last return on the board and its
+next ray).
+
+SYNOPSIS
+    rays = scan_rays(scan, step_rad=2*pi/1800)           # every ray of the scan, misses included
+    others = rays.points[rays.away_from(rows)]           # rows: the plane's returns (scan rows)
+    o = fit_outline(scan.points[rows] (N,3), others (M,3), n, d, size_m=(1.3, 1.3), step_rad=2*pi/1800,
+                    plane_tol_m=0.05)
+    o.inside            # (N,) which points lie on the board
+    o.corners_3d()      # (4,3) the fitted rectangle's corners in the LIDAR frame
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..types import LidarScan
+from .lidar_preprocess import missed_rays, prepare, ring_neighbours
+
+# The fine search grid: cells of half the point spacing, within these bounds (m).
+_CELL_M = (0.01, 0.03)
+
+
+@dataclass(frozen=True)
+class Outline:
+    """The fitted rectangle: plane n . x = d with in-plane basis (e1, e2) about ``origin``;
+    the rectangle's centre (2,) and side directions ``axes`` (2,2 rows: along size[0], along
+    size[1]) in that basis; ``inside`` (N,) and ``tolerance_m`` (N,) per plane return."""
+
+    n: np.ndarray
+    d: float
+    origin: np.ndarray
+    basis: np.ndarray  # (2,3): e1, e2
+    centre: np.ndarray
+    axes: np.ndarray
+    size: np.ndarray
+    inside: np.ndarray
+    tolerance_m: np.ndarray
+    score: float
+
+    def corners_3d(self) -> np.ndarray:
+        """(4,3) corners in the LIDAR frame."""
+        h = self.size / 2
+        c2 = self.centre + np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * h @ self.axes
+        return self.origin + c2 @ self.basis
+
+
+@dataclass(frozen=True)
+class ScanRays:
+    """Every ray of a scan: its returns, and far points along the rays that returned nothing;
+    per ray the scan rows of its neighbours along the ring (-1: none, or a ray that returned
+    nothing)."""
+
+    points: np.ndarray  # (M,3)
+    prev: np.ndarray  # (M,)
+    next: np.ndarray  # (M,)
+    n_rows: int
+
+    def away_from(self, rows: np.ndarray) -> np.ndarray:
+        """(M,) the rays that are not ring neighbours of the scan rows ``rows``: where a ring
+        leaves the board, its first return past the edge (or first miss) may be a mixed pixel,
+        and lies within a point spacing of the edge anyway."""
+        mine = np.zeros(self.n_rows + 1, bool)  # the last entry stands for -1
+        mine[rows] = True
+        return ~(mine[self.prev] | mine[self.next])
+
+
+def scan_rays(scan: LidarScan, step_rad: float, far_m: float = 1e4) -> ScanRays:
+    """ScanRays of ``scan`` (every valid return, static scene and any range included; ``far_m``
+    along each missed ray); ``step_rad``: the azimuth step."""
+    R = prepare(scan, min_range_m=0.0, max_range_m=np.inf)
+    ok = R.range > 0
+    prv, nxt = ring_neighbours(R)
+    dirs, before, after = missed_rays(R, step_rad)
+    rows = np.r_[R.index, -1]  # position -1 -> row -1
+    pts = np.r_[R.points[ok], far_m * dirs]
+    return ScanRays(pts, np.r_[rows[prv[ok]], rows[before]], np.r_[rows[nxt[ok]], rows[after]], len(scan.points))
+
+
+def plane_basis(n: np.ndarray, d: float) -> tuple[np.ndarray, np.ndarray]:
+    """(origin (3,), basis (2,3)): the plane's point nearest the sensor and two in-plane unit
+    vectors, the first level (along the rings of a level LIDAR)."""
+    e1 = np.cross(n, [0.0, 0.0, 1.0])
+    if np.linalg.norm(e1) < 1e-6:
+        e1 = np.cross(n, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    return n * d, np.stack([e1, np.cross(n, e1)])
+
+
+def ray_plane(points: np.ndarray, n: np.ndarray, d: float, origin: np.ndarray, basis: np.ndarray):
+    """(xy (N,2) where each return's ray crosses the plane, in the plane's basis; depth (N,) m:
+    the return's range beyond that crossing, negative in front; ahead (N,): the ray meets the
+    plane ahead of the sensor)."""
+    r = np.linalg.norm(points, axis=1)
+    u = points / np.where(r > 0, r, 1.0)[:, None]
+    un = u @ n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = d / un
+    ahead = np.isfinite(t) & (t > 0)
+    t = np.where(ahead, t, 0.0)
+    xy = (u * t[:, None] - origin) @ basis.T
+    return xy, r - t, ahead
+
+
+def along_ring_step(points: np.ndarray, n: np.ndarray, d: float, step_rad: float) -> np.ndarray:
+    """(N,3) m: where on the plane the next ray of each return's ring lands, relative to its own
+    crossing (the derivative of the ray-plane crossing with azimuth, times the step)."""
+    r = np.linalg.norm(points, axis=1)
+    u = points / np.where(r > 0, r, 1.0)[:, None]
+    du = np.c_[-u[:, 1], u[:, 0], np.zeros(len(u))]  # d u / d azimuth (|du| = cos elevation)
+    un = u @ n
+    un = np.where(np.abs(un) > 1e-6, un, 1e-6)
+    t = d / un
+    return t[:, None] * (du - ((du @ n) / un)[:, None] * u) * step_rad
+
+
+def _box_sums(S: np.ndarray, kx: int, ky: int, ox: int = 0, oy: int = 0) -> np.ndarray:
+    """Sums over boxes [i+ox, i+kx-ox) x [j+oy, j+ky-oy) for every anchor (i, j) with the box
+    inside the grid, from summed-area tables S (A, G+1, G+1)."""
+    nx, ny = S.shape[1] - kx, S.shape[2] - ky
+    a0, a1, b0, b1 = ox, kx - ox, oy, ky - oy
+    if a1 <= a0 or b1 <= b0:
+        return np.zeros((S.shape[0], nx, ny), S.dtype)
+    return (S[:, a1:a1 + nx, b1:b1 + ny] - S[:, a0:a0 + nx, b1:b1 + ny]
+            - S[:, a1:a1 + nx, b0:b0 + ny] + S[:, a0:a0 + nx, b0:b0 + ny])
+
+
+def _search(xy_on, xy_behind, angles, size, cell, margin, c0, hint=None, reach=0.0):
+    """Best (score, angle, centre (2,)) over ``angles`` and the anchors of a grid of ``cell``
+    m: rectangles over the plane returns ``xy_on`` (or, with ``hint``, centred within ``reach``
+    of it). ``margin``: cells along the rectangle's edges where behind-returns do not count (the
+    grid's rounding);
+    ties go to the rectangle centred nearest ``c0``."""
+    k = (np.floor(size / cell) + 1).astype(np.int64)  # cells per side, the rectangle rounded up
+    best = (-np.inf, 0.0, c0)
+    for a in range(0, len(angles), 16):  # in chunks of angles, to bound the grids' memory
+        th = angles[a:a + 16]
+        A = len(th)
+        c, s = np.cos(th), np.sin(th)
+        rot = np.stack([np.c_[c, s], np.c_[-s, c]], axis=1)  # (A,2,2): rows along the sides
+
+        def rotated(xy):  # (A,N) coordinates along each angle's two sides
+            q = xy @ np.r_[np.c_[c, -s].T, np.c_[s, c].T].reshape(2, 2 * A)
+            return q[:, :A].T, q[:, A:].T
+
+        qx, qy = rotated(xy_on)
+        if hint is None:  # any rectangle touching the plane returns
+            lo = np.c_[qx.min(axis=1), qy.min(axis=1)] - size - cell
+            hi = np.c_[qx.max(axis=1), qy.max(axis=1)] + size + cell
+        else:
+            h = rot @ hint
+            lo, hi = h - size / 2 - reach - cell, h + size / 2 + reach + cell
+        G = np.maximum(np.ceil((hi - lo).max(axis=0) / cell).astype(np.int64) + 1, k)
+
+        def table(q):
+            i = np.floor((q[0] - lo[:, :1]) / cell).astype(np.int64)
+            j = np.floor((q[1] - lo[:, 1:]) / cell).astype(np.int64)
+            ok = (i >= 0) & (i < G[0]) & (j >= 0) & (j < G[1])
+            flat = (np.arange(A)[:, None] * G[0] + i) * G[1] + j
+            S = np.zeros((A, G[0] + 1, G[1] + 1), np.int32)
+            S[:, 1:, 1:] = np.bincount(flat[ok], minlength=A * G[0] * G[1]).reshape(A, G[0], G[1]).cumsum(1).cumsum(2)
+            return S
+
+        score = _box_sums(table((qx, qy)), k[0], k[1]).astype(np.float64)
+        if len(xy_behind):
+            score -= _box_sums(table(rotated(xy_behind)), k[0], k[1], margin, margin)
+        # ties (a board seen in part may slide over where nothing was seen): the rectangle
+        # centred nearest c0, by a penalty below one return
+        ci = lo[:, 0, None] + (np.arange(score.shape[1]) + k[0] / 2) * cell  # (A, nx) rotated centres
+        cj = lo[:, 1, None] + (np.arange(score.shape[2]) + k[1] / 2) * cell
+        r0 = rot @ c0
+        dist = np.hypot(ci[:, :, None] - r0[:, 0, None, None], cj[:, None, :] - r0[:, 1, None, None])
+        score -= 0.5 * dist / (dist.max() + 1e-9)
+        ia, i, j = np.unravel_index(int(np.argmax(score)), score.shape)
+        if score[ia, i, j] > best[0]:
+            best = (float(score[ia, i, j]), float(th[ia]), rot[ia].T @ np.array([ci[ia, i], cj[ia, j]]))
+    return best
+
+
+def _segment_in_box(p: np.ndarray, v: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """(N,) whether the segments p - v .. p + v (N,2 each) meet the box |x| <= half (2,)."""
+    lo, hi = np.full(len(p), -1.0), np.full(len(p), 1.0)
+    for k in range(2):
+        flat = np.abs(v[:, k]) < 1e-12
+        with np.errstate(divide="ignore", invalid="ignore"):
+            a, b = (-half[k] - p[:, k]) / v[:, k], (half[k] - p[:, k]) / v[:, k]
+        a, b = np.where(flat, -np.inf, np.minimum(a, b)), np.where(flat, np.inf, np.maximum(a, b))
+        out = flat & (np.abs(p[:, k]) > half[k])
+        lo, hi = np.maximum(lo, a), np.where(out, -np.inf, np.minimum(hi, b))
+    return lo <= hi
+
+
+def fit_outline(points: np.ndarray, others: np.ndarray, n: np.ndarray, d: float, *, size_m, step_rad: float,
+                plane_tol_m: float) -> Outline:
+    """The board-sized rectangle (``size_m`` = width, height) in the plane n . x = d that holds the
+    most of ``points`` (N,3; the plane's returns) less ``others`` (M,3; every other return of the
+    scan) that lie behind the plane by more than ``plane_tol_m`` inside it. ``step_rad``: the
+    LIDAR's azimuth step."""
+    n = np.asarray(n, float)
+    origin, basis = plane_basis(n, d)
+    xy, _, _ = ray_plane(points, n, d, origin, basis)
+    ring_step = along_ring_step(points, n, d, step_rad) @ basis.T  # (N,2) in the plane's basis
+    spacing = np.linalg.norm(ring_step, axis=1)
+    size = np.asarray(size_m, float)
+    diag = float(np.hypot(*size))
+    c0 = np.median(xy, axis=0)
+    xy_b = np.zeros((0, 2))
+    if len(others):
+        xb, depth, ahead = ray_plane(others, n, d, origin, basis)
+        reach = np.max(np.abs(xy - c0), axis=0) + diag
+        xy_b = xb[ahead & (depth > plane_tol_m) & (np.abs(xb - c0) <= reach).all(axis=1)]
+    s_edge = float(np.median(spacing))
+    # coarse to fine: a grid of 1/24 of the board's short side over every rotation, then about
+    # the best one a grid of half the point spacing (1-3 cm); angle steps of one cell at a corner
+    # (a rectangle is symmetric under a half turn, a square under a quarter turn). The coarse
+    # grid's boundary cells reach past the board: behind-returns there do not count.
+    period = np.pi / 2 if abs(size[0] - size[1]) < 1e-9 else np.pi
+    cell_c = min(size) / 24
+    _, th, centre = _search(xy, xy_b, np.arange(0.0, period, cell_c / (diag / 2)), size, cell_c, 1, c0)
+    cell = float(np.clip(s_edge / 2, *_CELL_M))
+    dth = cell / (diag / 2)
+    score, th, centre = _search(xy, xy_b, th + np.arange(-cell_c / cell, cell_c / cell + 1) * dth, size, cell,
+                                0, c0, hint=centre, reach=2 * cell_c)
+    axes = np.array([[np.cos(th), np.sin(th)], [-np.sin(th), np.cos(th)]])
+    # A plane return is inside the scored cells, or within tol of them along its ring: the edge
+    # lies between a ring's last return on the board and its next ray, so within half a spacing of
+    # a fitted edge between them (plus the grid's cell). Across the rings no tolerance: the fit
+    # already put the edge between the last ring on the board and the first one off it.
+    half = (np.floor(size / cell) + 1) * cell / 2
+    tol = spacing / 2 + cell
+    inside = _segment_in_box((xy - centre) @ axes.T, (ring_step / np.maximum(spacing, 1e-12)[:, None] * tol[:, None])
+                             @ axes.T, half)
+    return Outline(n, float(d), origin, basis, centre, axes, size, inside, tol, score)
