@@ -71,8 +71,9 @@ def three_sigma(Sd: np.ndarray) -> np.ndarray:
 
 
 def pair(case: str, k: int, *, seed0: int = 50_000, rig_shape=RIG_SHAPE, n_snapshots: int = N_SNAPSHOTS,
-         knock: bool = True) -> dict:
-    """One pair (and its knocked capture): per variable sensor the comparisons' chi2 and p, and each solve's chi2 to the truth."""
+         knock: bool = True, planned_tilts: bool = False) -> dict:
+    """One pair (and its knocked capture): per variable sensor the comparisons' chi2 and p, and each solve's chi2 to the truth.
+    ``planned_tilts``: the boards tilted as a careful person plans them (simulate_problem), else at random."""
     from scipy.stats import chi2, ncx2
 
     from clcgraph import api
@@ -87,7 +88,7 @@ def pair(case: str, k: int, *, seed0: int = 50_000, rig_shape=RIG_SHAPE, n_snaps
     cpu = time.process_time()
 
     def solve(r, s):
-        problem, truth = simulate_problem(rig=r, n_snapshots=n_snapshots, seed=s, errors=errors)
+        problem, truth = simulate_problem(rig=r, n_snapshots=n_snapshots, seed=s, errors=errors, planned_tilts=planned_tilts)
         return api.calibrate(problem, cfg), truth
 
     try:
