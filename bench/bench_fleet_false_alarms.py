@@ -82,8 +82,9 @@ def three_sigma(Sd: np.ndarray) -> np.ndarray:
 
 
 def pair(case: str, k: int, *, seed0: int = 50_000, rig_shape=RIG_SHAPE, n_snapshots: int = N_SNAPSHOTS,
-         knock: bool = True) -> dict:
-    """One pair (and its knocked capture): per variable sensor the comparisons' chi2 and p, and each solve's chi2 to the truth."""
+         knock: bool = True, planned_tilts: bool = False) -> dict:
+    """One pair (and its knocked capture): per variable sensor the comparisons' chi2 and p, and each solve's chi2 to the truth.
+    ``planned_tilts``: the boards tilted as a careful person plans them (simulate_problem), else at random."""
     from scipy.stats import chi2, ncx2
 
     from clcgraph import api
@@ -101,7 +102,7 @@ def pair(case: str, k: int, *, seed0: int = 50_000, rig_shape=RIG_SHAPE, n_snaps
 
     def solve(r, s):
         problem, truth = simulate_problem(rig=r, n_snapshots=n_snapshots, seed=s, errors=errors, fixed_errors_seed=units,
-                                          board_poses_seed=boards)
+                                          board_poses_seed=boards, planned_tilts=planned_tilts)
         return api.calibrate(problem, cfg), truth
 
     try:

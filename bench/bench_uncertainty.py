@@ -64,13 +64,14 @@ def _settings() -> dict:
     return {k: float(v) for k, v in (kv.split("=") for kv in os.environ.get("CLCGRAPH_BENCH_SET", "").split())}
 
 
-def trial(rig_shape, errors: str, effects: bool, seed: int, n_snapshots: int = 12) -> dict:
-    """One simulated capture solved: z along principal axes, and the jackknife ratios."""
+def trial(rig_shape, errors: str, effects: bool, seed: int, n_snapshots: int = 12, planned_tilts: bool = False) -> dict:
+    """One simulated capture solved: z along principal axes, and the jackknife ratios. ``planned_tilts``:
+    the boards tilted as a careful person plans them (simulate_problem), else at random."""
     from clcgraph.backend.solve import calibrate
     from clcgraph.sim.observations import make_rig, simulate_problem
 
     problem, truth = simulate_problem(rig=make_rig(*rig_shape), n_snapshots=n_snapshots, seed=seed,
-                                      errors=_errors(errors))
+                                      errors=_errors(errors), planned_tilts=planned_tilts)
     res = calibrate(problem, dataclasses.replace(Config().solve, observation_effects=effects, **_settings()))
     ratio = []
     for i in res.variable_sensors():

@@ -226,11 +226,8 @@ class SolveOptions:
     # A result that fails them is refused (exit 2, one line naming the snapshot, sensor and
     # direction), including a direction one board alone determines (an error there would pass
     # every check). False: written with its verdict in calibration.yaml, the report and a line
-    # under the summary table. Off by default for now: the leverage bound's large shares are
-    # the captures' geometry (docs/uncertainty.md), but with it on 28 of the test suite's
-    # simulated captures and real ACFR run 2 are refused; those captures must be made honest
-    # (or the refusals shown wrong) before it can be the default.
-    refuse_inconsistent: bool = False
+    # under the summary table.
+    refuse_inconsistent: bool = True
     # Each observation's own board-pose error (a LIDAR's plane tilt and offset, a camera's
     # board-pose jitter), its sigmas estimated from the data: real errors are correlated
     # within one observation (docs/uncertainty.md; on the real ACFR captures it brings the

@@ -99,7 +99,7 @@ def test_range_offset_moves_cameras_along_the_boards_direction(solved):
 
 
 def test_calibrate_adds_the_terms_and_reports_their_shares():
-    problem, truth = simulate_problem(rig=make_rig(1, 1), n_snapshots=10, seed=7)
+    problem, truth = simulate_problem(rig=make_rig(1, 1), n_snapshots=10, seed=7, planned_tilts=True)
     from clcgraph.backend.solve import calibrate
 
     base = Config().solve

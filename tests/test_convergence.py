@@ -70,7 +70,7 @@ def test_step_sigma_is_the_mahalanobis_length_of_the_last_step():
 def _problem():
     from clcgraph.sim.observations import simulate_problem
 
-    return simulate_problem(n_snapshots=10, seed=3, lidar_only=True)[0]
+    return simulate_problem(n_snapshots=10, seed=3, lidar_only=True, planned_tilts=True)[0]
 
 
 def test_a_normal_solve_reports_converged(caplog):

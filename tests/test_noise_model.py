@@ -42,7 +42,7 @@ def _shift_lidar_boards(problem, truth, sigma_m, rng):
 
 @pytest.fixture(scope="module")
 def independent():
-    problem, truth = simulate_problem(rig=make_rig(2, 2), n_snapshots=16, seed=5)
+    problem, truth = simulate_problem(rig=make_rig(2, 2), n_snapshots=16, seed=5, planned_tilts=True)
     return problem, truth, _solve(problem), _solve(problem, observation_effects=False)
 
 
@@ -55,7 +55,9 @@ def test_vce_finds_per_observation_plane_offsets_and_keeps_the_sigma_honest():
         assert 0.004 < res.noise["observation_effects"][i]["offset_m"] < 0.008, res.noise["observation_effects"]
         assert res.noise["per_sensor"][i] == pytest.approx(0.015, rel=0.05)  # the white part stays white
     assert np.all(np.abs(_z(res, truth)) < 3.5), _z(res, truth)
-    white = _solve(shifted, observation_effects=False)
+    # refused by default (a snapshot 22.8 sigma off: its own check sees the offsets it does not
+    # model); written here to look at its sigmas
+    white = _solve(shifted, observation_effects=False, refuse_inconsistent=False)
     # the white model trusts 1000 points per board: its sigmas are several times too small,
     # and its own jackknife says so
     assert np.max(np.abs(_z(white, truth))) > 4
@@ -101,7 +103,9 @@ def test_reduced_information_is_the_marginal_covariance(independent):
 def test_one_step_jackknife_matches_a_resolve_without_the_snapshot(effects):
     problem, truth = simulate_problem(rig=make_rig(2, 1), n_snapshots=10, seed=4,
                                       errors=dataclasses.replace(CorrelatedErrors(), corner_bias_px=0.2, board_warp_m=0.003))
-    fixed = dict(reestimate_noise=False, reject_outliers=False, observation_effects=effects)
+    # the leave-one-out arithmetic the verdict uses, on a capture with an influential snapshot (/cam0
+    # sees 4 boards, which the verdict refuses by default): written, to compare with re-solves
+    fixed = dict(reestimate_noise=False, reject_outliers=False, observation_effects=effects, refuse_inconsistent=False)
     res = _solve(problem, **fixed)
     jk = res.jackknife
     assert jk["n_snapshots"] == 10 and not jk["indispensable_snapshots"]
@@ -258,7 +262,7 @@ def test_monte_carlo_with_correlated_errors_fast_version(monkeypatch):
     # The small CI version of bench/bench_uncertainty.py (which runs >= 200 trials). These
     # simulated LIDARs' rings and lenses are exact: their terms are 0, as for calibrated sensors.
     monkeypatch.setenv("CLCGRAPH_BENCH_SET", "lidar_ring_range_bias_m=0 lidar_ring_elevation_deg=0 camera_lens_field_px=0")
-    z = np.concatenate([trial(shape, "per-observation", True, seed=2000 + 10 * r + k)["z"]
+    z = np.concatenate([trial(shape, "per-observation", True, seed=2000 + 10 * r + k, planned_tilts=True)["z"]
                         for r, shape in enumerate(RIGS) for k in range(2)])
     assert np.mean(np.abs(z) <= 3) >= 0.93 and 0.5 < np.mean(z**2) < 1.8, (np.mean(np.abs(z) <= 3), np.mean(z**2))
 

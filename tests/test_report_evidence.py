@@ -21,7 +21,7 @@ def solved():
     from clcgraph.api import calibrate
 
     rig = make_rig(n_lidars=2, n_cameras=2)
-    problem, truth = simulate_problem(rig=rig, n_snapshots=16, seed=3)
+    problem, truth = simulate_problem(rig=rig, n_snapshots=16, seed=3, planned_tilts=True)
     return calibrate(problem), truth
 
 

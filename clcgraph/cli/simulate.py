@@ -11,7 +11,8 @@ def _simulate(args) -> int:
     in_range(args.poses, "--poses", 1, 10000)
     truth = api.simulate(args.rig, args.out, n_poses=args.poses, format=args.format,
                          continuous=args.continuous, seed=args.seed, compress=args.compress,
-                         camera_hz=args.camera_hz, log_delays=not args.no_log_delays, force=args.force)
+                         camera_hz=args.camera_hz, log_delays=not args.no_log_delays,
+                         planned_tilts=args.planned_tilts, force=args.force)
     print(f"wrote {len(truth['snapshots'])} board poses of {len(truth['sensors'])} sensors into {args.out} "
           f"(truth in {args.out}/truth.yaml)")
     b = truth["board"]
@@ -33,6 +34,9 @@ def add_simulate(sub):
     p.add_argument("--camera-hz", type=float, default=5.0, help="camera frame rate (LIDARs run at 10 Hz)")
     p.add_argument("--no-log-delays", action="store_true",
                    help="log time = header stamp (default: as drivers log, a scan ~0.1 s and a frame 20-35 ms late)")
+    p.add_argument("--planned-tilts", action="store_true",
+                   help="boards tilted as a careful person plans them: pitched up and down, turned left and right "
+                        "in turn (default: each about a random axis)")
     p.add_argument("--seed", type=int, default=0)
 
 

@@ -31,7 +31,7 @@ def test_non_square_bordered_board(tmp_path, capsys):
     shutil.copy(DEMO_RIG.parent / "front.cameramodel", tmp_path / "front.cameramodel")
     (tmp_path / "rig.yaml").write_text(RIG)
     assert main(["simulate", str(tmp_path / "rig.yaml"), "--out", str(tmp_path / "bags"), "--poses", "14",
-                 "--seed", "1"]) == 0
+                 "--seed", "1", "--planned-tilts"]) == 0
     truth = yaml.safe_load((tmp_path / "bags" / "truth.yaml").read_text())
     assert truth["board"] == BOARD
     (tmp_path / "board.yaml").write_text(yaml.safe_dump({"board": BOARD}))

@@ -51,8 +51,10 @@ def test_solve_is_byte_identical_across_processes_threads_and_hash_seeds(tmp_pat
 
     shutil.copy(DEMO_RIG.parent / "front.cameramodel", tmp_path / "front.cameramodel")
     (tmp_path / "rig.yaml").write_text(RIG)
-    assert main(["simulate", str(tmp_path / "rig.yaml"), "--out", str(tmp_path / "bags"), "--poses", "8",
-                 "--seed", "3"]) == 0
+    # a careful capture: /lidar/c looks back, the camera sees only the front boards (of 8 planned ones,
+    # /cam's rotation rests on one: refused)
+    assert main(["simulate", str(tmp_path / "rig.yaml"), "--out", str(tmp_path / "bags"), "--poses", "12",
+                 "--seed", "3", "--planned-tilts"]) == 0
     a, b = tmp_path / "a", tmp_path / "b"
     _solve(tmp_path, a, threads=1, hashseed="0", jobs=1)
     _solve(tmp_path, b, threads=2, hashseed="4242", jobs=2)

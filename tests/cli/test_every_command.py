@@ -77,7 +77,7 @@ def session(tmp_path_factory):
     model = d / "front.cameramodel"
     shutil.copy(DEMO_RIG.parent / "front.cameramodel", model)
     (d / "rig.yaml").write_text(RIG)
-    r = _clcgraph("simulate", d / "rig.yaml", "--out", d / "bags", "--poses", "8", "--seed", "2")
+    r = _clcgraph("simulate", d / "rig.yaml", "--out", d / "bags", "--poses", "8", "--seed", "2", "--planned-tilts")
     assert r.returncode == 0, r.stderr
     _clean(r.stderr)
     assert "wrote 8 board poses of 3 sensors" in r.stdout
@@ -177,7 +177,8 @@ def test_replay_subprocess(session):
     cal = yaml.safe_load((calib / "calibration.yaml").read_text())
     rt_b = np.array(lines[1].split("[")[1].split("]")[0].split(), float)
     np.testing.assert_allclose(rt_b, cal["sensors"][1]["rt_lidar0_sensor"], atol=2e-6)  # replay = the solve
-    for extra in (["--exclude", "3,7"], ["--inject-noise", "--seed", "1"]):
+    # board 2 out leaves every direction checked (3 or 7 out leaves /cam/front's height on one board: refused)
+    for extra in (["--exclude", "2"], ["--inject-noise", "--seed", "1"]):
         r = _clcgraph("replay", dump, *extra)
         assert r.returncode == 0, (extra, r.stderr)
         _clean(r.stderr)

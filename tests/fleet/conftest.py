@@ -17,7 +17,7 @@ def fleet_data(tmp_path_factory):
     rig = write_rig(root / "rig", knocked=False)
     knocked = write_rig(root / "rig-knocked", knocked=True)
     for name, r, seed in (("first", rig, 1), ("same", rig, 2), ("knocked", knocked, 3)):
-        simulate(r, root / name, n_poses=N_POSES, seed=seed, clutter=False)
+        simulate(r, root / name, n_poses=N_POSES, seed=seed, clutter=False, planned_tilts=True)
     shutil.copytree(root / "same", root / "truncated")
     bag = root / "truncated" / "pose003.bag"
     bag.write_bytes(bag.read_bytes()[: bag.stat().st_size // 2])

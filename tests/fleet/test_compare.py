@@ -202,13 +202,14 @@ def test_false_alarm_rate_and_power_over_1000_pairs_drawn_from_a_solves_covarian
 @pytest.mark.slow
 def test_real_resolves_the_reported_covariance_makes_the_rate_right():
     """Re-solved pairs of simulated captures (bench/bench_fleet_false_alarms.py, the small version of
-    its >= 200 pairs): lidar0 + a 32-ring LIDAR + a camera, 12 snapshots, default config, 5 pairs with
-    independent noise only and 5 with per-observation errors (board bow, mixed pixels, per-board
+    its >= 200 pairs): lidar0 + a 32-ring LIDAR + a camera, 16 snapshots with planned tilts (with 12
+    random ones 6 of the 10 pairs are refused, with 12 planned ones 1: its camera saw 4 boards, all turned
+    left), default config, 5 pairs with independent noise only and 5 with per-observation errors (board bow, mixed pixels, per-board
     corner bias). Per sensor, the pairs' chi-squares (clcgraph.compare) and each solve's against the
     truth are sums of 6-DoF statistics (two-sided at 1e-3). This holds only if the sigmas are honest."""
     from bench.bench_fleet_false_alarms import pair
 
-    rows = [pair(case, k, seed0=70_000, knock=False) for case in ("independent", "per-observation") for k in range(5)]
+    rows = [pair(case, k, seed0=70_000, knock=False, planned_tilts=True, n_snapshots=16) for case in ("independent", "per-observation") for k in range(5)]
     assert all("sensors" in r for r in rows), [r.get("skipped") for r in rows]
     for topic in ("/cam0", "/lidar1"):
         pairs = [r["sensors"][topic]["chi2"] for r in rows]
