@@ -27,6 +27,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..types import LidarScan
 from .lidar_preprocess import missed_rays, prepare, ring_neighbours
@@ -130,7 +131,7 @@ def along_ring_step(points: np.ndarray, n: np.ndarray, d: float, step_rad: float
 
 def _box_sums(S: np.ndarray, kx: int, ky: int, ox: int = 0, oy: int = 0) -> np.ndarray:
     """Sums over boxes [i+ox, i+kx-ox) x [j+oy, j+ky-oy) for every anchor (i, j) with the box
-    inside the grid, from summed-area tables S (A, G+1, G+1)."""
+    inside the block, from summed-area tables S (B, cells+1, cells+1)."""
     nx, ny = S.shape[1] - kx, S.shape[2] - ky
     a0, a1, b0, b1 = ox, kx - ox, oy, ky - oy
     if a1 <= a0 or b1 <= b0:
@@ -143,12 +144,19 @@ def _search(xy_on, xy_behind, angles, size, cell, margin, c0, hint=None, reach=0
     """Best (score, angle, centre (2,)) over ``angles`` and the anchors of a grid of ``cell``
     m: rectangles over the plane returns ``xy_on`` (or, with ``hint``, centred within ``reach``
     of it). ``margin``: cells along the rectangle's edges where behind-returns do not count (the
-    grid's rounding);
-    ties go to the rectangle centred nearest ``c0``."""
+    grid's rounding); ties go to the rectangle centred nearest ``c0``.
+
+    Without a hint the grid spans the returns' extent plus a board each side, which for a wall or
+    the ground (or returns grazing the plane, crossing it far off) can be hundreds of metres. So
+    along an axis longer than a few boards the anchors are cut into tiles of one rectangle's
+    cells, and only the blocks of tiles where a rectangle can hold a plane return are scored (a
+    rectangle anchored in a tile covers it and the next one: a return counts for the 2 x 2 tiles
+    before it). Memory and time then grow with the returns, not with the plane's extent."""
     k = (np.floor(size / cell) + 1).astype(np.int64)  # cells per side, the rectangle rounded up
     best = (-np.inf, 0.0, c0)
-    for a in range(0, len(angles), 16):  # in chunks of angles, to bound the grids' memory
-        th = angles[a:a + 16]
+    chunk = int(np.clip((1 << 17) // max(len(xy_on) + len(xy_behind), 1), 1, 16))
+    for a in range(0, len(angles), chunk):  # in chunks of angles, to bound the grids' memory
+        th = angles[a:a + chunk]
         A = len(th)
         c, s = np.cos(th), np.sin(th)
         rot = np.stack([np.c_[c, s], np.c_[-s, c]], axis=1)  # (A,2,2): rows along the sides
@@ -165,29 +173,77 @@ def _search(xy_on, xy_behind, angles, size, cell, margin, c0, hint=None, reach=0
             h = rot @ hint
             lo, hi = h - size / 2 - reach - cell, h + size / 2 + reach + cell
         G = np.maximum(np.ceil((hi - lo).max(axis=0) / cell).astype(np.int64) + 1, k)
+        n_anchor = G + 1 - k  # anchors of the whole grid, per axis
+        tile = np.where((n_anchor > 3 * k) & (hint is None), k, n_anchor)  # anchors per tile, per axis
+        n_tile = -(-n_anchor // tile)
+        cells = tile + k - 1  # a block's cells: its tile's anchors' rectangles
 
-        def table(q):
+        def members(q):  # (block, cell in the block) of each of the returns q's blocks
             i = np.floor((q[0] - lo[:, :1]) / cell).astype(np.int64)
             j = np.floor((q[1] - lo[:, 1:]) / cell).astype(np.int64)
-            ok = (i >= 0) & (i < G[0]) & (j >= 0) & (j < G[1])
-            flat = (np.arange(A)[:, None] * G[0] + i) * G[1] + j
-            S = np.zeros((A, G[0] + 1, G[1] + 1), np.int32)
-            S[:, 1:, 1:] = np.bincount(flat[ok], minlength=A * G[0] * G[1]).reshape(A, G[0], G[1]).cumsum(1).cumsum(2)
-            return S
+            ok = (i >= 0) & (i < G[0]) & (j >= 0) & (j < G[1])  # cells off the grid hold no rectangle
+            ia, i, j = np.nonzero(ok)[0], i[ok], j[ok]
 
-        score = _box_sums(table((qx, qy)), k[0], k[1]).astype(np.float64)
-        if len(xy_behind):
-            score -= _box_sums(table(rotated(xy_behind)), k[0], k[1], margin, margin)
-        # ties (a board seen in part may slide over where nothing was seen): the rectangle
-        # centred nearest c0, by a penalty below one return
-        ci = lo[:, 0, None] + (np.arange(score.shape[1]) + k[0] / 2) * cell  # (A, nx) rotated centres
-        cj = lo[:, 1, None] + (np.arange(score.shape[2]) + k[1] / 2) * cell
+            def along(i, ax):  # [(tile, cell in its block, mask)]: the tile of i's anchors, the one before
+                t = np.minimum(i // tile[ax], n_tile[ax] - 1)
+                li = i - t * tile[ax]
+                if n_tile[ax] == 1:
+                    return [(t, li, None)]
+                return [(t, li, None), (t - 1, li + tile[ax], (t >= 1) & (li < k[ax] - 1))]
+
+            block, local = [], []
+            for ti, li, mi in along(i, 0):
+                for tj, lj, mj in along(j, 1):
+                    b, c = (ia * n_tile[0] + ti) * n_tile[1] + tj, li * cells[1] + lj
+                    m = mi if mj is None else mj if mi is None else mi & mj
+                    block.append(b if m is None else b[m])
+                    local.append(c if m is None else c[m])
+            return np.concatenate(block), np.concatenate(local)
+
+        m_on = members((qx, qy))
+        m_b = members(rotated(xy_behind)) if len(xy_behind) else None
+        # the blocks: where the plane returns are (with a hint, every angle's one block)
+        blocks, count = np.unique(m_on[0], return_counts=True) if hint is None else (np.arange(A), None)
         r0 = rot @ c0
-        dist = np.hypot(ci[:, :, None] - r0[:, 0, None, None], cj[:, None, :] - r0[:, 1, None, None])
-        score -= 0.5 * dist / (dist.max() + 1e-9)
-        ia, i, j = np.unravel_index(int(np.argmax(score)), score.shape)
-        if score[ia, i, j] > best[0]:
-            best = (float(score[ia, i, j]), float(th[ia]), rot[ia].T @ np.array([ci[ia, i], cj[ia, j]]))
+        # the tie-break's scale: the farthest anchor of the whole grid (a corner) from c0
+        corner_i = lo[:, 0, None] + (np.array([0, n_anchor[0] - 1]) + k[0] / 2) * cell - r0[:, 0, None]
+        corner_j = lo[:, 1, None] + (np.array([0, n_anchor[1] - 1]) + k[1] / 2) * cell - r0[:, 1, None]
+        far = np.sqrt(np.max(np.max(corner_i**2, axis=1) + np.max(corner_j**2, axis=1)))
+        per_batch = max(1, (1 << 19) // int(cells[0] * cells[1]))  # blocks at a time: ~0.5M cells
+        if count is not None:  # the blocks holding the most returns first
+            order = np.argsort(-count, kind="stable")
+            blocks, count = blocks[order], count[order]
+        for b0 in range(0, len(blocks), per_batch):
+            if count is not None and count[b0] < best[0]:
+                break  # no rectangle in the blocks left holds more returns than the best one scores
+            bl = np.sort(blocks[b0:b0 + per_batch])
+
+            def sums(m, ox):  # box sums (B, tile, tile) of the returns m over the blocks' anchors
+                b = np.minimum(np.searchsorted(bl, m[0]), len(bl) - 1)
+                hit = bl[b] == m[0]
+                flat = b[hit] * (cells[0] * cells[1]) + m[1][hit]
+                S = np.zeros((len(bl), cells[0] + 1, cells[1] + 1), np.int32)
+                S[:, 1:, 1:] = np.bincount(flat, minlength=len(bl) * cells[0] * cells[1]).reshape(
+                    len(bl), *cells).cumsum(1).cumsum(2)
+                return _box_sums(S, k[0], k[1], ox, ox)[:, :tile[0], :tile[1]]
+
+            score = sums(m_on, 0).astype(np.float64)
+            if m_b is not None:
+                score -= sums(m_b, margin)
+            ba = bl // (n_tile[0] * n_tile[1])
+            ai = (bl // n_tile[1] % n_tile[0] * tile[0])[:, None] + np.arange(tile[0])  # (B, tile) anchors
+            aj = (bl % n_tile[1] * tile[1])[:, None] + np.arange(tile[1])
+            ci = lo[ba, 0, None] + (ai + k[0] / 2) * cell  # (B, tile) rotated centres
+            cj = lo[ba, 1, None] + (aj + k[1] / 2) * cell
+            # ties (a board seen in part may slide over where nothing was seen): the rectangle
+            # centred nearest c0, by a penalty below one return
+            dist = np.hypot(ci[:, :, None] - r0[ba, 0, None, None], cj[:, None, :] - r0[ba, 1, None, None])
+            score -= 0.5 * dist / (far + 1e-9)
+            if (tile < n_anchor).any():  # the last tiles' anchors past the grid's
+                score[(ai >= n_anchor[0])[:, :, None] | (aj >= n_anchor[1])[:, None, :]] = -np.inf
+            ib, i, j = np.unravel_index(int(np.argmax(score)), score.shape)
+            if score[ib, i, j] > best[0]:
+                best = (float(score[ib, i, j]), float(th[ba[ib]]), rot[ba[ib]].T @ np.array([ci[ib, i], cj[ib, j]]))
     return best
 
 
@@ -221,8 +277,10 @@ def fit_outline(points: np.ndarray, others: np.ndarray, n: np.ndarray, d: float,
     xy_b = np.zeros((0, 2))
     if len(others):
         xb, depth, ahead = ray_plane(others, n, d, origin, basis)
-        reach = np.max(np.abs(xy - c0), axis=0) + diag
-        xy_b = xb[ahead & (depth > plane_tol_m) & (np.abs(xb - c0) <= reach).all(axis=1)]
+        xy_b = xb[ahead & (depth > plane_tol_m)]
+        # a rectangle holding a plane return lies within its diagonal of it: behind-returns
+        # farther from every plane return count only in rectangles without one, which never win
+        xy_b = xy_b[cKDTree(xy).query(xy_b, distance_upper_bound=diag)[0] <= diag]
     s_edge = float(np.median(spacing))
     # coarse to fine: a grid of 1/24 of the board's short side over every rotation, then about
     # the best one a grid of half the point spacing (1-3 cm); angle steps of one cell at a corner

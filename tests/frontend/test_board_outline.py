@@ -126,3 +126,40 @@ def test_segment_in_box():
     p = np.array([[0.0, 0.0], [1.2, 0.0], [1.2, 0.0], [0.0, 0.7], [0.0, 0.7]])
     v = np.array([[0.0, 0.0], [0.1, 0.0], [0.3, 0.0], [0.5, 0.0], [0.0, 0.3]])
     assert _segment_in_box(p, v, half).tolist() == [True, False, True, False, True]
+
+
+def _plane_with_far_returns(spread_m: float, rng):
+    """A 1.3 m board's returns 5 m ahead (plane x = 5, 1.7 cm apart), 60 returns of the same
+    plane scattered over +-``spread_m`` (a wall, the ground, returns grazing the plane) and a
+    wall 8 m ahead beside the board's shadow: (points on the plane, board mask, other returns)."""
+    g = np.arange(-0.64, 0.645, 0.017)
+    board = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    far = rng.uniform(-spread_m, spread_m, (60, 2))
+    far = far[np.abs(far).max(axis=1) > 2.0]
+    yz = np.r_[board, far]
+    on = np.c_[np.full(len(yz), 5.0), yz] + rng.normal(0, 0.005, (len(yz), 3)) * [1, 0, 0]
+    w = np.stack(np.meshgrid(np.arange(-3, 3, 0.03), np.arange(-3, 3, 0.03)), -1).reshape(-1, 2)
+    w = w[np.abs(w).max(axis=1) > 1.1]  # the board's shadow at 8 m holds no wall return
+    return on, np.arange(len(yz)) < len(board), np.c_[np.full(len(w), 8.0), w]
+
+
+def test_outline_search_memory_does_not_grow_with_the_planes_extent():
+    """The board's rectangle is found among returns of its plane spread over 40 m, then 400 m,
+    in bounded memory: the search grid used to span the plane's whole extent (4e9 cells, 31 GiB,
+    on a grazing candidate of a real Ouster scan). Every board return is inside, no far one is;
+    the peak allocation stays under 50 MB (it was 364 MB at 40 m) and does not grow with the spread (within 20 %)."""
+    import tracemalloc
+
+    peaks = []
+    for spread in (20.0, 200.0):
+        on, is_board, others = _plane_with_far_returns(spread, np.random.default_rng(3))
+        tracemalloc.start()
+        try:
+            o = fit_outline(on, others, np.array([-1.0, 0, 0]), -5.0, size_m=(1.3, 1.3), step_rad=2 * np.pi / 1800,
+                            plane_tol_m=0.05)
+            peaks.append(tracemalloc.get_traced_memory()[1] / 1e6)
+        finally:
+            tracemalloc.stop()
+        assert peaks[-1] < 50, f"{peaks[-1]:.0f} MB for a plane spread over +-{spread:g} m"
+        assert o.inside[is_board].all() and not o.inside[~is_board].any()
+    assert peaks[1] < 1.2 * peaks[0] + 1, peaks
