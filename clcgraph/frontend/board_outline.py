@@ -70,6 +70,9 @@ class ScanRays:
     prev: np.ndarray  # (M,)
     next: np.ndarray  # (M,)
     n_rows: int
+    by_azimuth: np.ndarray | None = None  # (M,) the rays in azimuth order (-pi..pi)
+    azimuth: np.ndarray | None = None  # (M,) sorted: the azimuth of by_azimuth's rays
+    elevation: np.ndarray | None = None  # (M,) per ray (not sorted)
 
     def away_from(self, rows: np.ndarray) -> np.ndarray:
         """(M,) the rays that are not ring neighbours of the scan rows ``rows``: where a ring
@@ -78,6 +81,41 @@ class ScanRays:
         mine = np.zeros(self.n_rows + 1, bool)  # the last entry stands for -1
         mine[rows] = True
         return ~(mine[self.prev] | mine[self.next])
+
+    def around(self, points: np.ndarray, n: np.ndarray, d: float, reach_m: float) -> np.ndarray:
+        """(K,) indices of the rays that may cross the plane n . x = d within ``reach_m`` of where
+        the rays of ``points`` (N,3) cross it: those within the angle ``reach_m`` subtends at the
+        nearest of those crossings, of the points' azimuth and elevation span (all rays when that
+        angle is wide, or a point's ray does not meet the plane ahead). A board's rectangle over
+        the points lies within its diagonal of them, so only these rays can count in its fit."""
+        every = np.arange(len(self.points))
+        if self.azimuth is None or not len(points):
+            return every
+        r = np.linalg.norm(points, axis=1)
+        u = points / np.where(r > 0, r, 1.0)[:, None]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = d / (u @ n)
+        if not (np.isfinite(t).all() and (t > 0).all()) or reach_m >= t.min():
+            return every
+        m = float(np.arcsin(reach_m / t.min()))  # the widest angle between such a ray and a point's
+        el = np.arcsin(np.clip(u[:, 2], -1, 1))
+        el_lo, el_hi = el.min() - m, el.max() + m
+        c = min(np.cos(el_lo), np.cos(el_hi)) if el_lo > -np.pi / 2 and el_hi < np.pi / 2 else 0.0
+        if c <= np.sin(m / 2):
+            return every
+        # |u - v| = 2 sin(angle / 2) >= 2 cos(elevation) sin(d_azimuth / 2) for unit u, v
+        m_az = 2 * float(np.arcsin(np.sin(m / 2) / c))
+        az = np.arctan2(u[:, 1], u[:, 0])
+        az0 = np.arctan2(np.sin(az).mean(), np.cos(az).mean())
+        rel = (az - az0 + np.pi) % (2 * np.pi) - np.pi
+        lo, hi = az0 + rel.min() - m_az, az0 + rel.max() + m_az
+        if hi - lo >= 2 * np.pi:
+            return every
+        lo = (lo + np.pi) % (2 * np.pi) - np.pi  # the window may wrap past +-pi
+        hi = (hi + np.pi) % (2 * np.pi) - np.pi
+        a, b = np.searchsorted(self.azimuth, [lo, hi])
+        k = self.by_azimuth[a:b] if lo <= hi else np.r_[self.by_azimuth[a:], self.by_azimuth[:b]]
+        return k[(self.elevation[k] >= el_lo) & (self.elevation[k] <= el_hi)]
 
 
 def scan_rays(scan: LidarScan, step_rad: float, far_m: float = 1e4) -> ScanRays:
@@ -89,7 +127,11 @@ def scan_rays(scan: LidarScan, step_rad: float, far_m: float = 1e4) -> ScanRays:
     dirs, before, after = missed_rays(R, step_rad)
     rows = np.r_[R.index, -1]  # position -1 -> row -1
     pts = np.r_[R.points[ok], far_m * dirs]
-    return ScanRays(pts, np.r_[rows[prv[ok]], rows[before]], np.r_[rows[nxt[ok]], rows[after]], len(scan.points))
+    u = pts / np.linalg.norm(pts, axis=1)[:, None]
+    az = np.arctan2(u[:, 1], u[:, 0])
+    order = np.argsort(az, kind="stable")
+    return ScanRays(pts, np.r_[rows[prv[ok]], rows[before]], np.r_[rows[nxt[ok]], rows[after]], len(scan.points),
+                    by_azimuth=order, azimuth=az[order], elevation=np.arcsin(np.clip(u[:, 2], -1, 1)))
 
 
 def plane_basis(n: np.ndarray, d: float) -> tuple[np.ndarray, np.ndarray]:

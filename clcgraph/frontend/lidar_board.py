@@ -482,10 +482,15 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
     # candidate plane, no board was in its way
     rays = scan_rays(scan, step)
     intensity = None if scan.intensity is None else np.asarray(scan.intensity, float)[R.index]
-    for rows in _merge(pieces, R.points, o.point_plane_tolerance_m, float(np.hypot(*board.size_m))):
+    diag = float(np.hypot(*board.size_m))
+    for rows in _merge(pieces, R.points, o.point_plane_tolerance_m, diag):
+        # the rays that can count in the board's outline fit: near the candidate (its diagonal,
+        # and a margin for the plane's refit in the verdict), not next to it along a ring
+        n, d, _ = fit_plane(R.points[rows])
+        near = rays.around(R.points[rows], n, d, 1.2 * diag)
+        near = near[rays.away_from(R.index[rows])[near]]
         why, plane, keep = _verdict(R.points[rows], rank[rows], board, step, noise, o,
-                                    None if intensity is None else intensity[rows],
-                                    rays.points[rays.away_from(R.index[rows])])
+                                    None if intensity is None else intensity[rows], rays.points[near])
         rows = rows[keep]
         if o.debug_region is not None:
             c = R.points[rows].mean(axis=0) if len(rows) else np.full(3, np.nan)

@@ -163,3 +163,27 @@ def test_outline_search_memory_does_not_grow_with_the_planes_extent():
         assert peaks[-1] < 50, f"{peaks[-1]:.0f} MB for a plane spread over +-{spread:g} m"
         assert o.inside[is_board].all() and not o.inside[~is_board].any()
     assert peaks[1] < 1.2 * peaks[0] + 1, peaks
+
+
+@pytest.mark.parametrize("seed", (7, 11))
+def test_rays_around_a_board_hold_every_ray_crossing_its_plane_near_it(seed):
+    """ScanRays.around keeps every ray of the scan whose crossing with the board's plane lies
+    within a board diagonal of a board return's crossing (brute force over all rays), and only a
+    small part of the scan (the board is 4-9 m away: a window of tens of degrees)."""
+    from scipy.spatial import cKDTree
+
+    from clcgraph.frontend.board_outline import plane_basis, ray_plane
+
+    scan, hit, _ = _scan(seed)
+    rays = scan_rays(scan, 2 * np.pi / 1800)
+    pts = np.asarray(scan.points, float)[hit]
+    n, d, _ = fit_plane(pts)
+    reach = float(np.hypot(*BOARD.size_m))
+    origin, basis = plane_basis(n, d)
+    xy_on, _, _ = ray_plane(pts, n, d, origin, basis)
+    xy, _, ahead = ray_plane(rays.points, n, d, origin, basis)
+    near = ahead & (cKDTree(xy_on).query(xy, distance_upper_bound=reach)[0] <= reach)
+    kept = np.zeros(len(rays.points), bool)
+    kept[rays.around(pts, n, d, reach)] = True
+    assert near.sum() > 100 and kept[near].all(), (~kept[near]).sum()
+    assert kept.mean() < 0.25, kept.mean()
