@@ -27,7 +27,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..types import LidarScan
 from .lidar_preprocess import missed_rays, prepare, ring_neighbours
@@ -196,9 +195,11 @@ def _search(xy_on, xy_behind, angles, size, cell, margin, c0, hint=None, reach=0
     before it). Memory and time then grow with the returns, not with the plane's extent."""
     k = (np.floor(size / cell) + 1).astype(np.int64)  # cells per side, the rectangle rounded up
     best = (-np.inf, 0.0, c0)
-    chunk = int(np.clip((1 << 17) // max(len(xy_on) + len(xy_behind), 1), 1, 16))
-    for a in range(0, len(angles), chunk):  # in chunks of angles, to bound the grids' memory
-        th = angles[a:a + chunk]
+    # rotations in chunks of 16 angles (each chunk one grid size), their grids scored for a few
+    # angles at a time: memory bounded by (1 << 17) rotated returns
+    sub = int(np.clip((1 << 17) // max(len(xy_on) + len(xy_behind), 1), 1, 16))
+    for a in range(0, len(angles), 16):
+        th = angles[a:a + 16]
         A = len(th)
         c, s = np.cos(th), np.sin(th)
         rot = np.stack([np.c_[c, s], np.c_[-s, c]], axis=1)  # (A,2,2): rows along the sides
@@ -219,73 +220,80 @@ def _search(xy_on, xy_behind, angles, size, cell, margin, c0, hint=None, reach=0
         tile = np.where((n_anchor > 3 * k) & (hint is None), k, n_anchor)  # anchors per tile, per axis
         n_tile = -(-n_anchor // tile)
         cells = tile + k - 1  # a block's cells: its tile's anchors' rectangles
-
-        def members(q):  # (block, cell in the block) of each of the returns q's blocks
-            i = np.floor((q[0] - lo[:, :1]) / cell).astype(np.int64)
-            j = np.floor((q[1] - lo[:, 1:]) / cell).astype(np.int64)
-            ok = (i >= 0) & (i < G[0]) & (j >= 0) & (j < G[1])  # cells off the grid hold no rectangle
-            ia, i, j = np.nonzero(ok)[0], i[ok], j[ok]
-
-            def along(i, ax):  # [(tile, cell in its block, mask)]: the tile of i's anchors, the one before
-                t = np.minimum(i // tile[ax], n_tile[ax] - 1)
-                li = i - t * tile[ax]
-                if n_tile[ax] == 1:
-                    return [(t, li, None)]
-                return [(t, li, None), (t - 1, li + tile[ax], (t >= 1) & (li < k[ax] - 1))]
-
-            block, local = [], []
-            for ti, li, mi in along(i, 0):
-                for tj, lj, mj in along(j, 1):
-                    b, c = (ia * n_tile[0] + ti) * n_tile[1] + tj, li * cells[1] + lj
-                    m = mi if mj is None else mj if mi is None else mi & mj
-                    block.append(b if m is None else b[m])
-                    local.append(c if m is None else c[m])
-            return np.concatenate(block), np.concatenate(local)
-
-        m_on = members((qx, qy))
-        m_b = members(rotated(xy_behind)) if len(xy_behind) else None
-        # the blocks: where the plane returns are (with a hint, every angle's one block)
-        blocks, count = np.unique(m_on[0], return_counts=True) if hint is None else (np.arange(A), None)
+        bx, by = rotated(xy_behind) if len(xy_behind) else (None, None)
         r0 = rot @ c0
         # the tie-break's scale: the farthest anchor of the whole grid (a corner) from c0
         corner_i = lo[:, 0, None] + (np.array([0, n_anchor[0] - 1]) + k[0] / 2) * cell - r0[:, 0, None]
         corner_j = lo[:, 1, None] + (np.array([0, n_anchor[1] - 1]) + k[1] / 2) * cell - r0[:, 1, None]
         far = np.sqrt(np.max(np.max(corner_i**2, axis=1) + np.max(corner_j**2, axis=1)))
-        per_batch = max(1, (1 << 19) // int(cells[0] * cells[1]))  # blocks at a time: ~0.5M cells
-        if count is not None:  # the blocks holding the most returns first
-            order = np.argsort(-count, kind="stable")
-            blocks, count = blocks[order], count[order]
-        for b0 in range(0, len(blocks), per_batch):
-            if count is not None and count[b0] < best[0]:
-                break  # no rectangle in the blocks left holds more returns than the best one scores
-            bl = np.sort(blocks[b0:b0 + per_batch])
+        for a0 in range(0, A, sub):
+            angle = np.arange(a0, min(a0 + sub, A))
 
-            def sums(m, ox):  # box sums (B, tile, tile) of the returns m over the blocks' anchors
-                b = np.minimum(np.searchsorted(bl, m[0]), len(bl) - 1)
-                hit = bl[b] == m[0]
-                flat = b[hit] * (cells[0] * cells[1]) + m[1][hit]
-                S = np.zeros((len(bl), cells[0] + 1, cells[1] + 1), np.int32)
-                S[:, 1:, 1:] = np.bincount(flat, minlength=len(bl) * cells[0] * cells[1]).reshape(
-                    len(bl), *cells).cumsum(1).cumsum(2)
-                return _box_sums(S, k[0], k[1], ox, ox)[:, :tile[0], :tile[1]]
+            def members(q):  # (block, cell in the block) of each of the returns q's blocks
+                i = np.floor((q[0][angle] - lo[angle, :1]) / cell).astype(np.int64)
+                j = np.floor((q[1][angle] - lo[angle, 1:]) / cell).astype(np.int64)
+                ok = (i >= 0) & (i < G[0]) & (j >= 0) & (j < G[1])  # cells off the grid hold no rectangle
+                ia, i, j = angle[np.nonzero(ok)[0]], i[ok], j[ok]
 
-            score = sums(m_on, 0).astype(np.float64)
-            if m_b is not None:
-                score -= sums(m_b, margin)
-            ba = bl // (n_tile[0] * n_tile[1])
-            ai = (bl // n_tile[1] % n_tile[0] * tile[0])[:, None] + np.arange(tile[0])  # (B, tile) anchors
-            aj = (bl % n_tile[1] * tile[1])[:, None] + np.arange(tile[1])
-            ci = lo[ba, 0, None] + (ai + k[0] / 2) * cell  # (B, tile) rotated centres
-            cj = lo[ba, 1, None] + (aj + k[1] / 2) * cell
-            # ties (a board seen in part may slide over where nothing was seen): the rectangle
-            # centred nearest c0, by a penalty below one return
-            dist = np.hypot(ci[:, :, None] - r0[ba, 0, None, None], cj[:, None, :] - r0[ba, 1, None, None])
-            score -= 0.5 * dist / (far + 1e-9)
-            if (tile < n_anchor).any():  # the last tiles' anchors past the grid's
-                score[(ai >= n_anchor[0])[:, :, None] | (aj >= n_anchor[1])[:, None, :]] = -np.inf
-            ib, i, j = np.unravel_index(int(np.argmax(score)), score.shape)
-            if score[ib, i, j] > best[0]:
-                best = (float(score[ib, i, j]), float(th[ba[ib]]), rot[ba[ib]].T @ np.array([ci[ib, i], cj[ib, j]]))
+                def along(i, ax):  # [(tile, cell in its block, mask)]: the tile of i's anchors, the one before
+                    if n_tile[ax] == 1:
+                        return [(0, i, None)]
+                    t = np.minimum(i // tile[ax], n_tile[ax] - 1)
+                    li = i - t * tile[ax]
+                    return [(t, li, None), (t - 1, li + tile[ax], (t >= 1) & (li < k[ax] - 1))]
+
+                block, local = [], []
+                for ti, li, mi in along(i, 0):
+                    for tj, lj, mj in along(j, 1):
+                        blk = ia if n_tile[0] * n_tile[1] == 1 else (ia * n_tile[0] + ti) * n_tile[1] + tj
+                        loc = li * cells[1] + lj
+                        m = mi if mj is None else mj if mi is None else mi & mj
+                        block.append(blk if m is None else blk[m])
+                        local.append(loc if m is None else loc[m])
+                return np.concatenate(block), np.concatenate(local)
+
+            m_on = members((qx, qy))
+            m_b = members((bx, by)) if bx is not None else None
+            # the blocks: where the plane returns are (with a hint, every angle's one block)
+            blocks, count = np.unique(m_on[0], return_counts=True) if hint is None else (angle, None)
+            per_batch = max(1, (1 << 19) // int(cells[0] * cells[1]))  # blocks at a time: ~0.5M cells
+            if count is not None:  # the blocks holding the most returns first
+                order = np.argsort(-count, kind="stable")
+                blocks, count = blocks[order], count[order]
+            for b0 in range(0, len(blocks), per_batch):
+                if count is not None and count[b0] < best[0]:
+                    break  # no rectangle in the blocks left holds more returns than the best one scores
+                bl = np.sort(blocks[b0:b0 + per_batch])
+
+                def sums(m, ox):  # box sums (B, tile, tile) of the returns m over the blocks' anchors
+                    b = np.minimum(np.searchsorted(bl, m[0]), len(bl) - 1)
+                    hit = bl[b] == m[0]
+                    flat = b[hit] * (cells[0] * cells[1]) + m[1][hit]
+                    S = np.zeros((len(bl), cells[0] + 1, cells[1] + 1), np.int32)
+                    inner = S[:, 1:, 1:]  # summed in place, in int32 (counts of returns)
+                    np.cumsum(np.bincount(flat, minlength=len(bl) * cells[0] * cells[1]).reshape(len(bl), *cells),
+                              axis=1, out=inner)
+                    np.cumsum(inner, axis=2, out=inner)
+                    return _box_sums(S, k[0], k[1], ox, ox)[:, :tile[0], :tile[1]]
+
+                score = sums(m_on, 0).astype(np.float64)
+                if m_b is not None:
+                    score -= sums(m_b, margin)
+                ba = bl // (n_tile[0] * n_tile[1])
+                ai = (bl // n_tile[1] % n_tile[0] * tile[0])[:, None] + np.arange(tile[0])  # (B, tile) anchors
+                aj = (bl % n_tile[1] * tile[1])[:, None] + np.arange(tile[1])
+                ci = lo[ba, 0, None] + (ai + k[0] / 2) * cell  # (B, tile) rotated centres
+                cj = lo[ba, 1, None] + (aj + k[1] / 2) * cell
+                # ties (a board seen in part may slide over where nothing was seen): the rectangle
+                # centred nearest c0, by a penalty below one return
+                dist = np.hypot(ci[:, :, None] - r0[ba, 0, None, None], cj[:, None, :] - r0[ba, 1, None, None])
+                score -= 0.5 * dist / (far + 1e-9)
+                if (tile < n_anchor).any():  # the last tiles' anchors past the grid's
+                    score[(ai >= n_anchor[0])[:, :, None] | (aj >= n_anchor[1])[:, None, :]] = -np.inf
+                ib, i, j = np.unravel_index(int(np.argmax(score)), score.shape)
+                if score[ib, i, j] > best[0]:
+                    best = (float(score[ib, i, j]), float(th[ba[ib]]),
+                            rot[ba[ib]].T @ np.array([ci[ib, i], cj[ib, j]]))
     return best
 
 
@@ -321,8 +329,8 @@ def fit_outline(points: np.ndarray, others: np.ndarray, n: np.ndarray, d: float,
         xb, depth, ahead = ray_plane(others, n, d, origin, basis)
         xy_b = xb[ahead & (depth > plane_tol_m)]
         # a rectangle holding a plane return lies within its diagonal of it: behind-returns
-        # farther from every plane return count only in rectangles without one, which never win
-        xy_b = xy_b[cKDTree(xy).query(xy_b, distance_upper_bound=diag)[0] <= diag]
+        # farther from the plane returns count only in rectangles without one, which never win
+        xy_b = xy_b[((xy_b >= xy.min(axis=0) - diag) & (xy_b <= xy.max(axis=0) + diag)).all(axis=1)]
     s_edge = float(np.median(spacing))
     # coarse to fine: a grid of 1/24 of the board's short side over every rotation, then about
     # the best one a grid of half the point spacing (1-3 cm); angle steps of one cell at a corner
