@@ -217,7 +217,7 @@ def _search(xy_on, xy_behind, angles, size, cell, margin, c0, hint=None, reach=0
             lo, hi = h - size / 2 - reach - cell, h + size / 2 + reach + cell
         G = np.maximum(np.ceil((hi - lo).max(axis=0) / cell).astype(np.int64) + 1, k)
         n_anchor = G + 1 - k  # anchors of the whole grid, per axis
-        tile = np.where((n_anchor > 3 * k) & (hint is None), k, n_anchor)  # anchors per tile, per axis
+        tile = np.where((n_anchor > 8 * k) & (hint is None), k, n_anchor)  # anchors per tile, per axis
         n_tile = -(-n_anchor // tile)
         cells = tile + k - 1  # a block's cells: its tile's anchors' rectangles
         bx, by = rotated(xy_behind) if len(xy_behind) else (None, None)
@@ -250,6 +250,8 @@ def _search(xy_on, xy_behind, angles, size, cell, margin, c0, hint=None, reach=0
                         m = mi if mj is None else mj if mi is None else mi & mj
                         block.append(blk if m is None else blk[m])
                         local.append(loc if m is None else loc[m])
+                if len(block) == 1:
+                    return block[0], local[0]
                 return np.concatenate(block), np.concatenate(local)
 
             m_on = members((qx, qy))
@@ -266,8 +268,12 @@ def _search(xy_on, xy_behind, angles, size, cell, margin, c0, hint=None, reach=0
                 bl = np.sort(blocks[b0:b0 + per_batch])
 
                 def sums(m, ox):  # box sums (B, tile, tile) of the returns m over the blocks' anchors
-                    b = np.minimum(np.searchsorted(bl, m[0]), len(bl) - 1)
-                    hit = bl[b] == m[0]
+                    if bl[-1] - bl[0] + 1 == len(bl):  # consecutive blocks (one per angle): no search
+                        b = m[0] - bl[0]
+                        hit = (b >= 0) & (b < len(bl))
+                    else:
+                        b = np.minimum(np.searchsorted(bl, m[0]), len(bl) - 1)
+                        hit = bl[b] == m[0]
                     flat = b[hit] * (cells[0] * cells[1]) + m[1][hit]
                     S = np.zeros((len(bl), cells[0] + 1, cells[1] + 1), np.int32)
                     inner = S[:, 1:, 1:]  # summed in place, in int32 (counts of returns)
