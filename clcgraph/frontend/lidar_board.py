@@ -25,7 +25,7 @@ walls and parked cars that never move are removed, the board (which moves) stays
 
 SYNOPSIS
     obs = segment_board(scan, SegmentationOptions(), LidarOptions(), BoardGeometry())
-    obs -> LidarBoardObservation(points, plane, rms_m, indices) or Rejected(reason)
+    obs -> LidarBoardObservation(points, plane, rms_m, indices, ring, edge_rays) or Rejected(reason)
     results = segment_many(scans, seg, lidar, board, sensor=1, snapshots=[0, 1, ...])
 """
 
@@ -41,8 +41,9 @@ import numpy as np
 
 from ..planes import fit_plane, ransac_plane
 from ..types import BoardGeometry, LidarBoardObservation, LidarScan, Rejected
+from .board_edges import edge_rays
 from .board_outline import fit_outline, scan_rays
-from .lidar_preprocess import Rings, neighbour_steps, prepare, session_masks, typical_step
+from .lidar_preprocess import Rings, neighbour_steps, prepare, ring_of, session_masks, typical_step
 
 STAGE = "segmentation"
 log = logging.getLogger(__name__)
@@ -523,8 +524,10 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
         pts, offset = dark_square_correction(pts, np.asarray(scan.intensity, float)[idx])
         if offset:
             log.debug("%s: the board's weak returns range %.1f mm long; corrected", scan.topic, offset * 1e3)
+    ring = ring_of(scan)[idx]
+    edges = edge_rays(scan, idx, n, d, step_rad=step, plane_tol_m=o.point_plane_tolerance_m)
     return LidarBoardObservation(sensor=sensor, snapshot=snapshot, points=pts, plane=np.r_[n, d], rms_m=rms,
-                                 indices=idx)
+                                 indices=idx, ring=ring, edge_rays=edges)
 
 
 def dark_square_correction(pts: np.ndarray, intensity: np.ndarray) -> tuple[np.ndarray, float]:
@@ -651,8 +654,7 @@ def correct_ring_offsets(found: list, scans: list) -> list:
         n, d, rms = fit_plane(q)
         if d > 0:
             n, d = -n, -d
-        out[k] = LidarBoardObservation(sensor=o.sensor, snapshot=o.snapshot, points=q, plane=np.r_[n, d], rms_m=rms,
-                                       indices=o.indices)
+        out[k] = dataclasses.replace(o, points=q, plane=np.r_[n, d], rms_m=rms)
     return out
 
 
