@@ -132,7 +132,7 @@ def build(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.
         for o, m in zip(problem.lidar_observations, active.lidar):
             if m is not None and m.any() and o.edge_rays is not None and len(o.edge_rays):
                 f = edge_factor(problem, o, _pose(problem, rt_sensor, o.sensor), pose3_from_rt(rt_board[o.snapshot]),
-                                sigma_range_m=sigma_of(sigma_lidar_m, o.sensor), beam_rad=options.lidar_edge_beam_rad)
+                                beam_rad=options.lidar_edge_beam_rad)
                 if f is not None:
                     g.add(f)
     used, seen_by_camera = active.boards(problem)
@@ -155,13 +155,13 @@ def _pose(problem: Problem, rt_sensor: np.ndarray, i: int):
     return None if i == problem.reference else pose3_from_rt(rt_sensor[i])
 
 
-def edge_factor(problem: Problem, o, T_sensor, T_board, *, sigma_range_m: float, beam_rad: float):
+def edge_factor(problem: Problem, o, T_sensor, T_board, *, beam_rad: float):
     """The edge factor of LIDAR observation ``o`` (factors/lidar_edge.py), its intervals assigned
     to the board's sides at the pose estimate (T_sensor None: lidar0); None if none is usable."""
     keep, axis, bounds, L, rng = edge_sides(T_sensor, T_board, o.edge_rays, problem.board)
     if not keep.any():
         return None
-    sig = edge_sigmas(L[keep], rng[keep], sigma_range_m=sigma_range_m, beam_rad=beam_rad)
+    sig = edge_sigmas(L[keep], rng[keep], beam_rad=beam_rad)
     return lidar_edge_factor(_key(problem, o.sensor), board_key(o.snapshot), o.edge_rays[keep], axis[keep],
                              bounds[keep], sig)
 

@@ -2,17 +2,17 @@
 
 A plane factor pins the board's tilt and offset; where the board sits within its plane only
 its outline shows. Each edge interval (frontend/board_edges.py) is two rays of the LIDAR: one
-that hit the board and the next one, which passed its edge. Both rays are crossed with the
-board's plane (from the sensor and board poses) and expressed in the board frame as ``q_in``
-and ``q_out``; the board side the segment q_in -> q_out leaves the rectangle through (``side``:
-0 x = xmin, 1 x = xmax, 2 y = ymin, 3 y = ymax, chosen when the factor is built) bounds it
-there, its coordinate ``a`` (x or y) at ``h``. The edge lies uniformly between the two crossings,
+that hit the board and the next one, which passed its edge, with the side of the board between
+them as the LIDAR saw it (turned into the board's own side by the board's orientation when the
+factor is built: ``edge_sides``). Both rays are crossed with the board's plane (from the sensor
+and board poses) and expressed in the board frame as ``q_in`` and ``q_out``; the side's
+coordinate ``a`` (x or y) is ``h`` there. The edge lies uniformly between the two crossings,
 so the residual is
 
     err = (q_in[a] + q_out[a]) / 2 - h        (m)
 
-with sigma^2 = L^2 / 12 (L = |q_out[a] - q_in[a]|, the uniform quantisation) plus the LIDAR's
-blur at the edge (its range sigma and the beam's footprint, ``beam_rad`` times the range), and a
+with sigma^2 = L^2 / 12 (L = |q_out[a] - q_in[a]|, the uniform quantisation) plus the beam's
+blur at the edge (``beam_rad`` times the range; the measured ranges do not enter), and a
 Huber loss: an edge hidden from the LIDAR that the frontend did not catch costs little.
 
 Jacobians (right perturbation ``T Exp([omega, v])``, rotation first): with T_bs = T_b^-1 T_s the
@@ -21,9 +21,9 @@ q = o + lam w, lam = -o_z / w_z. For a change dp of o + lam w at fixed lam, dq =
 dp = R_bs (dv - [lam u]x domega) for the sensor's perturbation, [q]x domega - dv for the board's.
 
 SYNOPSIS
-    f = lidar_edge_factor(S(1), B(7), rays (E,2,3), sides (E,), bounds (E,), sigmas (E,))
-    sides, bounds, L, r = edge_sides(T_lidar0_sensor, T_lidar0_board, rays, board)   # at a pose estimate
-    r = lidar_edge_residuals(T_lidar0_sensor, T_lidar0_board, rays, sides, bounds)   # (E,) m
+    keep, axis, bounds, L, r = edge_sides(T_lidar0_sensor, T_lidar0_board, rays (E,3,3), board)  # at an estimate
+    f = lidar_edge_factor(S(1), B(7), rays[keep], axis[keep], bounds[keep], edge_sigmas(L, r, beam_rad=0.0013)[keep])
+    r = lidar_edge_residuals(T_lidar0_sensor, T_lidar0_board, rays, axis, bounds)   # (E,) m
 """
 
 from __future__ import annotations
@@ -51,7 +51,9 @@ def _crossings(T_sensor, T_board, rays: np.ndarray):
 
 
 def _residual(T_sensor, T_board, rays: np.ndarray, axis: np.ndarray, bounds: np.ndarray, want: bool):
+    """``rays`` (E,2,3) or (E,3,3) (the side normals, unused here)."""
     E = len(axis)
+    rays = rays[:, :2]
     q, w, wz, lam, R_bs = _crossings(T_sensor, T_board, rays.reshape(-1, 3))
     sel = np.repeat(axis, 2)  # per ray: the coordinate its interval bounds
     qa = q[np.arange(2 * E), sel]
@@ -85,38 +87,26 @@ def skew_rows(x: np.ndarray) -> np.ndarray:
     return S
 
 
-def edge_sides(T_lidar0_sensor, T_lidar0_board, rays: np.ndarray, board, *, corner_m: float | None = None):
+def edge_sides(T_lidar0_sensor, T_lidar0_board, rays: np.ndarray, board, *, min_cos: float = 0.9):
     """Which board side each interval bounds, at a pose estimate: (keep (E,) bool, axis (E,) 0 x /
-    1 y, bounds (E,) m, lengths L (E,) m along that axis, ranges (E,) m to the edge). An interval
-    is kept when its ray on the board crosses the board rectangle and its other ray leaves it
-    through one side, away from the corners (within its own length of one: ambiguous) —
-    ``corner_m`` more if given."""
-    rays = np.asarray(rays, float).reshape(-1, 2, 3)
+    1 y, bounds (E,) m, lengths L (E,) m along that axis, ranges (E,) m to the edge). ``rays``
+    (E,3,3): per interval the two rays and the outward normal of the side the LIDAR saw it leave
+    (frontend/board_edges.py), all in the sensor frame. The normal, turned into the board frame by
+    the estimate's rotation, names the side (only the board's orientation is used, not where it
+    sits in its plane); kept where it is within acos(``min_cos``) of that side's normal and both
+    rays meet the plane ahead."""
+    rays = np.asarray(rays, float).reshape(-1, 3, 3)
     E = len(rays)
-    q, _, _, lam, _ = _crossings(T_lidar0_sensor, T_lidar0_board, rays.reshape(-1, 3))
-    q_in, q_out = q[0::2, :2], q[1::2, :2]
+    q, _, _, lam, R_bs = _crossings(T_lidar0_sensor, T_lidar0_board, rays[:, :2].reshape(-1, 3))
+    nb = rays[:, 2] @ R_bs.T  # the sides' normals in the board frame
+    axis = np.argmax(np.abs(nb[:, :2]), axis=1)
+    c = nb[np.arange(E), axis]
     xmin, xmax, ymin, ymax = board.extent()
     lo, hi = np.array([xmin, ymin]), np.array([xmax, ymax])
-    inside = np.all((q_in >= lo) & (q_in <= hi), axis=1) & (lam[0::2] > 0) & (lam[1::2] > 0)
-    # exit through the segment's first crossing of a side's line beyond the box
-    dq = q_out - q_in
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_hi = np.where(dq > 0, (hi - q_in) / dq, np.inf)
-        t_lo = np.where(dq < 0, (lo - q_in) / dq, np.inf)
-    t_side = np.minimum(t_hi, t_lo)  # (E,2) per axis where the segment leaves that slab
-    axis = np.argmin(t_side, axis=1)
-    t_exit = t_side[np.arange(E), axis]
-    other = 1 - axis
-    t_other = t_side[np.arange(E), other]
-    exits = inside & (t_exit <= 1.0)
-    L = np.abs(dq[np.arange(E), axis])
-    bounds = np.where(dq[np.arange(E), axis] > 0, hi[axis], lo[axis])
-    # the crossing of the other side's line within the interval's own length: a corner
-    seg_len = np.linalg.norm(dq, axis=1)
-    margin = seg_len + (corner_m or 0.0)
-    clear = (t_other - t_exit) * seg_len > margin
-    rng_edge = lam[0::2]  # w is a unit vector: lam is the range to the crossing
-    return exits & clear, axis, bounds, L, rng_edge
+    bounds = np.where(c > 0, hi[axis], lo[axis])
+    L = np.abs(q[1::2, :2] - q[0::2, :2])[np.arange(E), axis]
+    keep = (np.abs(c) >= min_cos) & (lam[0::2] > 0) & (lam[1::2] > 0)
+    return keep, axis, bounds, L, lam[0::2]  # w is a unit vector: lam is the range to the crossing
 
 
 def lidar_edge_residuals(T_lidar0_sensor, T_lidar0_board, rays, axis, bounds) -> np.ndarray:
@@ -125,10 +115,12 @@ def lidar_edge_residuals(T_lidar0_sensor, T_lidar0_board, rays, axis, bounds) ->
                      False)[0]
 
 
-def edge_sigmas(L: np.ndarray, ranges: np.ndarray, *, sigma_range_m: float, beam_rad: float) -> np.ndarray:
-    """(E,) m: the uniform quantisation of each interval (L / sqrt(12)) and the LIDAR's blur at
-    the edge (range sigma, beam footprint ``beam_rad`` x range) in quadrature."""
-    return np.sqrt(L**2 / 12 + sigma_range_m**2 + (beam_rad * ranges) ** 2)
+def edge_sigmas(L: np.ndarray, ranges: np.ndarray, *, beam_rad: float) -> np.ndarray:
+    """(E,) m: the uniform quantisation of each interval (L / sqrt(12)) and the beam's blur at the
+    edge (``beam_rad`` x range: where along a partly covered footprint a return still comes from
+    the board) in quadrature. The range noise does not enter: both rays are crossed with the
+    board's plane, their measured ranges are not used."""
+    return np.sqrt(L**2 / 12 + (beam_rad * ranges) ** 2)
 
 
 def lidar_edge_factor(sensor_key: int | None, board_key: int, rays, axis, bounds, sigmas):
@@ -136,7 +128,7 @@ def lidar_edge_factor(sensor_key: int | None, board_key: int, rays, axis, bounds
     (``sensor_key`` None); a Huber loss on sigmas ``sigmas`` (E,)."""
     import gtsam
 
-    rays = np.array(rays, dtype=float).reshape(-1, 2, 3)
+    rays = np.array(rays, dtype=float)[:, :2].copy()
     axis = np.asarray(axis, np.int64)
     bounds = np.asarray(bounds, float)
     if sensor_key is None:

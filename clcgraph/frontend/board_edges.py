@@ -21,7 +21,30 @@ from __future__ import annotations
 import numpy as np
 
 from ..types import LidarScan
+from .board_outline import Outline, ray_plane
 from .lidar_preprocess import missed_rays, prepare, ring_neighbours
+
+# How far a fitted rectangle's side may lie from the board's (board_outline's finest grid cell:
+# its centre to a cell, its angle to a cell at the corners)
+_OUTLINE_TOL_M = 0.03
+
+
+def exit_sides(q_in: np.ndarray, q_out: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, tol_m: float = 0.0):
+    """For segments q_in -> q_out (E,2) and the box lo <= q <= hi (2,), known to ``tol_m``: the side
+    each segment leaves through, the one it heads to whose line is nearest its midpoint. (ok (E,):
+    that line within ``tol_m`` plus the segment's length of the midpoint, and the other axis's
+    line farther by more than that (not a corner, where either could be it); axis (E,) of that
+    side (0, 1); sign (E,): +1 the hi side, -1 the lo side)."""
+    E = len(q_in)
+    dq = q_out - q_in
+    mid = (q_in + q_out) / 2
+    line = np.where(dq > 0, hi, lo)
+    dist = np.where(dq != 0, np.abs(line - mid), np.inf)  # (E,2) to the side ahead along each axis
+    axis = np.argmin(dist, axis=1)
+    near, other = dist[np.arange(E), axis], dist[np.arange(E), 1 - axis]
+    slack = tol_m + np.linalg.norm(dq, axis=1)
+    ok = (near <= slack) & (other > near + slack)
+    return ok, axis, np.where(dq[np.arange(E), axis] > 0, 1.0, -1.0)
 
 
 def _behind_or_missed(R, pos: np.ndarray, n: np.ndarray, d: float, tol: float) -> np.ndarray:
@@ -40,11 +63,12 @@ def _behind_or_missed(R, pos: np.ndarray, n: np.ndarray, d: float, tol: float) -
     return out
 
 
-def edge_rays(scan: LidarScan, rows: np.ndarray, n: np.ndarray, d: float, *, step_rad: float,
+def edge_rays(scan: LidarScan, rows: np.ndarray, n: np.ndarray, d: float, outline: Outline, *, step_rad: float,
               plane_tol_m: float) -> np.ndarray:
-    """(E,2,3) the board's edge intervals in ``scan`` (LIDAR frame unit rays: on the board, past
-    its edge). ``rows``: the scan rows of the board's returns (one unbroken piece per ring);
-    n . x = d its plane; ``step_rad``: the azimuth step; ``plane_tol_m``: how far behind the
+    """(E,3,3) the board's edge intervals in ``scan`` (LIDAR frame: unit ray on the board, unit ray
+    past its edge, outward normal of that side of ``outline``). ``rows``: the scan rows of the
+    board's returns (one unbroken piece per ring); n . x = d its plane; ``outline``: the board's
+    rectangle fitted to them; ``step_rad``: the azimuth step; ``plane_tol_m``: how far behind the
     plane a return must be to show the ray passed the board."""
     rows = np.asarray(rows, np.int64)
     n = np.asarray(n, float)
@@ -52,7 +76,7 @@ def edge_rays(scan: LidarScan, rows: np.ndarray, n: np.ndarray, d: float, *, ste
         n, d = -n, -d
     R = prepare(scan, min_range_m=0.0, max_range_m=np.inf)
     if not len(R.index) or not len(rows):
-        return np.zeros((0, 2, 3))
+        return np.zeros((0, 3, 3))
     pos_of_row = np.full(len(scan.points), -1, np.int64)
     pos_of_row[R.index] = np.arange(len(R.index))
     pos = pos_of_row[rows]
@@ -115,4 +139,16 @@ def edge_rays(scan: LidarScan, rows: np.ndarray, n: np.ndarray, d: float, *, ste
             e = elev[s2]
             ray_out = np.array([np.cos(e) * np.cos(az), np.cos(e) * np.sin(az), np.sin(e)])
         out.append(np.stack([u[mid], ray_out])[None])
-    return np.concatenate(out) if out else np.zeros((0, 2, 3))
+    if not out:
+        return np.zeros((0, 3, 3))
+    rays = np.concatenate(out)
+    # the side of the LIDAR's own rectangle each interval leaves through
+    xy_in, _, ahead_in = ray_plane(rays[:, 0], outline.n, outline.d, outline.origin, outline.basis)
+    xy_out, _, ahead_out = ray_plane(rays[:, 1], outline.n, outline.d, outline.origin, outline.basis)
+    to_rect = lambda xy: (xy - outline.centre) @ outline.axes.T  # noqa: E731  along the rectangle's sides
+    half = outline.size / 2
+    # the rectangle's sides are fitted to a grid cell and an angle step (1-3 cm at its corners)
+    ok, axis, sign = exit_sides(to_rect(xy_in), to_rect(xy_out), -half, half, tol_m=_OUTLINE_TOL_M)
+    ok &= ahead_in & ahead_out
+    normal = (sign[:, None] * outline.axes[axis]) @ outline.basis  # (E,3) in the LIDAR frame
+    return np.concatenate([rays, normal[:, None]], axis=1)[ok]

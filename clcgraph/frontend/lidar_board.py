@@ -345,7 +345,7 @@ def _rms_about_ring_offsets(pts: np.ndarray, ring: np.ndarray, n: np.ndarray, d:
 def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: float, noise_m: float, o,
              intensity: np.ndarray | None = None, others: np.ndarray | None = None):
     """Whether ``pts`` (with their ring ranks and ``intensity``) are the board: (None or why not,
-    the refit plane (n, d, rms), the mask of the points kept). ``others``: the scan's other
+    the refit plane (n, d, rms), the mask of the points kept, the fitted board_outline.Outline). ``others``: the scan's other
     returns, whose rays tell where the board is not (``fit_outline``). The plane and its flatness
     are judged with the dark squares' range walk removed (``dark_square_correction``)."""
     keep = np.ones(len(pts), bool)
@@ -358,11 +358,12 @@ def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: floa
     slack = 0.05 + 2.0 * spacing_m
     max_size = o.max_plane_size_m if o.max_plane_size_m is not None else float(np.hypot(sx + slack, sy + slack))
     others = np.zeros((0, 3)) if others is None else others
-    keep = fit_outline(pts, others, n, d, size_m=(sx, sy), step_rad=step, plane_tol_m=o.point_plane_tolerance_m).inside
+    outline = fit_outline(pts, others, n, d, size_m=(sx, sy), step_rad=step, plane_tol_m=o.point_plane_tolerance_m)
+    keep = outline.inside
     if keep.sum() >= 3 and not keep.all():  # again on the plane of what fits: the rest may have tilted it
         n, d, _ = fit_plane(pts[keep])
-        keep = fit_outline(pts, others, n, d, size_m=(sx, sy), step_rad=step,
-                           plane_tol_m=o.point_plane_tolerance_m).inside
+        outline = fit_outline(pts, others, n, d, size_m=(sx, sy), step_rad=step, plane_tol_m=o.point_plane_tolerance_m)
+        keep = outline.inside
     # Pieces of ring outside the board's rectangle are dropped (a person beside it, in its plane);
     # a plane whose rings run on past the rectangle is not a board (a wall, a car).
     piece = _ring_pieces(pts, ring, step, o)
@@ -370,10 +371,11 @@ def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: floa
     beyond = (touching & ~keep).sum() / max(touching.sum(), 1)
     if keep.sum() < o.points_per_segment * o.min_rings:
         return (f"{at}: only {keep.sum()} of its {len(pts)} returns fit a {sx:.2f} x {sy:.2f} m rectangle where "
-                f"the scan shows no board missing"), (n, d, rms), keep
+                f"the scan shows no board missing"), (n, d, rms), keep, outline
     if beyond > o.max_outside_fraction:
         return (f"{at} is {_extents(pts, n)[0]:.2f} m across, {beyond:.0%} of it outside any "
-                f"{sx:.2f} x {sy:.2f} m rectangle: a wall, car, person or the board touching something"), (n, d, rms), keep
+                f"{sx:.2f} x {sy:.2f} m rectangle: a wall, car, person or the board touching something"), (n, d, rms), keep, \
+            outline
     # coplanar things crossing the board plane (a body, a hand) drift off it away from the crossing
     for _ in range(2):
         n, d, _ = fit_plane(pts[keep])
@@ -426,7 +428,7 @@ def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: floa
                f"seen {height:.2f} m high (a person, a post?)")
     else:
         why = None
-    return why, plane, keep
+    return why, plane, keep, outline
 
 
 def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry, *, sensor: int = 0,
@@ -484,7 +486,7 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
     rays = scan_rays(scan, step)
     intensity = None if scan.intensity is None else np.asarray(scan.intensity, float)[R.index]
     for rows in _merge(pieces, R.points, o.point_plane_tolerance_m, float(np.hypot(*board.size_m))):
-        why, plane, keep = _verdict(R.points[rows], rank[rows], board, step, noise, o,
+        why, plane, keep, outline = _verdict(R.points[rows], rank[rows], board, step, noise, o,
                                     None if intensity is None else intensity[rows],
                                     rays.points[rays.away_from(R.index[rows])])
         rows = rows[keep]
@@ -498,7 +500,7 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
         if debug is not None:
             debug.candidates.append((R.index[rows], why or "accepted"))
         if why is None:
-            found.append((rows, plane))
+            found.append((rows, plane, outline))
         else:
             reasons.append((len(rows), why))
     if not found:
@@ -513,9 +515,9 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
                 top.append(why)
         return rejected("no board-like plane; " + "; ".join(top[:3]))
     if len(found) > 1 and o.require_unique:
-        where = ", ".join(f"{np.linalg.norm(R.points[r].mean(axis=0)):.1f} m" for r, _ in found)
+        where = ", ".join(f"{np.linalg.norm(R.points[r].mean(axis=0)):.1f} m" for r, _, _ in found)
         return rejected(f"{len(found)} board-like planes (at {where}); require_unique")
-    rows, (n, d, rms) = max(found, key=lambda f: len(f[0]))
+    rows, (n, d, rms), outline = max(found, key=lambda f: len(f[0]))
     idx = np.sort(R.index[rows])
     if debug is not None:
         debug.accepted = idx
@@ -525,7 +527,7 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
         if offset:
             log.debug("%s: the board's weak returns range %.1f mm long; corrected", scan.topic, offset * 1e3)
     ring = ring_of(scan)[idx]
-    edges = edge_rays(scan, idx, n, d, step_rad=step, plane_tol_m=o.point_plane_tolerance_m)
+    edges = edge_rays(scan, idx, n, d, outline, step_rad=step, plane_tol_m=o.point_plane_tolerance_m)
     return LidarBoardObservation(sensor=sensor, snapshot=snapshot, points=pts, plane=np.r_[n, d], rms_m=rms,
                                  indices=idx, ring=ring, edge_rays=edges)
 

@@ -81,7 +81,7 @@ def save_problem(path: str | Path, problem: Problem, config: Config | None = Non
                                                                   np.int64)
     has_edges = [o.edge_rays is not None for o in lo]
     arrays["lidar_edge_rays"], arrays["lidar_edge_counts"] = _concat(
-        [np.asarray(o.edge_rays, float).reshape(-1, 2, 3) for o in lo if o.edge_rays is not None], (2, 3))
+        [np.asarray(o.edge_rays, float).reshape(-1, 3, 3) for o in lo if o.edge_rays is not None], (3, 3))
     co = problem.camera_observations
     arrays["camera_corners"], arrays["camera_counts"] = _concat([o.corners_px for o in co], (2,))
     arrays["camera_sensor_snapshot"] = np.array([(o.sensor, o.snapshot) for o in co], np.int64).reshape(-1, 2)
@@ -116,7 +116,7 @@ def save_problem(path: str | Path, problem: Problem, config: Config | None = Non
 
 
 # optional members: (counts, data, (dtype kind, trailing shape) of data)
-_OPTIONAL = (("lidar_rings_counts", "lidar_rings", ("i", ())), ("lidar_edge_counts", "lidar_edge_rays", ("f", (2, 3))))
+_OPTIONAL = (("lidar_rings_counts", "lidar_rings", ("i", ())), ("lidar_edge_counts", "lidar_edge_rays", ("f", (3, 3))))
 
 # Limits for reading a dump (a zip of .npy members): float measurements do not compress 200-fold,
 # so more than that (beyond a small allowance) is a zip bomb, refused before anything is inflated.

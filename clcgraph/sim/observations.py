@@ -215,14 +215,19 @@ def _lidar_hits(model: SimLidar, rt_sensor_board: np.ndarray, board: BoardGeomet
         measured[edge] += rng.uniform(0, errors.mixed_pixel_m, int(edge.sum()))
     if sigma_m > 0:
         measured[inside] += rng.normal(0, sigma_m, int(inside.sum()))
-    return u_nominal[inside] * measured[inside, None], ring[inside], _edge_rays(model, u_nominal, inside)
+    return (u_nominal[inside] * measured[inside, None], ring[inside],
+            _edge_rays(model, u_nominal, inside, R, t, board))
 
 
-def _edge_rays(model: SimLidar, u: np.ndarray, inside: np.ndarray) -> np.ndarray:
-    """(E,2,3) the board's edge intervals (frontend/board_edges.py) at the nominal rays ``u``:
+def _edge_rays(model: SimLidar, u: np.ndarray, inside: np.ndarray, R: np.ndarray, t: np.ndarray,
+               board: BoardGeometry) -> np.ndarray:
+    """(E,3,3) the board's edge intervals (frontend/board_edges.py) at the nominal rays ``u``:
     each ring's ends on the board with the next ray along the ring, and the middle of the highest
-    (lowest) ring on the board with the ray of the ring above (below) it. No scene: every ray off
-    the board passed behind it."""
+    (lowest) ring on the board with the ray of the ring above (below) it, with the outward normal
+    of the board side between them (R, t: the board in the sensor frame), away from the corners.
+    No scene: every ray off the board passed behind it."""
+    from ..frontend.board_edges import exit_sides
+
     n_rings, n_az = len(model.elevations_rad), model.npoints_per_rotation
     grid = inside.reshape(n_rings, n_az)
     U = u.reshape(n_rings, n_az, 3)
@@ -242,7 +247,16 @@ def _edge_rays(model: SimLidar, u: np.ndarray, inside: np.ndarray) -> np.ndarray
                 c = cols[len(cols) // 2]
                 if not grid[by_el[nb], c]:
                     out.append(np.stack([U[ring, c], U[by_el[nb], c]])[None])
-    return np.concatenate(out)
+    rays = np.concatenate(out)
+    n = R[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = (n @ t) / (rays @ n)  # (E,2) where the rays meet the board's plane
+    q = (rays * np.where(rho > 0, rho, 0.0)[..., None] - t) @ R  # (E,2,3) in the board frame
+    xmin, xmax, ymin, ymax = board.extent()
+    ok, axis, sign = exit_sides(q[:, 0, :2], q[:, 1, :2], np.array([xmin, ymin]), np.array([xmax, ymax]))
+    ok &= np.all(rho > 0, axis=1)
+    normal = sign[:, None] * R[:, axis].T
+    return np.concatenate([rays, normal[:, None]], axis=1)[ok]
 
 
 def plane_fit(points: np.ndarray) -> tuple[np.ndarray, float]:
