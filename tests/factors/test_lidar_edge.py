@@ -247,3 +247,43 @@ def test_observations_without_intervals_solve_as_before():
     b = calibrate(p0, SolveOptions(refuse_inconsistent=False, lidar_edges=False))
     np.testing.assert_array_equal(a.rt_lidar0_sensor, b.rt_lidar0_sensor)
     np.testing.assert_array_equal(a.stdev_rt(1), b.stdev_rt(1))
+
+
+def test_the_option_is_validated():
+    from clcgraph.config import Config, ConfigError
+
+    assert Config.from_dict({"solve": {"lidar_edges": True, "lidar_edge_beam_rad": 0.002}}).solve.lidar_edges is True
+    with pytest.raises(ConfigError, match="lidar_edge_beam_rad"):
+        Config.from_dict({"solve": {"lidar_edge_beam_rad": -0.001}})
+    with pytest.raises(ConfigError, match="lidar_edges"):
+        Config.from_dict({"solve": {"lidar_edges": "yes"}})
+
+
+def test_rings_and_intervals_round_trip_through_the_dump(tmp_path):
+    """problem.npz keeps each point's ring and the edge intervals bit-exactly; a dump without them
+    (written before they were kept) loads with None."""
+    import json
+
+    from clcgraph.outputs.dump import load_problem, save_problem
+
+    p, _ = _one_pitched_board()
+    save_problem(tmp_path / "p.npz", p)
+    q, _ = load_problem(tmp_path / "p.npz")
+    for a, b in zip(p.lidar_observations, q.lidar_observations):
+        np.testing.assert_array_equal(a.ring, b.ring)
+        np.testing.assert_array_equal(a.edge_rays, b.edge_rays)
+    a = dict(np.load(tmp_path / "p.npz"))
+    meta = json.loads(str(a.pop("meta")))
+    for k in ("lidar_rings", "lidar_rings_counts", "lidar_edge_rays", "lidar_edge_counts"):
+        a.pop(k)
+    del meta["lidar_has_rings"], meta["lidar_has_edges"]
+    np.savez(tmp_path / "old.npz", meta=np.array(json.dumps(meta)), **a)
+    old, _ = load_problem(tmp_path / "old.npz")
+    assert all(o.ring is None and o.edge_rays is None for o in old.lidar_observations)
+    np.testing.assert_array_equal(old.lidar_observations[0].points, p.lidar_observations[0].points)
+    meta["lidar_has_edges"] = [True] * len(p.lidar_observations)  # flags without the arrays: one line
+    np.savez(tmp_path / "bad.npz", meta=np.array(json.dumps(meta)), **a)
+    from clcgraph.errors import DataError
+
+    with pytest.raises(DataError, match="corrupt problem dump"):
+        load_problem(tmp_path / "bad.npz")
