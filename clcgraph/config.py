@@ -235,6 +235,15 @@ class SolveOptions:
     # component is kept only if a likelihood-ratio test shows it, so on independent noise
     # the sigmas stay those of the independent model. False: independent noise only.
     observation_effects: bool = True
+    # The board's in-plane position from where each LIDAR saw its outline (factors/lidar_edge.py):
+    # the rings' ends at its left and right edges and the rings above and below it, where the next
+    # ray passed behind the board's plane. Planes alone leave a camera's offset along the board
+    # rest on the few tilted boards. The edge blur: the LIDAR's range sigma and its beam's
+    # footprint, ``lidar_edge_beam_rad`` (rad, 1 sigma) times the range: 0.17-0.18 deg FWHM for an
+    # Ouster OS1 or a VLP-16, / 2.355. On the real ACFR Ouster captures the edge residuals are the
+    # quantisation alone (RMS 6.3-6.8 mm, L / sqrt(12) 7.0 mm).
+    lidar_edges: bool = False
+    lidar_edge_beam_rad: float = 0.0013
     # Errors fixed for the whole capture, which neither the per-observation model nor the
     # jackknife can see (they bias every board the same way), propagated into the covariance
     # as "consider" terms (backend/consider.py, docs/uncertainty.md); 0 = not included.
@@ -612,6 +621,7 @@ _RANGES = {
     "solve.consistency_alpha": "[0, 1)",
     "solve.max_stdev_m": "(0, inf)",
     "solve.board_flatness_m": "[0, 0.1]",
+    "solve.lidar_edge_beam_rad": "[0, 0.1]",
     "solve.lidar_range_offset_m": "[0, 1]",
     "solve.lidar_ring_range_bias_m": "[0, 1]",
     "solve.lidar_ring_elevation_deg": "[0, 5]",

@@ -179,6 +179,11 @@ class LidarBoardObservation:
     plane: np.ndarray  # (4,) unit normal n and offset d: n . x = d, n pointing at the sensor
     rms_m: float  # plane-fit RMS
     indices: np.ndarray | None = None  # (K,) indices into the LidarScan's rows
+    ring: np.ndarray | None = None  # (K,) each point's ring (laser) number, None where unknown
+    # (E,3,3) where the board's outline was seen (frontend/board_edges.py): per interval the unit
+    # ray of a return on the board, the next ray past its edge (behind the plane or a miss), and
+    # the outward normal of the board side between them
+    edge_rays: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)

@@ -127,9 +127,17 @@ def _elevations(points: np.ndarray) -> np.ndarray:
 
 
 def lidar_rings(problem: Problem, sensor: int) -> tuple[np.ndarray, np.ndarray]:
-    """(R,) elevations (rad) of the rings of LIDAR ``sensor`` that met its boards, and (R,) their point counts."""
-    e = np.sort(np.concatenate([_elevations(o.points) for o in problem.lidar_observations if o.sensor == sensor]))
-    ring = np.r_[0, np.cumsum(np.diff(e) > RING_GAP_RAD)]
+    """(R,) elevations (rad) of the rings of LIDAR ``sensor`` that met its boards, and (R,) their
+    point counts: by each point's ring (LidarBoardObservation.ring, the frontend's); for
+    observations without rings (dumps from before they were kept), by gaps in the elevations."""
+    obs = [o for o in problem.lidar_observations if o.sensor == sensor]
+    e = np.concatenate([_elevations(o.points) for o in obs])
+    if all(o.ring is not None for o in obs):
+        _, ring = np.unique(np.concatenate([np.asarray(o.ring) for o in obs]), return_inverse=True)
+    else:
+        order = np.argsort(e)
+        e = e[order]
+        ring = np.r_[0, np.cumsum(np.diff(e) > RING_GAP_RAD)]
     counts = np.bincount(ring).astype(float)
     return np.bincount(ring, e) / counts, counts
 

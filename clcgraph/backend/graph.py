@@ -3,8 +3,9 @@
 Variables: ``sensor_key(i)`` = T_lidar0_sensor for every sensor but lidar0 (the reference
 has no variable), ``board_key(k)`` = T_lidar0_board for every snapshot still in use.
 Factors: one per (sensor, snapshot) observation (LIDAR plane or range over its active
-points; camera corners over its active corners), the in-plane prior on boards only LIDARs
-saw, and the nominal-pose priors of Problem.priors.
+points; camera corners over its active corners), with ``solve.lidar_edges`` one more per LIDAR
+observation on where it saw the board's outline (factors/lidar_edge.py), the in-plane prior on
+boards only LIDARs saw, and the nominal-pose priors of Problem.priors.
 
 SYNOPSIS
     active = Active.all(problem)
@@ -20,6 +21,7 @@ import numpy as np
 
 from ..factors.board_prior import board_prior_factor
 from ..factors.camera_corners import camera_corners_factor, camera_corners_residuals
+from ..factors.lidar_edge import edge_sides, edge_sigmas, lidar_edge_factor
 from ..factors.lidar_plane import lidar_plane_factor, lidar_plane_residuals
 from ..factors.lidar_range import lidar_range_factor, lidar_range_residuals
 from ..factors.pose_prior import pose_prior_factor
@@ -101,6 +103,7 @@ def build(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.
     import gtsam
 
     make = lidar_plane_factor if lidar == "plane" else lidar_range_factor
+    edges = lidar == "range" and getattr(options, "lidar_edges", False)  # from a rough seed the sides may be wrong
     g = gtsam.NonlinearFactorGraph()
     v = gtsam.Values()
     centre = board_centre(problem)
@@ -125,6 +128,13 @@ def build(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.
             g.add(camera_corners_factor(sensor_key(o.sensor), board_key(o.snapshot), q, s.lensmodel,
                                         s.intrinsics, problem.board, sigma_of(sigma_camera_px, o.sensor),
                                         **effect("camera", j, o.sensor)))
+    if edges:
+        for o, m in zip(problem.lidar_observations, active.lidar):
+            if m is not None and m.any() and o.edge_rays is not None and len(o.edge_rays):
+                f = edge_factor(problem, o, _pose(problem, rt_sensor, o.sensor), pose3_from_rt(rt_board[o.snapshot]),
+                                beam_rad=options.lidar_edge_beam_rad)
+                if f is not None:
+                    g.add(f)
     used, seen_by_camera = active.boards(problem)
     nominal = rt_board if board_nominal is None else board_nominal
     for k in sorted(used - seen_by_camera):
@@ -139,6 +149,21 @@ def build(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.
     for k in sorted(used):
         v.insert(board_key(k), pose3_from_rt(rt_board[k]))
     return g, v
+
+
+def _pose(problem: Problem, rt_sensor: np.ndarray, i: int):
+    return None if i == problem.reference else pose3_from_rt(rt_sensor[i])
+
+
+def edge_factor(problem: Problem, o, T_sensor, T_board, *, beam_rad: float):
+    """The edge factor of LIDAR observation ``o`` (factors/lidar_edge.py), its intervals assigned
+    to the board's sides at the pose estimate (T_sensor None: lidar0); None if none is usable."""
+    keep, axis, bounds, L, rng = edge_sides(T_sensor, T_board, o.edge_rays, problem.board)
+    if not keep.any():
+        return None
+    sig = edge_sigmas(L[keep], rng[keep], beam_rad=beam_rad)
+    return lidar_edge_factor(_key(problem, o.sensor), board_key(o.snapshot), o.edge_rays[keep], axis[keep],
+                             bounds[keep], sig)
 
 
 def residuals(problem: Problem, rt_sensor: np.ndarray, rt_board: np.ndarray, *, lidar: str = "range"):

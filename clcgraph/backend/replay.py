@@ -55,7 +55,9 @@ def renoise_problem(
         d = T_n @ rt_l_b[3:]
         # normal towards the sensor (at the origin) means n . x = d < 0 on the board
         plane = np.r_[-T_n, -d] if d > 0 else np.r_[T_n, d]
-        lidar.append(LidarBoardObservation(o.sensor, o.snapshot, p, plane, sigma_lidar_m, o.indices))
+        # the edge intervals are not re-drawn (their noise is where the rays fall on the board): a
+        # re-noised sample has the planes alone
+        lidar.append(LidarBoardObservation(o.sensor, o.snapshot, p, plane, sigma_lidar_m, o.indices, ring=o.ring))
     corners = problem.board.corners()
     camera = []
     for o in problem.camera_observations:

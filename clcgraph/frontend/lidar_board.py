@@ -25,7 +25,7 @@ walls and parked cars that never move are removed, the board (which moves) stays
 
 SYNOPSIS
     obs = segment_board(scan, SegmentationOptions(), LidarOptions(), BoardGeometry())
-    obs -> LidarBoardObservation(points, plane, rms_m, indices) or Rejected(reason)
+    obs -> LidarBoardObservation(points, plane, rms_m, indices, ring, edge_rays) or Rejected(reason)
     results = segment_many(scans, seg, lidar, board, sensor=1, snapshots=[0, 1, ...])
 """
 
@@ -41,8 +41,9 @@ import numpy as np
 
 from ..planes import fit_plane, ransac_plane
 from ..types import BoardGeometry, LidarBoardObservation, LidarScan, Rejected
+from .board_edges import edge_rays
 from .board_outline import fit_outline, scan_rays
-from .lidar_preprocess import Rings, neighbour_steps, prepare, session_masks, typical_step
+from .lidar_preprocess import Rings, neighbour_steps, prepare, ring_of, session_masks, typical_step
 
 STAGE = "segmentation"
 log = logging.getLogger(__name__)
@@ -344,7 +345,7 @@ def _rms_about_ring_offsets(pts: np.ndarray, ring: np.ndarray, n: np.ndarray, d:
 def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: float, noise_m: float, o,
              intensity: np.ndarray | None = None, others: np.ndarray | None = None):
     """Whether ``pts`` (with their ring ranks and ``intensity``) are the board: (None or why not,
-    the refit plane (n, d, rms), the mask of the points kept). ``others``: the scan's other
+    the refit plane (n, d, rms), the mask of the points kept, the fitted board_outline.Outline). ``others``: the scan's other
     returns, whose rays tell where the board is not (``fit_outline``). The plane and its flatness
     are judged with the dark squares' range walk removed (``dark_square_correction``)."""
     keep = np.ones(len(pts), bool)
@@ -357,11 +358,12 @@ def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: floa
     slack = 0.05 + 2.0 * spacing_m
     max_size = o.max_plane_size_m if o.max_plane_size_m is not None else float(np.hypot(sx + slack, sy + slack))
     others = np.zeros((0, 3)) if others is None else others
-    keep = fit_outline(pts, others, n, d, size_m=(sx, sy), step_rad=step, plane_tol_m=o.point_plane_tolerance_m).inside
+    outline = fit_outline(pts, others, n, d, size_m=(sx, sy), step_rad=step, plane_tol_m=o.point_plane_tolerance_m)
+    keep = outline.inside
     if keep.sum() >= 3 and not keep.all():  # again on the plane of what fits: the rest may have tilted it
         n, d, _ = fit_plane(pts[keep])
-        keep = fit_outline(pts, others, n, d, size_m=(sx, sy), step_rad=step,
-                           plane_tol_m=o.point_plane_tolerance_m).inside
+        outline = fit_outline(pts, others, n, d, size_m=(sx, sy), step_rad=step, plane_tol_m=o.point_plane_tolerance_m)
+        keep = outline.inside
     # Pieces of ring outside the board's rectangle are dropped (a person beside it, in its plane);
     # a plane whose rings run on past the rectangle is not a board (a wall, a car).
     piece = _ring_pieces(pts, ring, step, o)
@@ -369,10 +371,11 @@ def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: floa
     beyond = (touching & ~keep).sum() / max(touching.sum(), 1)
     if keep.sum() < o.points_per_segment * o.min_rings:
         return (f"{at}: only {keep.sum()} of its {len(pts)} returns fit a {sx:.2f} x {sy:.2f} m rectangle where "
-                f"the scan shows no board missing"), (n, d, rms), keep
+                f"the scan shows no board missing"), (n, d, rms), keep, outline
     if beyond > o.max_outside_fraction:
         return (f"{at} is {_extents(pts, n)[0]:.2f} m across, {beyond:.0%} of it outside any "
-                f"{sx:.2f} x {sy:.2f} m rectangle: a wall, car, person or the board touching something"), (n, d, rms), keep
+                f"{sx:.2f} x {sy:.2f} m rectangle: a wall, car, person or the board touching something"), (n, d, rms), keep, \
+            outline
     # coplanar things crossing the board plane (a body, a hand) drift off it away from the crossing
     for _ in range(2):
         n, d, _ = fit_plane(pts[keep])
@@ -425,7 +428,7 @@ def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: floa
                f"seen {height:.2f} m high (a person, a post?)")
     else:
         why = None
-    return why, plane, keep
+    return why, plane, keep, outline
 
 
 def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry, *, sensor: int = 0,
@@ -489,8 +492,8 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
         n, d, _ = fit_plane(R.points[rows])
         near = rays.around(R.points[rows], n, d, 1.2 * diag)
         near = near[rays.away_from(R.index[rows])[near]]
-        why, plane, keep = _verdict(R.points[rows], rank[rows], board, step, noise, o,
-                                    None if intensity is None else intensity[rows], rays.points[near])
+        why, plane, keep, outline = _verdict(R.points[rows], rank[rows], board, step, noise, o,
+                                             None if intensity is None else intensity[rows], rays.points[near])
         rows = rows[keep]
         if o.debug_region is not None:
             c = R.points[rows].mean(axis=0) if len(rows) else np.full(3, np.nan)
@@ -502,7 +505,7 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
         if debug is not None:
             debug.candidates.append((R.index[rows], why or "accepted"))
         if why is None:
-            found.append((rows, plane))
+            found.append((rows, plane, outline))
         else:
             reasons.append((len(rows), why))
     if not found:
@@ -517,9 +520,9 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
                 top.append(why)
         return rejected("no board-like plane; " + "; ".join(top[:3]))
     if len(found) > 1 and o.require_unique:
-        where = ", ".join(f"{np.linalg.norm(R.points[r].mean(axis=0)):.1f} m" for r, _ in found)
+        where = ", ".join(f"{np.linalg.norm(R.points[r].mean(axis=0)):.1f} m" for r, _, _ in found)
         return rejected(f"{len(found)} board-like planes (at {where}); require_unique")
-    rows, (n, d, rms) = max(found, key=lambda f: len(f[0]))
+    rows, (n, d, rms), outline = max(found, key=lambda f: len(f[0]))
     idx = np.sort(R.index[rows])
     if debug is not None:
         debug.accepted = idx
@@ -528,8 +531,10 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
         pts, offset = dark_square_correction(pts, np.asarray(scan.intensity, float)[idx])
         if offset:
             log.debug("%s: the board's weak returns range %.1f mm long; corrected", scan.topic, offset * 1e3)
+    ring = ring_of(scan)[idx]
+    edges = edge_rays(scan, idx, n, d, outline, step_rad=step, plane_tol_m=o.point_plane_tolerance_m)
     return LidarBoardObservation(sensor=sensor, snapshot=snapshot, points=pts, plane=np.r_[n, d], rms_m=rms,
-                                 indices=idx)
+                                 indices=idx, ring=ring, edge_rays=edges)
 
 
 def dark_square_correction(pts: np.ndarray, intensity: np.ndarray) -> tuple[np.ndarray, float]:
@@ -656,8 +661,7 @@ def correct_ring_offsets(found: list, scans: list) -> list:
         n, d, rms = fit_plane(q)
         if d > 0:
             n, d = -n, -d
-        out[k] = LidarBoardObservation(sensor=o.sensor, snapshot=o.snapshot, points=q, plane=np.r_[n, d], rms_m=rms,
-                                       indices=o.indices)
+        out[k] = dataclasses.replace(o, points=q, plane=np.r_[n, d], rms_m=rms)
     return out
 
 

@@ -10,7 +10,8 @@ spacing_m/margin_m, are read and converted): one ``.npz`` (numpy's zip of ``.npy
   keys: corners, square_m, size_m, pattern_offset_m), rejections, and the
   scalar/ragged bookkeeping of the observations;
 - plain numeric arrays: concatenated LIDAR points (with per-observation counts), planes,
-  indices, camera corners, priors, visibility points, snapshot stamps, intrinsics.
+  indices, optional per-point rings and edge intervals (ragged, with counts), camera corners,
+  priors, visibility points, snapshot stamps, intrinsics.
 
 Floats are stored as float64 and so round-trip bit-exactly.
 """
@@ -74,6 +75,13 @@ def save_problem(path: str | Path, problem: Problem, config: Config | None = Non
     has_idx = [o.indices is not None for o in lo]
     arrays["lidar_indices"], arrays["lidar_indices_counts"] = _concat(
         [o.indices for o in lo if o.indices is not None], (), np.int64)
+    # optional (older version-2 dumps lack them): each point's ring, the edge intervals
+    has_ring = [o.ring is not None for o in lo]
+    arrays["lidar_rings"], arrays["lidar_rings_counts"] = _concat([o.ring for o in lo if o.ring is not None], (),
+                                                                  np.int64)
+    has_edges = [o.edge_rays is not None for o in lo]
+    arrays["lidar_edge_rays"], arrays["lidar_edge_counts"] = _concat(
+        [np.asarray(o.edge_rays, float).reshape(-1, 3, 3) for o in lo if o.edge_rays is not None], (3, 3))
     co = problem.camera_observations
     arrays["camera_corners"], arrays["camera_counts"] = _concat([o.corners_px for o in co], (2,))
     arrays["camera_sensor_snapshot"] = np.array([(o.sensor, o.snapshot) for o in co], np.int64).reshape(-1, 2)
@@ -94,6 +102,8 @@ def save_problem(path: str | Path, problem: Problem, config: Config | None = Non
         rejected=[dict(reason=r.reason, stage=r.stage, sensor=r.sensor, snapshot=r.snapshot)
                   for r in problem.rejected],
         lidar_has_indices=has_idx,
+        lidar_has_rings=has_ring,
+        lidar_has_edges=has_edges,
         visibility_sensors=vis_keys,
         snapshot_bags=[str(b) for b in problem.snapshot_bags],
     )
@@ -104,6 +114,9 @@ def save_problem(path: str | Path, problem: Problem, config: Config | None = Non
     tmp.replace(path)
     log.info("wrote problem dump %s", path)
 
+
+# optional members: (counts, data, (dtype kind, trailing shape) of data)
+_OPTIONAL = (("lidar_rings_counts", "lidar_rings", ("i", ())), ("lidar_edge_counts", "lidar_edge_rays", ("f", (3, 3))))
 
 # Limits for reading a dump (a zip of .npy members): float measurements do not compress 200-fold,
 # so more than that (beyond a small allowance) is a zip bomb, refused before anything is inflated.
@@ -227,6 +240,18 @@ def _check_layout(a: dict, meta: dict, path: Path) -> None:
     if not isinstance(has_idx, list) or len(has_idx) != nl or not all(isinstance(h, bool) for h in has_idx):
         bad("lidar_has_indices")
     counts("lidar_indices_counts", "lidar_indices", sum(has_idx))
+    for flags, (name, data, tail) in (("lidar_has_rings", _OPTIONAL[0]), ("lidar_has_edges", _OPTIONAL[1])):
+        if flags not in meta:  # a dump written before they were kept
+            continue
+        has = meta[flags]
+        if not isinstance(has, list) or len(has) != nl or not all(isinstance(h, bool) for h in has):
+            bad(flags)
+        for m, (kind, t) in ((name, ("i", ())), (data, tail)):
+            if m not in a or a[m].dtype.kind not in (kind, "u" if kind == "i" else kind) or a[m].shape[1:] != t:
+                bad(f"member {m!r}")
+        counts(name, data, sum(has))
+    if "lidar_edge_rays" in a and not np.all(np.isfinite(a["lidar_edge_rays"])):
+        bad("non-finite values in 'lidar_edge_rays'")
     for name, kind in (("lidar_sensor_snapshot", "lidar"), ("camera_sensor_snapshot", "camera")):
         ss = a[name]
         if len(ss) and (ss[:, 0].min() < 0 or ss[:, 0].max() >= nsens or ss[:, 1].min() < 0 or ss[:, 1].max() >= nsnap):
@@ -298,11 +323,21 @@ def load_problem(path: str | Path) -> tuple[Problem, Config]:
         )
         pts = _split(a["lidar_points"], a["lidar_counts"])
         idx = iter(_split(a["lidar_indices"], a["lidar_indices_counts"]))
+        nl = len(a["lidar_sensor_snapshot"])
+
+        def optional(flags, counts, data):  # per observation the array, or None (older dumps: all None)
+            if flags not in meta:
+                return [None] * nl
+            it = iter(_split(a[data], a[counts]))
+            return [next(it) if h else None for h in meta[flags]]
+
+        rings = optional("lidar_has_rings", "lidar_rings_counts", "lidar_rings")
+        edges = optional("lidar_has_edges", "lidar_edge_counts", "lidar_edge_rays")
         lidar = tuple(
             LidarBoardObservation(sensor=int(ss[0]), snapshot=int(ss[1]), points=p, plane=pl,
-                                  rms_m=float(rms), indices=next(idx) if h else None)
-            for ss, p, pl, rms, h in zip(a["lidar_sensor_snapshot"], pts, a["lidar_planes"],
-                                         a["lidar_rms"], meta["lidar_has_indices"])
+                                  rms_m=float(rms), indices=next(idx) if h else None, ring=rg, edge_rays=e)
+            for ss, p, pl, rms, h, rg, e in zip(a["lidar_sensor_snapshot"], pts, a["lidar_planes"],
+                                                a["lidar_rms"], meta["lidar_has_indices"], rings, edges)
         )
         camera = tuple(
             CameraBoardObservation(sensor=int(ss[0]), snapshot=int(ss[1]), corners_px=c)

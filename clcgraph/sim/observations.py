@@ -181,7 +181,8 @@ def _rays(elevations_rad, npoints: int) -> np.ndarray:
 
 def _lidar_hits(model: SimLidar, rt_sensor_board: np.ndarray, board: BoardGeometry, rng, sigma_m: float,
                 errors: CorrelatedErrors = CorrelatedErrors(), ring_bias_m=None, ring_elevation_error_rad=None):
-    """(points (K,3) in the sensor frame, rings (K,)) where the rays meet the board rectangle.
+    """(points (K,3) in the sensor frame, rings (K,), edge intervals (E,2,3): _edge_rays) where the
+    rays meet the board rectangle.
 
     With ``errors``: the rays really leave at the elevations plus ``ring_elevation_error_rad``
     but are reported at the nominal ones, each ring's range is off by ``ring_bias_m``, the
@@ -214,7 +215,48 @@ def _lidar_hits(model: SimLidar, rt_sensor_board: np.ndarray, board: BoardGeomet
         measured[edge] += rng.uniform(0, errors.mixed_pixel_m, int(edge.sum()))
     if sigma_m > 0:
         measured[inside] += rng.normal(0, sigma_m, int(inside.sum()))
-    return u_nominal[inside] * measured[inside, None], ring[inside]
+    return (u_nominal[inside] * measured[inside, None], ring[inside],
+            _edge_rays(model, u_nominal, inside, R, t, board))
+
+
+def _edge_rays(model: SimLidar, u: np.ndarray, inside: np.ndarray, R: np.ndarray, t: np.ndarray,
+               board: BoardGeometry) -> np.ndarray:
+    """(E,3,3) the board's edge intervals (frontend/board_edges.py) at the nominal rays ``u``:
+    each ring's ends on the board with the next ray along the ring, and the middle of the highest
+    (lowest) ring on the board with the ray of the ring above (below) it, with the outward normal
+    of the board side between them (R, t: the board in the sensor frame), away from the corners.
+    No scene: every ray off the board passed behind it."""
+    from ..frontend.board_edges import exit_sides
+
+    n_rings, n_az = len(model.elevations_rad), model.npoints_per_rotation
+    grid = inside.reshape(n_rings, n_az)
+    U = u.reshape(n_rings, n_az, 3)
+    out = []
+    for shift in (-1, 1):  # the ray after (before) each board return, along its ring
+        r, c = np.nonzero(grid & ~np.roll(grid, shift, axis=1))
+        out.append(np.stack([U[r, c], U[r, (c - shift) % n_az]], axis=1))
+    rows = np.flatnonzero(grid.any(axis=1))
+    if len(rows):
+        by_el = np.argsort(model.elevations_rad)
+        rank = np.empty(n_rings, np.int64)
+        rank[by_el] = np.arange(n_rings)
+        for ring, beyond in ((rows[np.argmax(rank[rows])], 1), (rows[np.argmin(rank[rows])], -1)):
+            nb = rank[ring] + beyond
+            if 0 <= nb < n_rings:
+                cols = np.flatnonzero(grid[ring])
+                c = cols[len(cols) // 2]
+                if not grid[by_el[nb], c]:
+                    out.append(np.stack([U[ring, c], U[by_el[nb], c]])[None])
+    rays = np.concatenate(out)
+    n = R[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = (n @ t) / (rays @ n)  # (E,2) where the rays meet the board's plane
+    q = (rays * np.where(rho > 0, rho, 0.0)[..., None] - t) @ R  # (E,2,3) in the board frame
+    xmin, xmax, ymin, ymax = board.extent()
+    ok, axis, sign = exit_sides(q[:, 0, :2], q[:, 1, :2], np.array([xmin, ymin]), np.array([xmax, ymax]))
+    ok &= np.all(rho > 0, axis=1)
+    normal = sign[:, None] * R[:, axis].T
+    return np.concatenate([rays, normal[:, None]], axis=1)[ok]
 
 
 def plane_fit(points: np.ndarray) -> tuple[np.ndarray, float]:
@@ -291,10 +333,12 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
             rt_s_b = compose_rt(invert_rt(rts[i]), rt_b)
             if s.is_lidar:
                 sigma = sigma_lidar_m[i] if np.ndim(sigma_lidar_m) else sigma_lidar_m  # per LIDAR, or one
-                p, ring = _lidar_hits(lidars[i], rt_s_b, board, rng, sigma, errors, ring_bias[i], ring_elevation[i])
+                p, ring, edges = _lidar_hits(lidars[i], rt_s_b, board, rng, sigma, errors, ring_bias[i],
+                                             ring_elevation[i])
                 if len(p) >= min_points and len(np.unique(ring)) >= min_rings:
                     plane, rms = plane_fit(p)
-                    lo.append(LidarBoardObservation(sensor=i, snapshot=k, points=p, plane=plane, rms_m=rms))
+                    lo.append(LidarBoardObservation(sensor=i, snapshot=k, points=p, plane=plane, rms_m=rms, ring=ring,
+                                                    edge_rays=edges))
                     rings_of[(i, k)] = ring
             else:
                 pc = transform(rt_s_b, corners_b)
