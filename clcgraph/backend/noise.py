@@ -147,11 +147,13 @@ class Linearization:
         evaluating the factors again."""
         out = object.__new__(Linearization)
         out.variable_sensors, out.ns, out.local, out.groups = self.variable_sensors, self.ns, self.local, self.groups
-        out.rows = None  # its A, b are the old weights'
-        out.terms = []
-        for snapshot, cols, group, AtA, Atb, btb, rows in self.terms:
+        out.terms, out.rows = [], None if self.rows is None else []
+        for t, (snapshot, cols, group, AtA, Atb, btb, rows) in enumerate(self.terms):
             w = 1.0 if group is None else weights.get(group, 1.0)
             out.terms.append((snapshot, cols, group, w * AtA, w * Atb, w * btb, rows))
+            if self.rows is not None:
+                f, A, b = self.rows[t]
+                out.rows.append((f, None if A is None else np.sqrt(w) * A, None if b is None else np.sqrt(w) * b))
         return out
 
     def with_known(self, db: dict, m: int) -> "Linearization":
@@ -347,10 +349,12 @@ def _profile(lin: Linearization, w: dict, g, base: dict, floor: dict) -> float:
 def _m2l_or_inf(evaluate) -> float:
     """-2 log L_REML from ``evaluate()``, or +inf where the normal matrix at those weights is not
     positive definite (numerically singular: a component's sigma so large that its effects
-    swallow a direction of the fit): no likelihood there, so the profile never picks it."""
+    swallow a direction of the fit; an infinite sigma, whose weight's log is -inf): no likelihood
+    there, so the profile never picks it."""
     try:
-        return float(evaluate())
-    except np.linalg.LinAlgError:
+        with np.errstate(divide="raise"):
+            return float(evaluate())
+    except (np.linalg.LinAlgError, FloatingPointError):
         return float("inf")
 
 
