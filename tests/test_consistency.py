@@ -87,6 +87,28 @@ def test_leave_one_out_statistic_follows_its_chi_square_law():
     assert r.stats["consistency"]["passed"]
 
 
+def test_errors_shared_by_the_parts_are_counted_in_their_comparison():
+    """Two parts of the data whose estimates an error c ~ N(0, I) shared by both moves by
+    different amounts (a consider term: fixed for the capture): with c's columns the statistic
+    follows its chi-square law (mean = dof), without them it is several times too large."""
+    rng = np.random.default_rng(3)
+    n, m, trials = 6, 2, 4000
+    lin = C.Linearized([1], [], np.zeros((n, n)), np.zeros((n, 1)), np.stack([np.eye(3)] * 2), ["/l0", "/s1"])
+    L_a, L_b = rng.normal(size=(n, n)), rng.normal(size=(n, n))
+    H_a, H_b = 1e6 * (L_a @ L_a.T + np.eye(n)), 1e6 * (L_b @ L_b.T + np.eye(n))  # sigmas ~ 1 mm, mrad
+    dg_a, dg_b = 3e3 * rng.normal(size=(n, m)), 3e3 * rng.normal(size=(n, m))  # c moves them by ~ 3 sigma
+    with_c, without = [], []
+    for _ in range(trials):
+        c = rng.normal(size=m)
+        g_a = np.linalg.cholesky(H_a) @ rng.normal(size=n) + dg_a @ c
+        g_b = np.linalg.cholesky(H_b) @ rng.normal(size=n) + dg_b @ c
+        with_c.append(C.compare(lin, H_a, np.c_[g_a, dg_a], H_b, np.c_[g_b, dg_b]).chi2)
+        without.append(C.compare(lin, H_a, g_a, H_b, g_b).chi2)
+    assert np.mean(with_c) == pytest.approx(n, rel=0.05)  # sd of the mean: sqrt(2 n / trials) / n ~ 1 %
+    assert np.mean(np.array(with_c) > 16.81) == pytest.approx(0.01, abs=0.005)  # chi2_6's 99 % point
+    assert np.mean(without) > 2 * n
+
+
 # ---------------------------------------------------------------- item 5: 3 LIDARs, transitive links
 
 

@@ -317,9 +317,8 @@ def test_profile_point_without_a_positive_definite_matrix_counts_as_infinite(ind
     base = {gr: (sig[gr[1]] if gr[0] == "white" else effects[gr[1]][gr[2]]) for gr in lin.groups}
     floor = {gr: (N._white_floor(problem, gr) if gr[0] == "white" else N._FLOOR[gr[2]]) for gr in base}
     w = {gr: 1.0 for gr in base}
-    # a weight of exactly 0 (an infinite sigma) is a genuinely singular normal matrix: numpy raises
-    with pytest.raises(np.linalg.LinAlgError):
-        lin.solve_and_trace({**w, group: 0.0}, trace=False)
+    # a weight of exactly 0 (an infinite sigma) is a genuinely singular normal matrix: numpy's
+    # Cholesky raises, or (rounding) passes and the weight's log gives +inf: +inf either way
     assert N._m2l_or_inf(lambda: lin.solve_and_trace({**w, group: 0.0}, trace=False)[1]) == np.inf
     honest = N._profile(lin, w, group, base, floor)
     assert np.isfinite(honest)

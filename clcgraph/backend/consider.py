@@ -258,6 +258,66 @@ def consider_terms(problem: Problem, build, values, options, S: np.ndarray | Non
     """
     from .noise import Linearization
 
+    wanted, lens = _wanted(problem, values, options)
+    if not wanted and not lens:
+        return {}
+    if S is None:
+        S = Linearization(problem, build(problem), values).reduced()[0]
+    out = {f"lens field {problem.sensors[i].topic}": np.linalg.solve(S, dr)
+           for i, dr in _lens_field_dr(problem, build, values, lens).items()}
+    if not wanted:
+        return out
+
+    def r_of(p):
+        return Linearization(p, build(p), values).reduced()[1]
+
+    # linear in c far beyond 1 sigma: a central difference at +-1 sigma
+    return {**{name: np.stack([np.linalg.solve(S, (r_of(moved(1)) - r_of(moved(-1))) / 2) for moved in dirs], axis=1)
+               for name, dirs in wanted.items()}, **out}
+
+
+def known_columns(problem: Problem, g, values, build, options):
+    """The consider terms' errors as columns of the linearized measurements, for the models that
+    must know them (noise.Linearization.with_known, consistency.linearize): ({factor index of
+    ``g``: (rows, m) the change of its whitened b when the measurements move by +1 sigma along
+    each of the m directions}, m), or None when no term is stated. ``build(problem) -> graph``:
+    ``g`` with other measurements (same masks, sigmas, D). One linearization per direction (the
+    measurements are linear in c far below the noise); the lens field's in closed form."""
+    import gtsam
+
+    wanted, lens = _wanted(problem, values, options)
+    if not wanted and not lens:
+        return None
+    cols: dict = {}  # factor index -> [(column, (rows,))]
+    m = 0
+    if wanted:
+        measured = [f for f in range(g.size()) if not isinstance(g.at(f), gtsam.PriorFactorPose3)]
+        b0 = {f: g.at(f).linearize(values).jacobian()[1] for f in measured}
+        for dirs in wanted.values():
+            for moved in dirs:
+                gm = build(moved(1))
+                for f in measured:
+                    db = gm.at(f).linearize(values).jacobian()[1] - b0[f]
+                    if np.any(db):
+                        cols.setdefault(f, []).append((m, db))
+                m += 1
+    first = {}  # camera -> its first lens-field column
+    for i, modes in lens.items():
+        first[i], m = m, m + 2 * len(modes)
+    for f, i, db in _lens_field_db(problem, g, lens):
+        cols.setdefault(f, []).extend((first[i] + j, db[:, j]) for j in range(db.shape[1]))
+    dense = {}
+    for f, cs in cols.items():
+        G_f = np.zeros((len(cs[0][1]), m))
+        for j, c in cs:
+            G_f[:, j] = c
+        dense[f] = G_f
+    return dense, m
+
+
+def _wanted(problem: Problem, values, options):
+    """({term name: [sign -> the problem moved by sign x 1 sigma along each direction]},
+    {camera: its lens field's modes}) of the terms ``options`` state."""
     wanted = {}  # name -> [problem moved by +1 sigma along a direction, as a function of the sign]
     if options.board_flatness_m > 0:
         wanted["board flatness"] = [lambda sign: _bow_moves(problem, values, sign * options.board_flatness_m)]
@@ -287,21 +347,7 @@ def consider_terms(problem: Problem, build, values, options, S: np.ndarray | Non
         if s.is_camera and s.intrinsics_covariance is not None and np.any(s.intrinsics_covariance):
             wanted[f"intrinsics {s.topic}"] = [lambda sign, i=i, d=d: _intrinsics_moved(problem, i, sign * d)
                                               for d in intrinsics_directions(s.intrinsics_covariance)]
-    if not wanted and not lens:
-        return {}
-    if S is None:
-        S = Linearization(problem, build(problem), values).reduced()[0]
-    out = {f"lens field {problem.sensors[i].topic}": np.linalg.solve(S, dr)
-           for i, dr in _lens_field_dr(problem, build, values, lens).items()}
-    if not wanted:
-        return out
-
-    def r_of(p):
-        return Linearization(p, build(p), values).reduced()[1]
-
-    # linear in c far beyond 1 sigma: a central difference at +-1 sigma
-    return {**{name: np.stack([np.linalg.solve(S, (r_of(moved(1)) - r_of(moved(-1))) / 2) for moved in dirs], axis=1)
-               for name, dirs in wanted.items()}, **out}
+    return wanted, lens
 
 
 def _lens_field_dr(problem: Problem, build, values, lens: dict) -> dict:
@@ -327,28 +373,45 @@ def _lens_field_dr(problem: Problem, build, values, lens: dict) -> dict:
         for b, k in enumerate(ks):
             gain[k] = B[b] @ iL[b]
     sensor_col = {G.sensor_key(i): 6 * a for a, i in enumerate(lin.variable_sensors)}
-    obs = {(o.sensor, o.snapshot): o for o in problem.camera_observations}
     out = {i: np.zeros((ns, 2 * len(modes))) for i, modes in lens.items()}
-    for f in range(g.size()):
+    for f, i, db in _lens_field_db(problem, g, lens):
         factor = g.at(f)
         keys = list(factor.keys())
         syms = [gtsam.Symbol(k) for k in keys]
         chars = [chr(x.chr()) for x in syms]
-        cam = [i for i in lens if G.sensor_key(i) in keys]
-        if not cam or "b" not in chars or "PriorFactor" in type(factor).__name__:
-            continue
-        i = cam[0]
         k = next(int(x.index()) for x, c in zip(syms, chars) if c == "b")
         A, _ = factor.linearize(values).jacobian()
+        cols = np.concatenate([np.arange(6) + (sensor_col[key] if c == "s" else ns + lin.local[k][key])
+                               for key, c in zip(keys, chars)])
+        dv = np.zeros((ns + 6 * len(lin.local[k]), db.shape[1]))
+        np.add.at(dv, cols, A.T @ db)
+        out[i] += dv[:ns] - gain[k] @ dv[ns:]
+    return out
+
+
+def _lens_field_db(problem: Problem, g, lens: dict):
+    """[(factor index, camera, (rows, 2 x modes) the change of its whitened b per unit of each of
+    the camera's lens-field modes, both pixel axes)] over ``g``'s corner factors of the cameras
+    in ``lens``: a camera residual is linear in its corners (whitened ``(q - project) / sigma``)."""
+    import gtsam
+
+    obs = {(o.sensor, o.snapshot): o for o in problem.camera_observations}
+    out = []
+    for f in range(g.size() if lens else 0):
+        factor = g.at(f)
+        keys = list(factor.keys())
+        cam = [i for i in lens if G.sensor_key(i) in keys]
+        if not cam or "PriorFactor" in type(factor).__name__:
+            continue
+        syms = [gtsam.Symbol(k) for k in keys]
+        k = next((int(x.index()) for x in syms if chr(x.chr()) == "b"), None)
+        if k is None:
+            continue
+        i = cam[0]
         q = obs[(i, k)].corners_px
         dq = np.stack([np.c_[m(q), np.zeros(len(q))] if a == 0 else np.c_[np.zeros(len(q)), m(q)]
                        for m in lens[i] for a in (0, 1)], axis=-1).reshape(2 * len(q), -1)  # (rows, modes)
-        db = -_whiten(factor, np.nan_to_num(dq))  # undetected corners: zero rows of A
-        cols = np.concatenate([np.arange(6) + (sensor_col[key] if c == "s" else ns + lin.local[k][key])
-                               for key, c in zip(keys, chars)])
-        dv = np.zeros((ns + 6 * len(lin.local[k]), dq.shape[1]))
-        np.add.at(dv, cols, A.T @ db)
-        out[i] += dv[:ns] - gain[k] @ dv[ns:]
+        out.append((f, i, -_whiten(factor, np.nan_to_num(dq))))  # undetected corners: zero rows of A
     return out
 
 

@@ -68,8 +68,8 @@ class _Obs:
     Hss: np.ndarray | None  # (6,6)
     Hsb: np.ndarray | None  # (6,6)
     Hbb: np.ndarray  # (6,6)
-    gs: np.ndarray | None  # (6,)
-    gb: np.ndarray  # (6,)
+    gs: np.ndarray | None  # (6, 1 + m): the gradient, then its change per unit of each known error
+    gb: np.ndarray  # (6, 1 + m)
 
 
 @dataclass
@@ -79,6 +79,9 @@ class Linearized:
     ``sensors``: the non-reference sensors in column order (6 columns each, GTSAM tangent);
     ``obs``: board-touching observation factors; ``H_global``/``g_global``: everything that
     touches no board (pose priors, extension factors); ``R``: (Nsensors,3,3) rotations.
+    Gradients are (., 1 + m): the data's, then their change per unit of each of the m errors of
+    known variance shared by every snapshot (the consider terms, ``known``), which the
+    comparisons count in.
     """
 
     sensors: list
@@ -102,30 +105,36 @@ class _Unsupported(Exception):
     """A factor the board-by-board split cannot place (an extension factor on two boards)."""
 
 
-def verify(problem: Problem, graph, values, *, alpha: float = FAMILY_ALPHA, refuse: bool = True) -> dict:
+def verify(problem: Problem, graph, values, *, alpha: float = FAMILY_ALPHA, refuse: bool = True,
+           known=None) -> dict:
     """linearize + check: the solve's hook. A graph the checks cannot split (an extension
     factor linking boards) is reported as unchecked, with a warning, not refused. ``refuse``
-    False: a failed verdict is returned (and logged), not raised."""
+    False: a failed verdict is returned (and logged), not raised. ``known``: the consider terms'
+    errors (consider.known_columns), counted in every comparison."""
     try:
-        lin = linearize(problem, graph, values)
+        lin = linearize(problem, graph, values, known)
     except _Unsupported as e:
         log.warning("consistency checks skipped: %s", e)
         return {"passed": None, "skipped": str(e)}
     return check(problem, lin, alpha=alpha, refuse=refuse)
 
 
-def linearize(problem: Problem, graph, values) -> Linearized:
-    """Per-factor normal-equation blocks of ``graph`` at ``values`` (see Linearized)."""
+def linearize(problem: Problem, graph, values, known=None) -> Linearized:
+    """Per-factor normal-equation blocks of ``graph`` at ``values`` (see Linearized). ``known``:
+    ({factor index: (rows, m) change of its whitened b per unit of each known error}, m)
+    (consider.known_columns), or None."""
     import gtsam
 
     sensors = [i for i in range(len(problem.sensors)) if i != problem.reference]
     n = 6 * len(sensors)
     col = {i: 6 * k for k, i in enumerate(sensors)}
     lin = graph.linearize(values)
-    H_global, g_global = np.zeros((n, n)), np.zeros(n)
+    db, m = known or ({}, 0)
+    H_global, g_global = np.zeros((n, n)), np.zeros((n, 1 + m))
     obs, effects = [], {}
     for f in range(lin.size()):
         A, b = lin.at(f).jacobian()
+        b = np.c_[b, db[f]] if f in db else np.c_[b, np.zeros((len(b), m))]
         keys = [gtsam.Symbol(k) for k in lin.at(f).keys()]
         cols = {}
         for j, s in enumerate(keys):
@@ -172,7 +181,7 @@ def _condensed(problem: Problem, ekey, parts) -> _Obs:
     if len(boards) != 1 or len(sens) > 1:
         raise _Unsupported(f"an observation error {ekey} on {len(boards)} boards and {len(sens)} sensors")
     order = [("s", k) for k in sens] + [("b", boards[0]), ekey]
-    H, g = np.zeros((6 * len(order),) * 2), np.zeros(6 * len(order))
+    H, g = np.zeros((6 * len(order),) * 2), np.zeros((6 * len(order), parts[0][1].shape[1]))
     for A, b, cols in parts:  # each factor's A^T A scattered into the observation's columns (no padded copy of A)
         src = np.concatenate([np.arange(cols[key].start, cols[key].stop) for key in order if key in cols])
         dst = np.concatenate([np.arange(6 * j, 6 * j + 6) for j, key in enumerate(order) if key in cols])
@@ -181,7 +190,8 @@ def _condensed(problem: Problem, ekey, parts) -> _Obs:
         g[dst] += As.T @ b
     Hxe = H[:-6, -6:]
     X = np.linalg.solve(H[-6:, -6:], np.c_[Hxe.T, g[-6:]])  # D's prior keeps H_ee positive definite
-    Hc, gc = H[:-6, :-6] - Hxe @ X[:, :-1], g[:-6] - Hxe @ X[:, -1]
+    nx = Hxe.shape[0]
+    Hc, gc = H[:-6, :-6] - Hxe @ X[:, :nx], g[:-6] - Hxe @ X[:, nx:]
     if sens:
         return _Obs(sens[0], boards[0], False, Hc[:6, :6], Hc[:6, 6:], Hc[6:, 6:], gc[:6], gc[6:])
     return _Obs(problem.reference, boards[0], False, None, None, Hc, None, gc)
@@ -199,8 +209,9 @@ def _schur(lin: Linearized, group: list) -> tuple[np.ndarray, np.ndarray]:
     ``group``, that board profiled out (its own copy: the group's alone)."""
     sens = sorted({o.sensor for o in group if o.Hss is not None})
     m = 6 * len(sens)
-    Hss, Hsb, gs = np.zeros((m, m)), np.zeros((m, 6)), np.zeros(m)
-    Hbb, gb = np.zeros((6, 6)), np.zeros(6)
+    ng = lin.g_global.shape[1]
+    Hss, Hsb, gs = np.zeros((m, m)), np.zeros((m, 6)), np.zeros((m, ng))
+    Hbb, gb = np.zeros((6, 6)), np.zeros((6, ng))
     for o in group:
         Hbb += o.Hbb
         gb += o.gb
@@ -210,7 +221,7 @@ def _schur(lin: Linearized, group: list) -> tuple[np.ndarray, np.ndarray]:
             Hsb[j:j + 6] += o.Hsb
             gs[j:j + 6] += o.gs
     P = _pinv_psd(Hbb)
-    H, g = np.zeros((lin.n, lin.n)), np.zeros(lin.n)
+    H, g = np.zeros((lin.n, lin.n)), np.zeros((lin.n, ng))
     idx = np.concatenate([np.arange(lin.col(i).start, lin.col(i).stop) for i in sens]) if sens else np.zeros(0, int)
     H[np.ix_(idx, idx)] = Hss - Hsb @ P @ Hsb.T
     g[idx] = gs - Hsb @ P @ gb
@@ -221,7 +232,7 @@ def information(lin: Linearized) -> tuple[np.ndarray, np.ndarray, dict]:
     """(total information (n,n), total gradient (n,), {snapshot: (info, gradient)})."""
     per = {k: _schur(lin, grp) for k, grp in lin.by_snapshot.items()}
     H = lin.H_global + sum((h for h, _ in per.values()), np.zeros((lin.n, lin.n)))
-    g = lin.g_global + sum((x for _, x in per.values()), np.zeros(lin.n))
+    g = lin.g_global + sum((x for _, x in per.values()), np.zeros_like(lin.g_global))
     return H, g, per
 
 
@@ -277,12 +288,19 @@ def compare(lin: Linearized, H_a, g_a, H_b, g_b, *, sum_pinv: np.ndarray | None 
     Each part's estimate is one Gauss-Newton step, x = H^+ g; their difference is weighed
     by the parallel sum H_a (H_a + H_b)^+ H_b, which counts only directions both parts
     determine. None when they share no such direction (nothing to check).
-    ``sum_pinv``: (H_a + H_b)^+, when already computed.
+    ``sum_pinv``: (H_a + H_b)^+, when already computed. Gradients (n, 1 + m): the errors of
+    known variance shared by both parts (columns 1..m, per unit) move their estimates by
+    different amounts, so the difference's covariance is M^+ + D D^T (D their effect on it),
+    its weight M - M D (I + D^T M D)^-1 D^T M (Woodbury).
     """
     from scipy.special import chdtrc, ndtri  # not scipy.stats: 2 s to import
 
     delta = _pinv_psd(H_a, _MIN_INFORMATION) @ g_a - _pinv_psd(H_b, _MIN_INFORMATION) @ g_b
+    delta, D = (delta[:, 0], delta[:, 1:]) if delta.ndim == 2 else (delta, delta[:, None][:, :0])
     M = H_a @ (_pinv_psd(H_a + H_b) if sum_pinv is None else sum_pinv) @ H_b
+    if D.shape[1]:
+        MD = M @ D
+        M = M - MD @ np.linalg.solve(np.eye(D.shape[1]) + D.T @ MD, MD.T)
     w, V = np.linalg.eigh(0.5 * (M + M.T))
     keep = w > _MIN_INFORMATION
     if not keep.any():

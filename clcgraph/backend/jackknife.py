@@ -58,8 +58,11 @@ def _axes(C_model: np.ndarray, C_jk: np.ndarray, scale: float, expected_var) -> 
             "expected": centre, "expected_95": centre[:, None] * np.sqrt(q)}
 
 
-def jackknife(problem, lin, rt_lidar0_sensor: np.ndarray, covariance_rt: np.ndarray) -> dict:
-    """Leave-one-snapshot-out spread vs the model covariance (module doc); {} if < 4 snapshots."""
+def jackknife(problem, lin, rt_lidar0_sensor: np.ndarray, covariance_rt: np.ndarray, known=None) -> dict:
+    """Leave-one-snapshot-out spread vs the model covariance (module doc); {} if < 4 snapshots.
+    ``known``: ``lin`` with the stated consider terms' errors (noise.Linearization.with_known):
+    fixed for the capture, they still move each leave-one-out answer by its own amount (a ring
+    trend tilts each board by its own b / range), so the expected ratio counts them in."""
     S, r, parts = lin.reduced()
     if lin.ns == 0 or len(parts) < _MIN_SNAPSHOTS:
         return {}
@@ -93,6 +96,15 @@ def jackknife(problem, lin, rt_lidar0_sensor: np.ndarray, covariance_rt: np.ndar
     # O(n^2) products of ns-vectors: no (n, n, ns, ns) tensor.
     A = np.array([A[k] for k in ks])  # (n, ns, ns)
     S_k = np.array([parts[k][0] for k in ks])
+    # the known errors c ~ N(0, I) move leaving k out by J ((S - S_k)^-1 (dr - dr_k) - S^-1 dr) per unit
+    # (dr/dc: the sensors-to-c block of the augmented normal equations); independent of the r_j
+    dev_c = np.zeros((n, lin.ns, 0))
+    if known is not None:
+        Sa, _, pa = known.reduced()
+        ns = lin.ns
+        dR = Sa[:ns, ns:]
+        mc = np.array([J @ (np.linalg.solve(S - parts[k][0], dR - pa[k][0][:ns, ns:]) - Si @ dR) for k in ks])
+        dev_c = mc - mc.mean(axis=0)  # (n, ns, m)
 
     def expected_var(W):  # W (ns, a): directions in rt -> (E, Var) of the jackknife variance along each
         U = J.T @ W  # tangent
@@ -109,7 +121,8 @@ def jackknife(problem, lin, rt_lidar0_sensor: np.ndarray, covariance_rt: np.ndar
         cov = (beta @ S @ beta.transpose(0, 2, 1) + bh[:, :, None] + bh[:, None, :] + p[:, None, None]
                - n * (cross + cross.transpose(0, 2, 1)) - n * (e[:, :, None] + e[:, None, :])
                + n**2 * e[:, :, None] * np.eye(n))
-        cov = (n - 1) / n * cov  # of the moves' deviations along each direction, (a, k, l)
+        a_c = np.einsum("xa,kxc->akc", W, dev_c)  # the known errors' part, along each direction
+        cov = (n - 1) / n * (cov + a_c @ a_c.transpose(0, 2, 1))  # of the moves' deviations along each, (a, k, l)
         return np.einsum("akk->a", cov), 2 * np.einsum("akl,alk->a", cov, cov)
 
     sensors, worst = {}, None

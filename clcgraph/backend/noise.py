@@ -106,6 +106,7 @@ class Linearization:
         comp = components(problem)
         self.local: dict[int, dict] = {}  # snapshot -> {key: column offset after the sensors}
         self.terms = []
+        self.rows = []  # per term: (factor index, its whitened A, b), for with_known
         symbols: dict = {}  # key -> gtsam.Symbol, decoded once
         for f in range(g.size()):
             factor = g.at(f)
@@ -137,6 +138,7 @@ class Linearization:
                 Ar, br = (A, b) if rows is None else (A[rows], b[rows])
                 n = int(np.count_nonzero(np.any(Ar != 0, axis=1)))  # masked corners are zero rows
                 self.terms.append((snapshot, cols, group, Ar.T @ Ar, Ar.T @ br, float(br @ br), n))
+                self.rows.append((f, Ar if rows is None else None, br if rows is None else None))
         self.groups = sorted({t[2] for t in self.terms if t[2] is not None}, key=str)
 
     def reweighted(self, weights: dict) -> "Linearization":
@@ -145,10 +147,41 @@ class Linearization:
         evaluating the factors again."""
         out = object.__new__(Linearization)
         out.variable_sensors, out.ns, out.local, out.groups = self.variable_sensors, self.ns, self.local, self.groups
-        out.terms = []
-        for snapshot, cols, group, AtA, Atb, btb, rows in self.terms:
+        out.terms, out.rows = [], None if self.rows is None else []
+        for t, (snapshot, cols, group, AtA, Atb, btb, rows) in enumerate(self.terms):
             w = 1.0 if group is None else weights.get(group, 1.0)
             out.terms.append((snapshot, cols, group, w * AtA, w * Atb, w * btb, rows))
+            if self.rows is not None:
+                f, A, b = self.rows[t]
+                out.rows.append((f, None if A is None else np.sqrt(w) * A, None if b is None else np.sqrt(w) * b))
+        return out
+
+    def with_known(self, db: dict, m: int) -> "Linearization":
+        """The system with ``m`` errors of known variance c ~ N(0, I) added as random effects
+        shared by every snapshot (the consider terms: errors fixed for the capture), for the
+        variance components only: ``db`` {factor index: (rows, m) change of its whitened b per
+        unit c}. c is appended to the sensors' columns (global, like them) with its unit prior
+        (fixed weight), so the REML and VCE give D and the white noise only what c does not
+        explain; D's sigmas estimated without c take the part of a fixed error that looks
+        different on each board (a ring trend tilts each board by its own amount) and the
+        consider term then adds it again (docs/uncertainty.md). A factor's G scales with its
+        group's weight like its A: it is whitened by the same sigma."""
+        out = object.__new__(Linearization)
+        ns = self.ns + m
+        out.variable_sensors, out.ns, out.local, out.groups = self.variable_sensors, ns, self.local, self.groups
+        out.rows = None
+        c = np.arange(self.ns, ns)
+        out.terms = []
+        for (snapshot, cols, group, AtA, Atb, btb, n), (f, A, b) in zip(self.terms, self.rows):
+            cols = np.where(cols >= self.ns, cols + m, cols)
+            G = db.get(f) if A is not None else None
+            if G is None:
+                out.terms.append((snapshot, cols, group, AtA, Atb, btb, n))
+                continue
+            AtG = A.T @ G
+            out.terms.append((snapshot, np.r_[cols, c], group, np.block([[AtA, AtG], [AtG.T, G.T @ G]]),
+                              np.r_[Atb, G.T @ b], btb, n))
+        out.terms.append((None, c, None, np.eye(m), np.zeros(m), 0.0, 0))
         return out
 
     def _batches(self):
@@ -316,10 +349,12 @@ def _profile(lin: Linearization, w: dict, g, base: dict, floor: dict) -> float:
 def _m2l_or_inf(evaluate) -> float:
     """-2 log L_REML from ``evaluate()``, or +inf where the normal matrix at those weights is not
     positive definite (numerically singular: a component's sigma so large that its effects
-    swallow a direction of the fit): no likelihood there, so the profile never picks it."""
+    swallow a direction of the fit; an infinite sigma, whose weight's log is -inf): no likelihood
+    there, so the profile never picks it."""
     try:
-        return float(evaluate())
-    except np.linalg.LinAlgError:
+        with np.errstate(divide="raise"):
+            return float(evaluate())
+    except (np.linalg.LinAlgError, FloatingPointError):
         return float("inf")
 
 

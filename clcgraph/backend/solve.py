@@ -264,7 +264,16 @@ def _solve_with_effects(problem, active, rt_sensor, rt_board, sig, options, nomi
                        effect_values=values)
         # which components the data show is decided once, on the first linearization
         at = N.Linearization(problem, g, v)
-        new_sig, new_effects, _ = N.estimate_components(problem, at, sig, effects, select=rnd == 0)
+
+        def rebuild(p, rt_sensor=rt_sensor, rt_board=rt_board, sig=sig, effects=effects, values=values):
+            return G.build(p, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig, sigma_camera_px=sig,
+                           options=options, board_nominal=nominal, effects=N.effect_sigmas(problem, effects),
+                           effect_values=values)[0]
+
+        # the consider terms' errors are in the data too: D and the white noise get what they leave
+        known = consider.known_columns(problem, g, v, rebuild, options)
+        new_sig, new_effects, _ = N.estimate_components(problem, at.with_known(*known) if known else at, sig, effects,
+                                                        select=rnd == 0)
         change = max([float(np.max(np.abs(new_sig / sig - 1)))]
                      + [abs(new_effects[i][c] / effects[i][c] - 1) for i in effects for c in effects[i]])
         if change < 0.03 and values is not None:  # weights within 3 %: the estimate stands; the graph
@@ -406,15 +415,19 @@ def calibrate(problem: Problem, options) -> Result:
     times["covariance"] = time.perf_counter() - t
     t = time.perf_counter()
     lin = lin or N.Linearization(problem, g, values)  # the noise components' own, when it is at the final values
-    # the jackknife judges the board-to-board part: it cannot see errors fixed for the capture
-    jk = jackknife(problem, lin, rt_sensor, cov)
-    times["jackknife"] = time.perf_counter() - t
-    t = time.perf_counter()
     effect_sig = None if effects is None else N.effect_sigmas(problem, effects)
 
     def rebuild(p):  # the final graph of p: the same masks, sigmas and D, other measurements
         return G.build(p, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig, sigma_camera_px=sig,
                        options=options, board_nominal=nominal, effects=effect_sig, effect_values=values)[0]
+
+    # the consider terms' errors as columns of the final linearization: the jackknife's expected
+    # ratio and the consistency checks count them in
+    known = consider.known_columns(problem, g, values, rebuild, options)
+    # the jackknife judges the board-to-board part: it cannot see the common part of errors fixed for the capture
+    jk = jackknife(problem, lin, rt_sensor, cov, known=lin.with_known(*known) if known else None)
+    times["jackknife"] = time.perf_counter() - t
+    t = time.perf_counter()
 
     terms = consider.consider_terms(problem, rebuild, values, options, S=lin.reduced()[0])
     cov, uncertainty_terms = consider.add_terms(problem, rt_sensor, cov, terms)
@@ -436,7 +449,8 @@ def calibrate(problem: Problem, options) -> Result:
                    "stages": [public(r) for r in stages], "warnings": warnings}
     t = time.perf_counter()
     verdict = consistency.verify(problem, g, values, alpha=options.consistency_alpha,
-                                 refuse=options.refuse_inconsistent)
+                                 refuse=options.refuse_inconsistent,
+                                 known=known)
     times["consistency"] = time.perf_counter() - t
 
     lid, cam = G.residuals(problem, rt_sensor, rt_board)
