@@ -2,7 +2,7 @@
 
     python -m bench.backend_equivalence                  # against `main` (git archive into build/)
     python -m bench.backend_equivalence --reference 3cca1e0 --cases 24x2+3 240x3+5 --repeats 3
-    OPENBLAS_NUM_THREADS=1 python -m bench.backend_equivalence --rounds 4 --cases 24x2+3
+    python -m bench.backend_equivalence --rounds 4 --cases 24x2+3
 
 Each case (poses x lidars+cameras, bench/bench_solve.py's simulated problems) is solved by the
 reference revision and by this tree, each in its own process, and the results compared:
@@ -11,8 +11,9 @@ every other number of the result (noise, rms, consistency verdict, jackknife, un
 within 1e-6 relative, every string (verdicts, rejection reasons, directions) identical. It
 prints a table per case: stage, CPU s before, CPU s after, ratio (solve.py's own stage timers
 fed ``time.process_time``: the best of ``--repeats`` solves in each of ``--rounds`` alternating
-processes; wall time on a loaded machine says little, and OpenBLAS's threads spinning on small
-matrices add CPU that varies with the load, so ``OPENBLAS_NUM_THREADS=1`` steadies the figures).
+processes; wall time on a loaded machine says little). Both solve with BLAS on one thread, as
+``clcgraph.calibrate`` runs them (OpenBLAS's threads spinning on small matrices add CPU that
+varies with the load).
 Exit 1 if any result differs.
 """
 
@@ -36,6 +37,8 @@ import numpy as np
 from clcgraph.config import Config
 from clcgraph.sim import observations as sim
 import clcgraph.backend.solve as S
+from threadpoolctl import threadpool_limits as _limits
+single_threaded_blas = lambda: _limits(limits=1, user_api="blas")  # clcgraph.determinism's (older trees lack it)
 
 n, nl, nc, repeats, out = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), sys.argv[5]
 rig = None if (nl, nc) == (2, 3) else sim.make_rig(n_lidars=nl, n_cameras=nc)
@@ -44,7 +47,8 @@ S.time = types.SimpleNamespace(perf_counter=time.process_time)  # the stage time
 best = {}
 for _ in range(repeats):
     c0 = time.process_time()
-    r = S.calibrate(problem, Config().solve)
+    with single_threaded_blas():  # as clcgraph.calibrate runs it
+        r = S.calibrate(problem, Config().solve)
     cpu = time.process_time() - c0
     for k, v in {**r.stats["time_s"], "total": cpu}.items():
         best[k] = min(best.get(k, float("inf")), v)

@@ -1,6 +1,7 @@
 """Backend solve time vs problem size (``python -m bench solve``).
 
 Cases: the demo-sized rig (2 LIDARs + 3 cameras, 24 board poses) up to 240 poses x 8 sensors.
+The solve runs with BLAS on one thread, as ``clcgraph.calibrate`` runs it (clcgraph/determinism.py).
 Prints a table with the time per solve (best of a few runs for the small cases; wall and this
 process's CPU), the number of observations, and the growth exponent between consecutive cases:
 CPU time ~ Nobs^exponent (CPU: wall time on a loaded machine says little).
@@ -28,11 +29,13 @@ def _time(problem, repeats: int) -> tuple[float, float]:
     """(wall s, CPU s) of the best of ``repeats`` solves (CPU: this process's, the figure that
     means something on a loaded machine)."""
     from clcgraph.backend.solve import calibrate
+    from clcgraph.determinism import single_threaded_blas
 
     best, best_cpu = math.inf, math.inf
     for _ in range(repeats):
         t0, c0 = time.perf_counter(), time.process_time()
-        calibrate(problem, Config().solve)
+        with single_threaded_blas():  # as clcgraph.calibrate runs it
+            calibrate(problem, Config().solve)
         best, best_cpu = min(best, time.perf_counter() - t0), min(best_cpu, time.process_time() - c0)
     return best, best_cpu
 

@@ -55,6 +55,47 @@ def test_optimize_lm_says_how_it_stopped_and_matches_gtsam():
     assert rec1["cost_final"] > 1e-6  # it really was still far from the minimum
 
 
+def test_optimize_lm_hands_factors_the_values_python_holds():
+    # GTSAM's binding copies a Values Python does not hold into every CustomFactor callback:
+    # inside GTSAM's own optimizer that cost (factors x variables) per linearization, the
+    # solve's largest cost at 240 poses x 8 sensors. optimize_lm's callbacks see Python's
+    # Values (one per accepted step), and it still lands where GTSAM's optimizer does.
+    import gtsam
+
+    from clcgraph.backend.convergence import optimize_lm
+
+    seen = []
+    targets = [np.array([1.0 + k, -2.0 * k, 0.5]) for k in range(8)]
+
+    def translation_at(target, key):
+        def fn(this, values, H):
+            seen.append(values)  # kept alive: a copy is a new object per call
+            T = values.atPose3(key)
+            if H is not None:
+                H[0] = np.c_[np.zeros((3, 3)), T.rotation().matrix()]
+            return T.translation() - target
+        return fn
+
+    g = gtsam.NonlinearFactorGraph()
+    v = gtsam.Values()
+    for k, t in enumerate(targets):
+        g.add(gtsam.PriorFactorPose3(k, gtsam.Pose3(gtsam.Rot3.Rz(0.2 * k), np.zeros(3)),
+                                     gtsam.noiseModel.Diagonal.Sigmas(np.r_[0.01, 0.01, 0.01, 1e3, 1e3, 1e3])))
+        g.add(gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(3, 0.1), gtsam.KeyVector([k]), translation_at(t, k)))
+        v.insert(k, gtsam.Pose3(gtsam.Rot3.Rz(0.5), np.array([0.0, 3.0, -1.0])))
+    out, rec = optimize_lm(g, v, _params(100), stage="test")
+    n_ours = len({id(x) for x in seen})
+    seen.clear()
+    ref = gtsam.LevenbergMarquardtOptimizer(g, v, _params(100)).optimize()
+    n_gtsam = len({id(x) for x in seen})
+    assert rec["converged"]
+    for k, t in enumerate(targets):
+        np.testing.assert_allclose(out.atPose3(k).translation(), t, atol=1e-6)
+        assert out.atPose3(k).equals(ref.atPose3(k), 1e-9)
+    assert n_ours <= rec["iterations"] + 3  # the start, each accepted step, a rejected trial or two
+    assert n_gtsam >= 2 * n_ours  # GTSAM's own loop: a fresh copy per callback
+
+
 def test_step_sigma_is_the_mahalanobis_length_of_the_last_step():
     import gtsam
 

@@ -154,6 +154,8 @@ class Linearization:
             if self.rows is not None:
                 f, A, b = self.rows[t]
                 out.rows.append((f, None if A is None else np.sqrt(w) * A, None if b is None else np.sqrt(w) * b))
+        if getattr(self, "_batch_cache", None) is not None:
+            out._batch_cache = _reweighted_batches(self._batch_cache, self._weights(self._batch_cache[0], weights))
         return out
 
     def with_known(self, db: dict, m: int) -> "Linearization":
@@ -306,6 +308,18 @@ class Linearization:
         m2l = logdet + float(np.sum(q)) - float(np.sum(nrows[1:] * np.log(wv[1:])))
         out = {g: [int(nrows[a]), float(q[a]), float(tr[a])] for a, g in enumerate(groups) if g is not None}
         return out, m2l
+
+
+def _reweighted_batches(cache, wv: np.ndarray):
+    """Linearization._batches' cache with group g's columns scaled by wv[g]: the batches of the
+    reweighted terms without assembling them again (the same numbers up to rounding)."""
+    from scipy.sparse import diags
+
+    groups, batches, (M0, v0, btb0, rows0) = cache
+    W = diags(wv)
+    out = [(ks, n, (M @ W).tocsr(), (v @ W).tocsr(), (W @ MT).tocsr(), (W @ vT).tocsr(), btb * wv[:, None], rows)
+           for ks, n, M, v, MT, vT, btb, rows in batches]
+    return groups, out, (M0 * wv[:, None, None], v0 * wv[:, None], btb0 * wv, rows0)
 
 
 def _logdet(M: np.ndarray) -> float:

@@ -37,16 +37,18 @@ def make_factor(keys: Sequence[int], noise_model, residual_fn: ResidualFn):
     keys = [int(k) for k in keys]
     # The last evaluation, by the exact poses it was made at: the solve linearizes the same
     # graph at the same values several times (Marginals, the consistency checks, the final
-    # cost), and a residual is a pure function of its poses.
+    # cost), and a residual is a pure function of its poses. The Jacobians are made with every
+    # evaluation, even when only the error is asked for: LM evaluates the error at its trial
+    # point and, the step accepted (nearly always), linearizes there next.
     last = {"at": None, "err": None, "jac": None}
 
     def error(this, values, H):
         poses = [values.atPose3(k) for k in keys]
         at = b"".join(p.matrix().tobytes() for p in poses)
-        if at != last["at"] or (H is not None and last["jac"] is None):
-            err, jac = residual_fn(poses, H is not None)
+        if at != last["at"]:
+            err, jac = residual_fn(poses, True)
             last["at"], last["err"] = at, np.asarray(err, dtype=float)
-            last["jac"] = None if H is None else [np.ascontiguousarray(J, dtype=float) for J in jac]
+            last["jac"] = [np.ascontiguousarray(J, dtype=float) for J in jac]
         if H is not None:
             for i, J in enumerate(last["jac"]):
                 H[i] = J

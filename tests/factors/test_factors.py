@@ -268,8 +268,9 @@ def test_lidar_board_error_d_tilts_about_the_board_centre():
 
 def test_factor_reuses_its_last_evaluation_only_at_the_same_poses():
     # make_factor keeps its last evaluation (the solve linearizes one graph at the same values
-    # several times): the same poses give the same error and Jacobians without a call, other
-    # poses a fresh evaluation, an error-only call never serves a Jacobian request
+    # several times, and LM linearizes where it last evaluated the error): the same poses give
+    # the same error and Jacobians without a call, other poses a fresh evaluation, always with
+    # the Jacobians (so an error-only call serves the next linearization at the same poses)
     import gtsam
 
     from clcgraph.factors.base import make_factor
@@ -285,18 +286,23 @@ def test_factor_reuses_its_last_evaluation_only_at_the_same_poses():
     v = gtsam.Values()
     v.insert(gtsam.symbol("s", 1), gtsam.Pose3(gtsam.Rot3.Rz(0.3), np.array([1.0, 2.0, 3.0])))
     e0 = f.error(v)
-    assert calls == [False]
-    assert f.error(v) == e0 and calls == [False]
+    assert e0 == pytest.approx(0.5 * np.sum((np.array([1.0, 2.0, 3.0]) / 0.5) ** 2))
+    assert calls == [True]
+    assert f.error(v) == e0 and calls == [True]
     A, b = f.linearize(v).jacobian()
-    assert calls == [False, True]
+    assert calls == [True]
     A2, b2 = f.linearize(v).jacobian()
-    assert calls == [False, True]
+    assert calls == [True]
     np.testing.assert_array_equal(A2, A)
     np.testing.assert_array_equal(b2, b)
     np.testing.assert_allclose(A[:, 3:], 2.0 * gtsam.Rot3.Rz(0.3).matrix())  # whitened by 1/0.5
+    np.testing.assert_allclose(b, -np.array([1.0, 2.0, 3.0]) / 0.5)
     w = gtsam.Values()
     w.insert(gtsam.symbol("s", 1), gtsam.Pose3(gtsam.Rot3.Rz(0.3), np.array([1.0, 2.0, 3.5])))
     assert f.error(w) == pytest.approx(0.5 * np.sum((np.array([1.0, 2.0, 3.5]) / 0.5) ** 2))
-    assert calls == [False, True, False]
-    f.linearize(w)
-    assert calls == [False, True, False, True]
+    assert calls == [True, True]
+    _, b3 = f.linearize(w).jacobian()
+    assert calls == [True, True]
+    np.testing.assert_allclose(b3, -np.array([1.0, 2.0, 3.5]) / 0.5)
+    f.linearize(v)  # back at the first poses: evaluated again
+    assert calls == [True, True, True]
