@@ -323,6 +323,22 @@ def pair_unit_errors(ua: dict, ub: dict) -> tuple[list, np.ndarray, np.ndarray]:
     return union, ia, ib
 
 
+def paired_sensitivities(topic: str, rt_a, rt_b, ua: dict, ub: dict) -> tuple[list, np.ndarray, np.ndarray]:
+    """(the union of the named errors, (6, K) J_A, (6, K) J_B): how one sensor's pose in A and in B moves
+    per unit of each error, in each side's tangent (sensor_change's coordinates); 0 where a side does not name it."""
+    from .geometry import drt_dxi
+
+    union, ia, ib = pair_unit_errors(ua, ub)
+
+    def tangent(u, idx, rt):
+        J = np.zeros((6, len(union)))
+        if topic in u["J"]:
+            J[:, idx] = np.linalg.solve(drt_dxi(np.asarray(rt, float)), u["J"][topic])
+        return J
+
+    return union, tangent(ua, ia, rt_a), tangent(ub, ib, rt_b)
+
+
 def unit_error_term(topic: str, rt_a, rt_b, ua: dict, ub: dict, sigma: dict, *, same_units: bool = True) -> np.ndarray:
     """(6,6) what the units' errors add to the covariance of one sensor's difference (tangent, as
     sensor_change's Sigma), beyond what the two covariances already hold.
@@ -334,21 +350,11 @@ def unit_error_term(topic: str, rt_a, rt_b, ua: dict, ub: dict, sigma: dict, *, 
     independent draws, ``J_A (S - S_A) J_A^T + J_B (S - S_B) J_B^T``. J in each side's tangent
     (``drt_dxi`` inverted: the coordinates sensor_change tests in).
     """
-    from .geometry import drt_dxi
-
-    union, ia, ib = pair_unit_errors(ua, ub)
+    union, Ja, Jb = paired_sensitivities(topic, rt_a, rt_b, ua, ub)
     kinds = [_kind(e[1]) for e in union]
     s2 = np.array([sigma.get(k, 0.0) for k in kinds]) ** 2
     sa2 = np.array([ua["sigma_in_covariance"].get(k, 0.0) for k in kinds]) ** 2
     sb2 = np.array([ub["sigma_in_covariance"].get(k, 0.0) for k in kinds]) ** 2
-
-    def tangent(u, idx, rt):
-        J = np.zeros((6, len(union)))
-        if topic in u["J"]:
-            J[:, idx] = np.linalg.solve(drt_dxi(np.asarray(rt, float)), u["J"][topic])
-        return J
-
-    Ja, Jb = tangent(ua, ia, rt_a), tangent(ub, ib, rt_b)
     if same_units:
         D = Ja - Jb
         term = (D * s2) @ D.T - (Ja * sa2) @ Ja.T - (Jb * sb2) @ Jb.T

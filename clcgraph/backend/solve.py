@@ -436,9 +436,6 @@ def calibrate(problem: Problem, options) -> Result:
     terms = consider.consider_terms(problem, rebuild, values, options, S=S)
     cov, uncertainty_terms = consider.add_terms(problem, rt_sensor, cov, terms)
     times["consider"] = time.perf_counter() - t
-    t = time.perf_counter()
-    unit_errors = _unit_errors(problem, rebuild, values, S, rt_sensor, options)
-    times["unit_error_sensitivities"] = time.perf_counter() - t
     final = stages[-1]
     step = _final_step_sigma(problem, final.pop("_last_step"), values, rt_sensor, cov)
     for r in stages:
@@ -458,6 +455,9 @@ def calibrate(problem: Problem, options) -> Result:
     verdict = consistency.verify(problem, g, values, alpha=options.consistency_alpha,
                                  refuse=options.refuse_inconsistent)
     times["consistency"] = time.perf_counter() - t
+    t = time.perf_counter()  # after the verdict: a refused capture needs none
+    unit_errors = _unit_errors(problem, rebuild, values, S, rt_sensor, options)
+    times["unit_error_sensitivities"] = time.perf_counter() - t
 
     lid, cam = G.residuals(problem, rt_sensor, rt_board)
     rl, rc = _active_residuals(lid, cam, active)
