@@ -370,10 +370,15 @@ def _unit_errors_words(pa: PoseSet, pb: PoseSet, sigma: dict, same_units: bool) 
     if pa.unit_errors is None or pb.unit_errors is None:
         return (f"not in the test: only {'A' if pb.unit_errors is None else 'B'} names its units' errors "
                 "(the other: targetless, a nominal pose set or an older calibration)")
-    n = len(pair_unit_errors(pa.unit_errors, pb.unit_errors)[0])
+    union, ia, ib = pair_unit_errors(pa.unit_errors, pb.unit_errors)
+    both = len(ia) + len(ib) - len(union)
     how = "same units, shared draw" if same_units else "units replaced, independent draws"
-    return (f"{n} named errors of the units paired ({how}; 1-sigma: ring range bias {1e3 * sigma['ring range bias']:g} mm, "
-            f"ring elevation {np.degrees(sigma['ring elevation']):g} deg, lens field {sigma['lens field']:g} px)")
+    # many errors named by one side only: rings at other elevations (another LIDAR model) or another camera
+    one = f", {len(union) - both} named by one side only (a ring no board of the other capture met" + \
+        ("; or other units: compare.same_units=false)" if len(union) - both > both else ")") if len(union) > both else ""
+    return (f"{both} named errors of the units paired{one} ({how}; 1-sigma: ring range bias "
+            f"{1e3 * sigma['ring range bias']:g} mm, ring elevation {np.degrees(sigma['ring elevation']):g} deg, "
+            f"lens field {sigma['lens field']:g} px)")
 
 
 def compare(a, b, *, config=None) -> Comparison:

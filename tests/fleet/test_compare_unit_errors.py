@@ -84,7 +84,7 @@ def test_compare_adds_the_paired_term_to_the_difference_covariance(captures):
                                          "unit_lens_field_px": 0}})
     c, c0 = compare(ra, rb, config=cfg), compare(ra, rb, config=none)
     ua, ub = poses_of(ra).unit_errors, poses_of(rb).unit_errors
-    assert "paired (same units" in c.unit_errors
+    assert "named errors of the units paired" in c.unit_errors and "same units" in c.unit_errors
     for i in (1, 2):
         topic = ra.problem.sensors[i].topic
         rta, rtb = ra.rt_lidar0_sensor[i], rb.rt_lidar0_sensor[i]
@@ -144,3 +144,16 @@ def test_one_side_without_unit_errors_is_said_and_not_paired(captures):
                                          "unit_lens_field_px": 0}})
     assert [s.chi2 for s in c.sensors] == [s.chi2 for s in compare(ra, rb, config=none).sensors]
     assert "only A names" in c.table()
+
+
+def test_rings_of_another_lidar_model_are_not_paired_and_said(captures):
+    """B's rings 0.5 deg off A's (another LIDAR model): none paired, each side's J against zero, and the
+    line suggests compare.same_units=false."""
+    (_, ra), (_, rb) = captures
+    pb = poses_of(rb)
+    ub = {**pb.unit_errors, "errors": [(s, e, at + 0.5 if e.startswith("ring") else at) for s, e, at in pb.unit_errors["errors"]]}
+    c = compare(ra, dataclasses.replace(pb, unit_errors=ub))
+    assert "compare.same_units=false" in c.unit_errors
+    union, Ja, Jb = paired_sensitivities("/lidar1", ra.rt_lidar0_sensor[1], rb.rt_lidar0_sensor[1], poses_of(ra).unit_errors, ub)
+    ring = np.array([e.startswith("ring") for _, e, _ in union])
+    assert not np.any((np.abs(Ja[:, ring]).sum(0) > 0) & (np.abs(Jb[:, ring]).sum(0) > 0))  # no ring in both
