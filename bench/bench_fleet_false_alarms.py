@@ -125,7 +125,7 @@ def pair(case: str, k: int, *, seed0: int = 50_000, rig_shape=RIG_SHAPE, n_snaps
 
     refused = []
 
-    def solve(r, s):
+    def solve(r, s, boards):
         """A capture that is refused is captured again (fresh board poses and noise, the same units), as a
         fleet team does; up to RECAPTURES times, each refusal counted."""
         for j in range(RECAPTURES + 1):
@@ -138,10 +138,14 @@ def pair(case: str, k: int, *, seed0: int = 50_000, rig_shape=RIG_SHAPE, n_snaps
                 if j == RECAPTURES or boards is not None:  # the same boards again would be refused again
                     raise
 
-    try:
-        (ra, truth), (rb, _) = solve(rig, seed), solve(rig, seed + 1)
-    except (DegenerateError, SolveError) as e:  # counted, never hidden
-        return {"case": case, "k": k, "skipped": f"{type(e).__name__}: {str(e).splitlines()[0]}", "refused": refused}
+    for j in range(RECAPTURES + 1 if boards is not None else 1):  # the same boards refused: both captured again
+        try:
+            (ra, truth), (rb, _) = solve(rig, seed, boards), solve(rig, seed + 1, boards)
+            break
+        except (DegenerateError, SolveError) as e:  # counted, never hidden
+            if boards is None or j == RECAPTURES:
+                return {"case": case, "k": k, "skipped": f"{type(e).__name__}: {str(e).splitlines()[0]}", "refused": refused}
+            boards += 7919
     same = {v: compare(ra, rb, config=_compare_config(v, errors)) for v in VARIANTS}
     out = {"case": case, "k": k, "sensors": {}}
     deltas = {}
@@ -164,7 +168,7 @@ def pair(case: str, k: int, *, seed0: int = 50_000, rig_shape=RIG_SHAPE, n_snaps
         for i, d in deltas.items():
             rts[i] = _knock(rts[i], d)
         try:
-            rc, _ = solve(dataclasses.replace(rig, rt_lidar0_sensor=rts), seed + 2)
+            rc, _ = solve(dataclasses.replace(rig, rt_lidar0_sensor=rts), seed + 2, boards)
         except (DegenerateError, SolveError) as e:
             out["knock_skipped"] = f"{type(e).__name__}: {str(e).splitlines()[0]}"
         else:
