@@ -17,9 +17,12 @@ Per sensor: the difference by composition, E = T_a^-1 T_b. Its tangent xi = [ome
 in the same coordinates as the covariances (GTSAM's right perturbation T Exp(xi) to first
 order: omega = Log(R_a^T R_b) about the sensor's own axes, v = R_a^T (t_b - t_a)); both
 rt covariances of calibration.yaml (its ``coordinates:`` block) are mapped into them with
-``geometry.tangent_covariance_from_rt``. The two estimates are independent, so
-d2 = xi^T (Sigma_a + Sigma_b)^-1 xi is chi-square with 6 degrees of freedom when nothing
-moved; "moved" when its p-value is below ``compare.false_alarm_rate``. Against a pose set
+``geometry.tangent_covariance_from_rt``. The two captures' noise is independent, but the sensor
+units' own errors e (a LIDAR ring's range bias and elevation error, a lens-model field) are the
+same in both: the difference carries (J_b - J_a) e, J how each capture's solution moves with e
+(calibration.yaml's ``unit_errors``, paired by name: ``unit_error_term``, sigmas from
+``compare.unit_*``). So d2 = xi^T (Sigma_a + Sigma_b + that term)^-1 xi is chi-square with 6
+degrees of freedom when nothing moved; "moved" when its p-value is below ``compare.false_alarm_rate``. Against a pose set
 without covariance (CAD, /tf_static) there is no such test: the thresholds
 ``compare.max_rotation_deg`` / ``compare.max_translation_mm`` decide. The printed rotation
 axis and translation are in the reference frame (lidar0): R_b R_a^T = Exp(angle * axis),
