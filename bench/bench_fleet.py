@@ -2,7 +2,7 @@
 cluster, and what each engine costs per vehicle.
 
 Run: ``python -m bench.bench_fleet [--vehicles 4] [--poses 8] [--workers 2]``. The vehicles are
-tiny simulated captures (a VLP-16 and a 640x480 camera, ``--poses`` bag-per-pose bags each,
+tiny simulated captures (a VLP-16 and a 640x480 camera, ``--poses`` bag-per-pose bags each, planned tilts,
 no clutter), simulated once into a temporary folder. Prints per engine: wall time of the whole
 fleet, vehicles per hour, the mean wall time of one vehicle inside its worker, and the engine's
 overhead: its start-up (pool / cluster) and, per vehicle, the round trip of a vehicle that fails
@@ -36,7 +36,7 @@ def _fleet(root: Path, n_vehicles: int, n_poses: int) -> Path:
     (root / "rig.yaml").write_text(RIG)
     lines = ["defaults:", "  topics: [/lidar, /cam]", "  models: [cam.cameramodel]", "vehicles:"]
     for k in range(n_vehicles):
-        simulate(root / "rig.yaml", root / f"v{k}", n_poses=n_poses, seed=k, clutter=False)
+        simulate(root / "rig.yaml", root / f"v{k}", n_poses=n_poses, seed=k, clutter=False, planned_tilts=True)
         lines += [f"  - {{id: v{k}, bags: v{k}/*.bag}}"]
     (root / "fleet.yaml").write_text("\n".join(lines) + "\n")
     (root / "null.yaml").write_text("defaults: {topics: [/lidar, /cam]}\nvehicles:\n"

@@ -395,6 +395,19 @@ class CompareOptions:
     # these (a mounting tolerance; set your fleet's).
     max_rotation_deg: float = 1.0
     max_translation_mm: float = 20.0
+    # Two calibrations of the same sensor units share the units' own errors (each LIDAR ring's range
+    # bias and elevation error, a camera's lens-model field): each capture's solution moves with them
+    # differently (its board poses differ), so their difference carries (J_A - J_B) e. calibration.yaml
+    # names the errors and J (``unit_errors``); these are the units' 1-sigmas used here (whatever the
+    # solves' own solve.lidar_ring_* / camera_lens_field_px). Defaults: typical of real units (16- to
+    # 128-ring LIDARs: ~1 cm, 0.1 deg per ring; a well-fitted lens model: 0.1 px); state your units'.
+    # 0 = that kind of error is not in the test (the covariances alone).
+    unit_ring_range_bias_m: float = 0.01
+    unit_ring_elevation_deg: float = 0.1
+    unit_lens_field_px: float = 0.1
+    # The two calibrations are of the same units (the usual recalibration). false: a unit was replaced
+    # (or the vehicles differ): its errors are independent draws, J_A S J_A^T + J_B S J_B^T.
+    same_units: bool = True
 
 
 @dataclass(frozen=True)
@@ -697,6 +710,9 @@ _RANGES = {
     "compare.false_alarm_rate": "(0, 0.5]",
     "compare.max_rotation_deg": "(0, 180]",
     "compare.max_translation_mm": "(0, inf)",
+    "compare.unit_ring_range_bias_m": "[0, 1]",
+    "compare.unit_ring_elevation_deg": "[0, 5]",
+    "compare.unit_lens_field_px": "[0, 10]",
 }
 # Pairs that must be ordered: the first strictly below the second.
 _ORDERED = (

@@ -447,3 +447,65 @@ def add_terms(problem: Problem, rt_lidar0_sensor: np.ndarray, covariance_rt: np.
             for what, o in (("orientation", 0), ("position", 3))}
     return 0.5 * (total + total.T), {"included": list(parts), "variance_share": shares,
                                      "sigma_rt": {name: (J @ j).T.tolist() for name, j in terms.items()}}
+
+
+# ---------------------------------------------------------------- sensitivities to the units' errors
+# For `compare` (comparison.py): two calibrations of the same sensor units share the units' fixed
+# errors e, so their difference carries (J_A - J_B) e, J = dx/de of each capture (its board poses
+# differ). Computed for every solve, whether or not a term is in the covariance: the same moves as
+# consider_terms, but per named error of the unit (a ring, a lens-field mode), per unit of it.
+UNIT_ERRORS = (("ring range bias", "m", 0.01), ("ring elevation", "rad", 1e-3))  # kind, unit, difference step
+LENS_FIELD = "lens field"  # kind of a camera's lens-field mode (unit: px RMS of the field)
+
+
+def ring_trend_projection(elevations: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, float]:
+    """((m, R) P, e0): the fit ``a + b (e - e0)`` of ring_trend_directions is ``P @ c`` for per-ring
+    errors c (R,), i.e. the part of them that stays after the frontend's correction; its
+    covariance for errors of ``sigma`` each is ``sigma^2 P P^T`` (that function's)."""
+    e0 = np.average(elevations, weights=counts)
+    e = elevations - e0
+    A = np.c_[np.ones_like(e), e] if len(e) > 1 and np.ptp(e) > 0 else np.ones((len(e), 1))
+    return np.linalg.solve(A.T @ (counts[:, None] * A), (counts[:, None] * A).T), e0
+
+
+def unit_error_sensitivities(problem: Problem, build, values, S: np.ndarray | None = None) -> tuple[list, np.ndarray]:
+    """([one dict per named error of a sensor unit], (ns, K) dx/de: how the sensors' tangent
+    (noise.Linearization order) moves per unit of each error (m, rad, px)).
+
+    The errors: per LIDAR and ring that met a board, its range bias (m) and elevation error (rad),
+    ``{"sensor", "error", "unit", "ring_elevation_deg"}``; per camera, its lens field's modes
+    (lens_field_modes of a 1 px RMS field; the error is the mode's coefficient in px),
+    ``{"sensor", "error": "lens field", "unit": "px", "mode", "axis"}``. Same arguments as
+    consider_terms.
+    """
+    from .noise import Linearization
+
+    ns = 6 * (len(problem.sensors) - 1)
+    if S is None:
+        S = Linearization(problem, build(problem), values).reduced()[0]
+
+    def r_of(p):
+        return Linearization(p, build(p), values).reduced()[1]
+
+    moves = {"ring range bias": _ring_range_moves,
+             "ring elevation": lambda p, i, e0, ab: _ring_elevation_moves(p, values, i, e0, ab)}
+    errors, columns, r0 = [], [], None
+    for i, s in enumerate(problem.sensors):
+        if not s.is_lidar or not any(o.sensor == i for o in problem.lidar_observations):
+            continue
+        elevations, counts = lidar_rings(problem, i)
+        P, e0 = ring_trend_projection(elevations, counts)
+        for kind, unit, h in UNIT_ERRORS:  # one-sided: a range bias moves the residuals linearly, an elevation
+            # error to far below the noise at this step
+            r0 = r_of(problem) if r0 is None else r0
+            dr = [(r_of(moves[kind](problem, i, e0, h * u)) - r0) / h for u in np.eye(2)[:len(P)]]  # per unit of a, b
+            columns.append(np.linalg.solve(S, np.stack(dr, axis=1)) @ P)
+            errors += [{"sensor": s.topic, "error": kind, "unit": unit, "ring_elevation_deg": float(np.degrees(e))}
+                       for e in elevations]
+    lens = {i: lens_field_modes(s.imagersize, 1.0) for i, s in enumerate(problem.sensors)
+            if s.is_camera and any(o.sensor == i for o in problem.camera_observations)}
+    for i, dr in _lens_field_dr(problem, build, values, lens).items():
+        columns.append(np.linalg.solve(S, dr))
+        errors += [{"sensor": problem.sensors[i].topic, "error": LENS_FIELD, "unit": "px", "mode": j, "axis": "xy"[a]}
+                   for j in range(len(lens[i])) for a in (0, 1)]
+    return errors, (np.concatenate(columns, axis=1) if columns else np.zeros((ns, 0)))

@@ -241,6 +241,22 @@ def _deleted_z(problem, active, rt_sensor, rt_board, k, kind, j, sig_l, sig_c, o
     return float(np.sqrt(np.mean(r**2)) / G.sigma_of(sig_c, problem.camera_observations[j].sensor))
 
 
+def _unit_errors(problem, rebuild, values, S, rt_sensor, options) -> dict:
+    """What `compare` needs to pair two calibrations of the same units (comparison.py): the named
+    errors of the sensor units, d rt_lidar0_sensor / d error per unit of each (rt coordinates, the
+    variable sensors' order, like the covariance), and the sigmas of them already in the covariance."""
+    from ..geometry import drt_dxi
+
+    errors, J = consider.unit_error_sensitivities(problem, rebuild, values, S)
+    idx = [i for i in range(len(problem.sensors)) if i != problem.reference]
+    for a, i in enumerate(idx):
+        J[6 * a:6 * a + 6] = drt_dxi(rt_sensor[i]) @ J[6 * a:6 * a + 6]
+    return {"errors": errors, "sensitivity_rt": J,
+            "sigma_in_covariance": {"ring range bias": options.lidar_ring_range_bias_m,
+                                    "ring elevation": float(np.radians(options.lidar_ring_elevation_deg)),
+                                    "lens field": options.camera_lens_field_px}}
+
+
 def _final_step_sigma(problem, prev, values, rt_sensor, cov_rt) -> float:
     """How far the final LM's last iteration moved the sensor poses, in sigmas (see convergence.step_sigma)."""
     idx = [i for i in range(len(problem.sensors)) if i != problem.reference]
@@ -429,7 +445,8 @@ def calibrate(problem: Problem, options) -> Result:
     times["jackknife"] = time.perf_counter() - t
     t = time.perf_counter()
 
-    terms = consider.consider_terms(problem, rebuild, values, options, S=lin.reduced()[0])
+    S = lin.reduced()[0]
+    terms = consider.consider_terms(problem, rebuild, values, options, S=S)
     cov, uncertainty_terms = consider.add_terms(problem, rt_sensor, cov, terms)
     times["consider"] = time.perf_counter() - t
     final = stages[-1]
@@ -452,6 +469,9 @@ def calibrate(problem: Problem, options) -> Result:
                                  refuse=options.refuse_inconsistent,
                                  known=known)
     times["consistency"] = time.perf_counter() - t
+    t = time.perf_counter()  # after the verdict: a refused capture needs none
+    unit_errors = _unit_errors(problem, rebuild, values, S, rt_sensor, options)
+    times["unit_error_sensitivities"] = time.perf_counter() - t
 
     lid, cam = G.residuals(problem, rt_sensor, rt_board)
     rl, rc = _active_residuals(lid, cam, active)
@@ -489,7 +509,7 @@ def calibrate(problem: Problem, options) -> Result:
     stats = {"stage": "solve", "iterations": iters, "convergence": convergence, "time_s": times, "regularization_share": float(prior / max(total, 1e-300)),
              "n_outlier_points": int(sum(int((~m).sum()) for m in active.lidar if m is not None)),
              "n_rejected_observations": sum(1 for r in rejected if r.stage in ("outlier", "seed")),
-             "consistency": verdict, "uncertainty_terms": uncertainty_terms}
+             "consistency": verdict, "uncertainty_terms": uncertainty_terms, "unit_errors": unit_errors}
     if not np.all(np.isfinite(rt_sensor)):
         raise SolveError("the solve produced non-finite sensor poses")
     log.info("solve: %d rounds, sigma LIDAR %.4f m, camera %.3f px, %.2f s", iters["rounds"], noise["lidar_m"],

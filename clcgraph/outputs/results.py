@@ -147,6 +147,7 @@ def _target_sections(result: Result) -> dict:
         # between BLAS thread counts, and the same inputs must give the same bytes)
         "consistency": _plain(result.stats.get("consistency"), digits=6),
         "uncertainty_check": uncertainty_check_dict(result),
+        **unit_errors_dict(result),
     }
 
 
@@ -200,6 +201,35 @@ def uncertainty_terms_dict(result: Result) -> dict:
         out["terms_included"] = list(terms["included"])
         out["variance_share"] = _plain(terms["variance_share"], digits=4)
     return out
+
+
+UNIT_ERRORS_ABOUT = (
+    "how each sensor's rt_lidar0_sensor moves with each named error of the sensor units (a LIDAR ring's range "
+    "bias [m] or elevation error [rad], a camera's lens-field mode [px, RMS of a 1 px field]): per sensor one "
+    "row d rt / d error (r, then t) per entry of 'errors'; what `clcgraph compare` pairs between two "
+    "calibrations of the same units (docs/fleet.md). sigma_in_covariance: the 1-sigma of each kind already in "
+    "covariance_rt_lidar0_sensor (solve.lidar_ring_range_bias_m [m], .lidar_ring_elevation_deg [as rad], "
+    ".camera_lens_field_px [px]; 0 = not in it)")
+
+
+def unit_errors_dict(result: Result) -> dict:
+    """calibration.yaml's ``unit_errors`` block ({} without sensitivities: targetless): ``errors``
+    one ``[sensor, error, at]`` per named error (at: the ring's elevation in deg, or the lens
+    mode's index; error ``lens field x|y``: the pixel axis), ``sensitivity_rt`` per variable
+    sensor one row of 6 per error (6 significant digits: same inputs, same bytes)."""
+    u = result.stats.get("unit_errors")
+    if not u:
+        return {}
+    p = result.problem
+    errors = [[e["sensor"], e["error"], round(e["ring_elevation_deg"], 3)] if "ring_elevation_deg" in e
+              else [e["sensor"], f"{e['error']} {e['axis']}", int(e["mode"])] for e in u["errors"]]
+    J = np.asarray(u["sensitivity_rt"], float)
+    topics = [s.topic for i, s in enumerate(p.sensors) if i != p.reference]
+    return {"unit_errors": {
+        "about": UNIT_ERRORS_ABOUT,
+        "sigma_in_covariance": {k: float(v) for k, v in u["sigma_in_covariance"].items()},
+        "errors": errors,
+        "sensitivity_rt": {t: _plain(J[6 * a:6 * a + 6].T, digits=6) for a, t in enumerate(topics)}}}
 
 
 def uncertainty_check_dict(result: Result) -> dict:
@@ -419,6 +449,11 @@ def load_result(out_dir: str | Path) -> Calibration:
         raise InputError(f"{path}: cannot read the calibration ({e.strerror}); pass the --out directory of clcgraph solve") from None
     except yaml.YAMLError as e:
         _fail(path, f"invalid YAML ({str(e).splitlines()[0]})")
+    return calibration_from_dict(d, path)
+
+
+def calibration_from_dict(d, path: Path) -> Calibration:
+    """``load_result`` of a calibration.yaml already parsed (``d``; changed in place), read from ``path``."""
     if not isinstance(d, dict):
         _fail(path, "not a mapping")
     d.setdefault("method", "target")

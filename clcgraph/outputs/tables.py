@@ -186,7 +186,7 @@ def comparison_table(c) -> str:
                      "-" if s.mahalanobis is None else f"{s.mahalanobis:.2f}",
                      "-" if s.p_value is None else f"{s.p_value:.2g}", s.verdict))
     widths = [max(len(r[k]) for r in rows) for k in range(len(rows[0]))]
-    lines = [f"A: {c.a}", f"B: {c.b}", f"reference: {c.reference}"]
+    lines = [f"A: {c.a}", f"B: {c.b}", f"reference: {c.reference}"] + ([f"units' errors: {c.unit_errors}"] if c.unit_errors else [])
     lines += ["  ".join(cell.ljust(w) for cell, w in zip(r, widths)).rstrip() for r in rows]
     return "\n".join(lines)
 
