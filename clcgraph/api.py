@@ -31,7 +31,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .config import Config, ConfigError
+from .config import Config, ConfigError, read_yaml
 from .determinism import single_threaded_blas
 from .errors import DataError, DegenerateError, InputError
 from .progress import progress
@@ -707,8 +707,6 @@ def run_demo(out=None, *, config=None, seed: int = 0, force: bool = False) -> tu
     compare to truth."""
     import fcntl
 
-    import yaml
-
     from .sim.capture import DEMO_DIR, DEMO_RIG, simulate_demo
     from .sim.rig import load_rig
 
@@ -718,7 +716,7 @@ def run_demo(out=None, *, config=None, seed: int = 0, force: bool = False) -> tu
 
     def stale() -> bool:  # simulated once; again when the rig's board changed (an older clcgraph's)
         return not truth_path.exists() or \
-            yaml.safe_load(truth_path.read_text()).get("board") != load_rig(DEMO_RIG).board.spec()
+            read_yaml(truth_path, "demo truth", mapping="of sensors").get("board") != load_rig(DEMO_RIG).board.spec()
 
     if stale():
         # demos started at once (a test run's workers) wait for one simulation, not fail on its lock
@@ -726,7 +724,7 @@ def run_demo(out=None, *, config=None, seed: int = 0, force: bool = False) -> tu
             fcntl.flock(lock, fcntl.LOCK_EX)
             if stale():
                 simulate_demo(seed=seed)
-    truth = yaml.safe_load(truth_path.read_text())
+    truth = read_yaml(truth_path, "demo truth", mapping="of sensors")
     topics = [s["topic"] for s in truth["sensors"]]
     models = [DEMO_RIG.parent / s["model"] for s in truth["sensors"] if s["kind"] == "camera"]
     result = calibrate_bags([DEMO_DIR / "*.bag"], topics, models, out=out,
@@ -891,15 +889,13 @@ def format_for_ros(bag, calibration, *, base_frame: str = "base_link", rt_vehicl
     frame_ids need not be in /tf_static when base_frame <- lidar0 comes from elsewhere
     (``rt_vehicle_lidar0``, mrcal rt; the calibration's ground plane or the solve's own
     sectors.rt_vehicle_lidar0)."""
-    import yaml
-
     from .frontend.bag import frame_id, read_tf_static
     from .outputs.ros import format_for_ros as _format
     from .outputs.ros import infer_frames, ros_files
 
     cal = load_result(calibration)
     resolved = Path(calibration) / "config.resolved.yaml"  # the solve's own rt_vehicle_lidar0, if any
-    solve_rt = ((yaml.safe_load(resolved.read_text()) or {}).get("sectors") or {}).get("rt_vehicle_lidar0") \
+    solve_rt = ((read_yaml(resolved, "resolved config") or {}).get("sectors") or {}).get("rt_vehicle_lidar0") \
         if resolved.is_file() else None
     tf = read_tf_static(bag)
     elsewhere = rt_vehicle_lidar0 is not None or any(solve_rt or ()) or bool(cal.get("base_link"))

@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import SafeLoaderNoCollectionAliases
+from .config import read_yaml
 from .errors import DataError, InputError
 from .types import Result
 
@@ -101,15 +101,8 @@ def _T(rt) -> np.ndarray:
 
 
 def _from_calibration_file(path: Path) -> PoseSet:
-    import yaml
-
-    try:
-        d = yaml.load(path.read_text(), Loader=SafeLoaderNoCollectionAliases)  # no alias bombs
-    except OSError as e:
-        raise InputError(f"{path}: cannot read the calibration ({e.strerror}); give an output directory of "
-                         "clcgraph solve / targetless, a calibration.yaml or a bag") from None
-    except yaml.YAMLError as e:
-        raise DataError(f"{path}: not a calibration: invalid YAML ({str(e).splitlines()[0]})") from None
+    d = read_yaml(path, "calibration", hint="; give an output directory of clcgraph solve / targetless, "
+                  "a calibration.yaml or a bag")
     if isinstance(d, dict) and "covariance_rt_lidar0_sensor" in d:
         from .outputs.results import calibration_from_dict
 

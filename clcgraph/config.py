@@ -430,17 +430,7 @@ class Config:
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "Config":
-        path = Path(path)
-        try:
-            if path.stat().st_size > _MAX_YAML_BYTES:
-                raise ConfigError(f"{path}: config file larger than {_MAX_YAML_BYTES // 1024} KiB; not a settings file?")
-            d = yaml.load(path.read_text(), Loader=SafeLoaderNoCollectionAliases)
-        except UnicodeDecodeError:
-            raise ConfigError(f"{path}: not a text (UTF-8) config file") from None
-        except OSError as e:
-            raise ConfigError(f"{path}: cannot read config: {e.strerror}") from None
-        except yaml.YAMLError as e:
-            raise ConfigError(f"{path}: not valid YAML: {str(e).splitlines()[0]}") from None
+        d = read_yaml(path, "config file", error=ConfigError, max_bytes=_MAX_YAML_BYTES)
         if d is not None and not isinstance(d, dict):
             raise ConfigError(f"{path}: a config file must be a mapping of sections")
         try:
@@ -802,6 +792,27 @@ class SafeLoaderNoCollectionAliases(yaml.SafeLoader):
             if node is not None and not isinstance(node, yaml.ScalarNode):
                 raise yaml.YAMLError(f"alias *{event.anchor} of a mapping or list (not supported in config files)")
         return super().compose_node(parent, index)
+
+
+def read_yaml(path, what: str, *, error=InputError, loader=SafeLoaderNoCollectionAliases, max_bytes: int | None = None,
+              mapping: str | None = None, hint: str = ""):
+    """The content of the YAML file ``path`` (a ``what``: "config file", "rig file", ...), every
+    failure one ``error`` line naming the file: unreadable (``hint`` appended), larger than
+    ``max_bytes``, not UTF-8, not YAML; and, when ``mapping`` says what it holds, not a mapping."""
+    path = Path(path)
+    try:
+        if max_bytes is not None and path.stat().st_size > max_bytes:
+            raise error(f"{path}: larger than {max_bytes // 1024} KiB; not a {what}?")
+        d = yaml.load(path.read_text(), Loader=loader)
+    except UnicodeDecodeError:
+        raise error(f"{path}: not a text (UTF-8) {what}") from None
+    except OSError as e:
+        raise error(f"{path}: cannot read the {what} ({e.strerror}){hint}") from None
+    except yaml.YAMLError as e:
+        raise error(f"{path}: not valid YAML: {' '.join(str(e).split())}") from None
+    if mapping is not None and not isinstance(d, dict):
+        raise error(f"{path}: a {what} is a mapping {mapping}")
+    return d
 
 
 class SafeDumperNoAliases(yaml.SafeDumper):

@@ -201,21 +201,14 @@ class Manifest:
     @classmethod
     def load(cls, manifest) -> "Manifest":
         """From a YAML file (paths relative to its folder) or a dict (relative to the working directory)."""
-        import yaml
+        from .config import read_yaml
 
         if isinstance(manifest, Manifest):
             return manifest
         if isinstance(manifest, dict):
             return cls(manifest, base=Path.cwd(), where="manifest")
         path = Path(manifest)
-        try:
-            data = yaml.load(path.read_text(), Loader=_line_loader())
-        except OSError as e:
-            raise InputError(f"{path}: cannot read the fleet manifest ({e.strerror})") from None
-        except yaml.YAMLError as e:
-            raise InputError(f"{path}: not valid YAML: {' '.join(str(e).split())}") from None
-        if not isinstance(data, dict):
-            raise InputError(f"{path}: a fleet manifest is a mapping with 'defaults' and 'vehicles'")
+        data = read_yaml(path, "fleet manifest", loader=_line_loader(), mapping="with 'defaults' and 'vehicles'")
         return cls(data, base=path.absolute().parent, where=str(path))
 
     def jobs(self, out) -> list[VehicleJob]:
@@ -541,10 +534,10 @@ def _log_row(row: dict, k: int, n: int) -> None:
 
 
 def _previous_times(target: Path) -> dict:
-    import yaml
+    from .config import read_yaml
 
     try:
-        d = yaml.safe_load((target / SUMMARY_YAML).read_text())
+        d = read_yaml(target / SUMMARY_YAML, "fleet summary")
         return {v["id"]: v.get("time_s") for v in d["vehicles"] if v.get("status") == "ok"}
     except Exception:  # noqa: BLE001 - no usable earlier summary: times unknown
         return {}

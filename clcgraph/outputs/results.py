@@ -25,7 +25,7 @@ import yaml
 from .. import __version__
 from ..errors import DataError, InputError
 from ..geometry import T_from_rt, invert_rt, pose_stdevs, rt_from_T
-from ..config import SafeDumperNoAliases, SafeLoaderNoCollectionAliases
+from ..config import SafeDumperNoAliases, read_yaml
 from ..types import Result, Sensor
 from .atomic import atomic_dir
 
@@ -443,13 +443,7 @@ def load_result(out_dir: str | Path) -> Calibration:
     path = Path(out_dir)
     if path.is_dir():
         path = path / CALIBRATION_FILE
-    try:
-        d = yaml.load(path.read_text(), Loader=SafeLoaderNoCollectionAliases)  # no alias bombs
-    except OSError as e:
-        raise InputError(f"{path}: cannot read the calibration ({e.strerror}); pass the --out directory of clcgraph solve") from None
-    except yaml.YAMLError as e:
-        _fail(path, f"invalid YAML ({str(e).splitlines()[0]})")
-    return calibration_from_dict(d, path)
+    return calibration_from_dict(read_yaml(path, "calibration", hint="; pass the --out directory of clcgraph solve"), path)
 
 
 def calibration_from_dict(d, path: Path) -> Calibration:

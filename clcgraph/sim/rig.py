@@ -45,10 +45,9 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from .. import cameras
-from ..config import Config, ConfigError, SafeLoaderNoCollectionAliases
+from ..config import Config, ConfigError, read_yaml
 from ..errors import InputError
 from ..geometry import T_from_xyz_rpy
 from ..types import BoardGeometry, Sensor
@@ -126,14 +125,7 @@ def _unknown(d: dict, known: set, where: str, path: Path):
 def load_rig(path) -> Rig:
     """Parse and validate a rig YAML (module docstring)."""
     path = Path(path)
-    try:
-        d = yaml.load(path.read_text(), Loader=SafeLoaderNoCollectionAliases)  # no alias bombs
-    except OSError as e:
-        raise InputError(f"{path}: cannot read the rig file ({e.strerror})") from None
-    except yaml.YAMLError as e:
-        raise InputError(f"{path}: not valid YAML: {str(e).splitlines()[0]}") from None
-    if not isinstance(d, dict):
-        raise InputError(f"{path}: a rig file is a mapping with 'lidars' (and 'cameras', 'board')")
+    d = read_yaml(path, "rig file", mapping="with 'lidars' (and 'cameras', 'board')")
     _unknown(d, {"lidars", "cameras", "board", "scene"}, "top level", path)
     lidars = []
     for k, L in enumerate(_need(d, "lidars", "top level", path) or []):
