@@ -260,6 +260,20 @@ def _subset(parts):
                                snapshot_stamps_ns=np.array(stamps, np.int64))
 
 
+def upright_boards_and_pitched(n_pitched):
+    """12 boards held upright (normals within ~4 deg of horizontal) on a 1-LIDAR + 1-camera rig
+    with correlated errors, then the ``n_pitched`` most pitched of 30 tilted ones: the problem,
+    the rig, and those boards' normals' vertical parts."""
+    rig = make_rig(1, 1)
+    err = CorrelatedErrors(board_warp_m=0.003, mixed_pixel_m=0.03, corner_bias_px=0.2)
+    upright, _ = simulate_problem(rig=rig, n_snapshots=12, seed=5, vertical_only=True, vertical_jitter_deg=3.0,
+                                  tilt_max_deg=40, errors=err)
+    pool, pool_truth = simulate_problem(rig=rig, n_snapshots=30, seed=6, tilt_max_deg=45, errors=err)
+    n_z = np.array([R_from_r(b[:3])[2, 2] for b in pool_truth.rt_lidar0_board])
+    pitched = [int(k) for k in np.argsort(-np.abs(n_z))[:n_pitched]]
+    return _subset([(upright, range(12)), (pool, pitched)]), rig, n_z[pitched]
+
+
 @pytest.mark.parametrize("n_pitched", [1, 3])
 def test_height_resting_on_one_pitched_board_is_refused(n_pitched):
     """The real ACFR run 2 in miniature: 12 boards held upright (normals within ~4 deg of
@@ -268,15 +282,8 @@ def test_height_resting_on_one_pitched_board_is_refused(n_pitched):
     vertical part squared: one pitched board carries ~100 % of it and a range error there moves
     the camera's height unseen (refused, naming the height). Three carry it together: answered,
     within 3 sigma."""
-    rig = make_rig(1, 1)
-    err = CorrelatedErrors(board_warp_m=0.003, mixed_pixel_m=0.03, corner_bias_px=0.2)
-    upright, _ = simulate_problem(rig=rig, n_snapshots=12, seed=5, vertical_only=True, vertical_jitter_deg=3.0,
-                                  tilt_max_deg=40, errors=err)
-    pool, pool_truth = simulate_problem(rig=rig, n_snapshots=30, seed=6, tilt_max_deg=45, errors=err)
-    n_z = np.array([R_from_r(b[:3])[2, 2] for b in pool_truth.rt_lidar0_board])
-    pitched = [int(k) for k in np.argsort(-np.abs(n_z))[:n_pitched]]
-    assert np.all(np.abs(n_z[pitched]) > 0.6)
-    p = _subset([(upright, range(12)), (pool, pitched)])
+    p, rig, n_z = upright_boards_and_pitched(n_pitched)
+    assert np.all(np.abs(n_z) > 0.6)
     if n_pitched == 1:
         with pytest.raises(DegenerateError, match=r"not verifiable.*snapshot 12 alone carries (9\d|100)% of the "
                                                   r"information on /cam0 translation along lidar0 -?z") as e:

@@ -189,17 +189,10 @@ def test_an_edge_hidden_behind_an_arm_is_not_an_edge():
 
 def _one_pitched_board():
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from test_consistency import _subset
+    from test_consistency import upright_boards_and_pitched
 
-    from clcgraph.sim.observations import CorrelatedErrors, make_rig, simulate_problem
-
-    rig = make_rig(1, 1)
-    err = CorrelatedErrors(board_warp_m=0.003, mixed_pixel_m=0.03, corner_bias_px=0.2)
-    upright, _ = simulate_problem(rig=rig, n_snapshots=12, seed=5, vertical_only=True, vertical_jitter_deg=3.0,
-                                  tilt_max_deg=40, errors=err)
-    pool, pool_truth = simulate_problem(rig=rig, n_snapshots=30, seed=6, tilt_max_deg=45, errors=err)
-    n_z = np.array([R_from_r(b[:3])[2, 2] for b in pool_truth.rt_lidar0_board])
-    return _subset([(upright, range(12)), (pool, [int(np.argmax(np.abs(n_z)))])]), rig.rt_lidar0_sensor[1]
+    p, rig, _ = upright_boards_and_pitched(1)
+    return p, rig.rt_lidar0_sensor[1]
 
 
 def test_upright_boards_the_edges_determine_the_camera_height():
