@@ -241,8 +241,11 @@ class SolveOptions:
     # rest on the few tilted boards. The edge blur: the LIDAR's range sigma and its beam's
     # footprint, ``lidar_edge_beam_rad`` (rad, 1 sigma) times the range: 0.17-0.18 deg FWHM for an
     # Ouster OS1 or a VLP-16, / 2.355. On the real ACFR Ouster captures the edge residuals are the
-    # quantisation alone (RMS 6.3-6.8 mm, L / sqrt(12) 7.0 mm).
-    lidar_edges: bool = False
+    # quantisation alone (RMS 6.3-6.8 mm, L / sqrt(12) 7.0 mm), and run 2, whose camera height
+    # rests on one pitched board without them (refused), is answered and agrees with run 1.
+    # False: planes only (a board whose outline the LIDAR cannot see cleanly, e.g. a frame
+    # around it that returns too).
+    lidar_edges: bool = True
     lidar_edge_beam_rad: float = 0.0013
     # Errors fixed for the whole capture, which neither the per-observation model nor the
     # jackknife can see (they bias every board the same way), propagated into the covariance
