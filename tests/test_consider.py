@@ -19,7 +19,10 @@ from clcgraph.geometry import drt_dxi, rt_from_pose3
 from clcgraph.sim.observations import make_rig, simulate_problem
 
 
-NO_RING_TERMS = dict(lidar_ring_range_bias_m=0.0, lidar_ring_elevation_deg=0.0, camera_lens_field_px=0.0)
+NO_RING_TERMS = dict(lidar_ring_range_bias_m=0.0, lidar_ring_elevation_deg=0.0, camera_lens_field_px=0.0,
+                     # the one-step algebra against re-solves of cm-sized moves: on quadratic losses (the
+                     # outline's Huber weights move with them: 3-20 % apart, docs/uncertainty.md)
+                     lidar_edges=False)
 
 
 def _solver(problem, options, sigma):

@@ -20,7 +20,9 @@ from clcgraph.geometry import R_from_r, compose_rt, drt_dxi, rt_from_R_t
 from clcgraph.sim.observations import CorrelatedErrors, Rig, SimLidar, make_rig, plane_fit, simulate_problem
 from clcgraph.types import BoardGeometry, CameraBoardObservation, LidarBoardObservation, Sensor
 
-REFUSING = SolveOptions(refuse_inconsistent=True)  # the default writes the verdict instead (config.py says why)
+REFUSING = SolveOptions(refuse_inconsistent=True)
+# planes only (no board outline): what the checks must catch where a LIDAR sees only the board's plane
+PLANES = dataclasses.replace(REFUSING, lidar_edges=False)
 
 
 def _rt(ypr_deg, xyz):
@@ -71,11 +73,12 @@ def test_leave_one_out_statistic_follows_its_chi_square_law():
     """With Gaussian noise as modelled, the leave-one-snapshot-out chi-squares add up to their
     degrees of freedom (sum over 30 snapshots: sd ~ sqrt(2 dof), so 25 % is ~3 sd)."""
     problem, _ = simulate_problem(rig=make_rig(2, 1), n_snapshots=30, seed=7)
-    r = calibrate(problem, SolveOptions(reject_outliers=False))
+    opts = SolveOptions(reject_outliers=False, lidar_edge_beam_rad=0.0)  # the simulated beam is a line: no blur
+    r = calibrate(problem, opts)
     assert not [x for x in r.rejected if x.stage == "seed"]
     sig = np.array([r.noise["per_sensor"][i] for i in range(len(problem.sensors))])
     g, v = G.build(r.problem, G.Active.all(r.problem), r.rt_lidar0_sensor, r.rt_lidar0_board, lidar="range",
-                   sigma_lidar_m=sig, sigma_camera_px=sig, options=SolveOptions())
+                   sigma_lidar_m=sig, sigma_camera_px=sig, options=opts)
     lin = C.linearize(r.problem, g, v)
     H, grad, per = C.information(lin)
     tests = [C.compare(lin, h, x, H - h, grad - x) for h, x in per.values()]
@@ -194,8 +197,9 @@ def test_range_bias_in_some_rear_boards_is_refused():
 
 
 def test_link_resting_on_one_board_is_refused():
-    """4 front boards, one of them 4 cm long: the solve moves /roof ~60 mm (10 sigma) and no
-    leave-one-out test can see it (that board alone fixes the direction): refused."""
+    """4 front boards, one of them 4 cm long: the solve moves /roof ~60 mm (10 sigma) and, with
+    planes alone, no leave-one-out test can see it (that board alone fixes the direction):
+    refused. With the boards' outlines the other boards fix it too: answered, within 3 sigma."""
     p, truth = _three_lidar_problem(1, n_front=4)
     front = sorted({o.snapshot for o in p.lidar_observations if o.sensor == 0})
     bad = _range_bias(p, 0, front[:1], 0.04)
@@ -205,7 +209,9 @@ def test_link_resting_on_one_board_is_refused():
     assert z > 5 and mm > 30
     with pytest.raises(DegenerateError, match=r"not verifiable.*snapshot \d alone carries \d+% of the information "
                                               r"on /(roof|rear) (translation along|rotation about) lidar0"):
-        calibrate(bad, REFUSING)
+        calibrate(bad, PLANES)
+    r = calibrate(bad, dataclasses.replace(REFUSING, lidar_edges=True))
+    assert all(z < 3 for _, _, z in _errors(r, truth).values()), _errors(r, truth)
 
 
 # ---------------------------------------------------------------- the leverage bound
@@ -281,18 +287,19 @@ def test_height_resting_on_one_pitched_board_is_refused(n_pitched):
     the camera's height relative to it comes from the plane offsets weighted by the normals'
     vertical part squared: one pitched board carries ~100 % of it and a range error there moves
     the camera's height unseen (refused, naming the height). Three carry it together: answered,
-    within 3 sigma."""
+    within 3 sigma. (Planes only: the outline gives the height from every board,
+    tests/factors/test_lidar_edge.py.)"""
     p, rig, n_z = upright_boards_and_pitched(n_pitched)
     assert np.all(np.abs(n_z) > 0.6)
     if n_pitched == 1:
         with pytest.raises(DegenerateError, match=r"not verifiable.*snapshot 12 alone carries (9\d|100)% of the "
                                                   r"information on /cam0 translation along lidar0 -?z") as e:
-            calibrate(p, REFUSING)
+            calibrate(p, PLANES)
         assert "\n" not in str(e.value)
         # what to do about it, in the user's words: the height needs boards pitched up and down
         assert "capture more boards that /cam0 and the other sensors see together, pitched up and down" in str(e.value)
         return
-    r = calibrate(p, REFUSING)
+    r = calibrate(p, PLANES)
     assert r.stats["consistency"]["passed"]
     truth = np.r_[[np.zeros(6)], [rig.rt_lidar0_sensor[1]]]
     assert all(z < 3 for _, _, z in _errors(r, truth).values()), _errors(r, truth)
@@ -303,13 +310,13 @@ def test_height_resting_on_one_pitched_board_is_refused(n_pitched):
 
 @pytest.mark.parametrize("n_lidars,n_cameras,seed", [(2, 0, 0)])
 def test_indeterminate_system_names_sensor_and_direction(n_lidars, n_cameras, seed):
-    """Boards exactly upright: GTSAM's marginals fail ("Indeterminate linear system"); the
-    solve names the sensor and the vertical instead, in one line."""
+    """Boards exactly upright, planes only: GTSAM's marginals fail ("Indeterminate linear
+    system"); the solve names the sensor and the vertical instead, in one line."""
     problem, _ = simulate_problem(rig=make_rig(n_lidars, n_cameras), n_snapshots=20, seed=seed, vertical_only=True,
                                   vertical_jitter_deg=0.0)
     with pytest.raises(DegenerateError, match=r"unobservable: /(lidar1|cam0|cam1): translation along lidar0 "
                                               r"\([+-]0\.0\d, [+-]0\.0\d, \+1\.00\) = z") as e:
-        calibrate(problem, REFUSING)
+        calibrate(problem, PLANES)
     assert "\n" not in str(e.value) and "Indeterminate" not in str(e.value)
 
 

@@ -29,7 +29,8 @@ def _errors(result, truth):
 
 def test_noise_free_is_exact():
     problem, truth = simulate_problem(n_snapshots=16, seed=2, sigma_lidar_m=0.0, sigma_camera_px=0.0)
-    opts = SolveOptions(reestimate_noise=False, reject_outliers=False, consistency_alpha=0.0)  # exactness, not the verdict
+    # exactness, not the verdict; planes and corners (the outline is quantised by the rays even without noise)
+    opts = SolveOptions(reestimate_noise=False, reject_outliers=False, consistency_alpha=0.0, lidar_edges=False)
     r = calibrate(problem, opts)
     e = np.asarray(r.rt_lidar0_sensor) - truth.rt_lidar0_sensor
     assert np.abs(e[:, :3]).max() < 1e-6 and np.abs(e[:, 3:]).max() < 1e-6, e
@@ -85,11 +86,15 @@ def test_upright_boards_leave_the_vertical_weak_and_it_is_reported():
     assert np.all(np.abs(e) < 3.5 * sd)
 
 
-def test_exactly_vertical_boards_are_degenerate():
+def test_exactly_vertical_boards_are_degenerate_for_planes_and_the_outline_gives_the_height():
     rig = make_rig(n_lidars=2, n_cameras=0)
-    problem, _ = simulate_problem(rig=rig, n_snapshots=20, seed=9, vertical_only=True, vertical_jitter_deg=0.0)
+    problem, truth = simulate_problem(rig=rig, n_snapshots=20, seed=9, vertical_only=True, vertical_jitter_deg=0.0)
     with pytest.raises(DegenerateError, match=r"/lidar1: translation along lidar0 \([+-]0\.00, [+-]0\.00, \+1\.00\)"):
-        calibrate(problem, SolveOptions())
+        calibrate(problem, SolveOptions(lidar_edges=False))
+    r = calibrate(problem, SolveOptions(lidar_edges=True))  # the top and bottom edges: where the rings leave the boards
+    sd = r.stdev_rt(1)
+    e = np.asarray(r.rt_lidar0_sensor[1]) - truth.rt_lidar0_sensor[1]
+    assert sd[5] < 0.01 and abs(e[5]) < 3.5 * sd[5], (e, sd)
 
 
 def test_corrupted_observations_are_rejected():

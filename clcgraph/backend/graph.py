@@ -158,10 +158,10 @@ def _pose(problem: Problem, rt_sensor: np.ndarray, i: int):
 def edge_factor(problem: Problem, o, T_sensor, T_board, *, beam_rad: float):
     """The edge factor of LIDAR observation ``o`` (factors/lidar_edge.py), its intervals assigned
     to the board's sides at the pose estimate (T_sensor None: lidar0); None if none is usable."""
-    keep, axis, bounds, L, rng = edge_sides(T_sensor, T_board, o.edge_rays, problem.board)
+    keep, axis, bounds, ends, rng = edge_sides(T_sensor, T_board, o.edge_rays, problem.board)
     if not keep.any():
         return None
-    sig = edge_sigmas(L[keep], rng[keep], beam_rad=beam_rad)
+    sig = edge_sigmas(ends[keep], rng[keep], axis[keep], bounds[keep], beam_rad=beam_rad)
     return lidar_edge_factor(_key(problem, o.sensor), board_key(o.snapshot), o.edge_rays[keep], axis[keep],
                              bounds[keep], sig)
 

@@ -14,6 +14,11 @@ so the residual is
 with sigma^2 = L^2 / 12 (L = |q_out[a] - q_in[a]|, the uniform quantisation) plus the beam's
 blur at the edge (``beam_rad`` times the range; the measured ranges do not enter), and a
 Huber loss: an edge hidden from the LIDAR that the frontend did not catch costs little.
+The quantisation is one error for all of a side's intervals where they lie side by side (the
+rings crossing an upright side at the same columns, one ring pair along a level top): their
+intersection, W wide, holds the side, so together they tell it to W / sqrt(12), not L /
+sqrt(12 n); each side's sigmas are scaled up to that where it is less than they claim
+(``edge_sigmas``; staggered intervals, W << L, keep theirs).
 
 Jacobians (right perturbation ``T Exp([omega, v])``, rotation first): with T_bs = T_b^-1 T_s the
 sensor in the board frame, a ray u leaves o = t_bs along w = R_bs u and meets z = 0 at
@@ -21,8 +26,9 @@ q = o + lam w, lam = -o_z / w_z. For a change dp of o + lam w at fixed lam, dq =
 dp = R_bs (dv - [lam u]x domega) for the sensor's perturbation, [q]x domega - dv for the board's.
 
 SYNOPSIS
-    keep, axis, bounds, L, r = edge_sides(T_lidar0_sensor, T_lidar0_board, rays (E,3,3), board)  # at an estimate
-    f = lidar_edge_factor(S(1), B(7), rays[keep], axis[keep], bounds[keep], edge_sigmas(L, r, beam_rad=0.0013)[keep])
+    keep, axis, bounds, ends, r = edge_sides(T_lidar0_sensor, T_lidar0_board, rays (E,3,3), board)  # at an estimate
+    sig = edge_sigmas(ends[keep], r[keep], axis[keep], bounds[keep], beam_rad=0.0013)
+    f = lidar_edge_factor(S(1), B(7), rays[keep], axis[keep], bounds[keep], sig)
     r = lidar_edge_residuals(T_lidar0_sensor, T_lidar0_board, rays, axis, bounds)   # (E,) m
 """
 
@@ -89,7 +95,8 @@ def skew_rows(x: np.ndarray) -> np.ndarray:
 
 def edge_sides(T_lidar0_sensor, T_lidar0_board, rays: np.ndarray, board, *, min_cos: float = 0.9):
     """Which board side each interval bounds, at a pose estimate: (keep (E,) bool, axis (E,) 0 x /
-    1 y, bounds (E,) m, lengths L (E,) m along that axis, ranges (E,) m to the edge). ``rays``
+    1 y, bounds (E,) m, ends (E,2) m: where its two rays cross the plane along that axis, ranges (E,) m
+    to the edge). ``rays``
     (E,3,3): per interval the two rays and the outward normal of the side the LIDAR saw it leave
     (frontend/board_edges.py), all in the sensor frame. The normal, turned into the board frame by
     the estimate's rotation, names the side (only the board's orientation is used, not where it
@@ -104,9 +111,9 @@ def edge_sides(T_lidar0_sensor, T_lidar0_board, rays: np.ndarray, board, *, min_
     xmin, xmax, ymin, ymax = board.extent()
     lo, hi = np.array([xmin, ymin]), np.array([xmax, ymax])
     bounds = np.where(c > 0, hi[axis], lo[axis])
-    L = np.abs(q[1::2, :2] - q[0::2, :2])[np.arange(E), axis]
+    ends = np.c_[q[0::2, :2][np.arange(E), axis], q[1::2, :2][np.arange(E), axis]]
     keep = (np.abs(c) >= min_cos) & (lam[0::2] > 0) & (lam[1::2] > 0)
-    return keep, axis, bounds, L, lam[0::2]  # w is a unit vector: lam is the range to the crossing
+    return keep, axis, bounds, ends, lam[0::2]  # w is a unit vector: lam is the range to the crossing
 
 
 def lidar_edge_residuals(T_lidar0_sensor, T_lidar0_board, rays, axis, bounds) -> np.ndarray:
@@ -115,12 +122,27 @@ def lidar_edge_residuals(T_lidar0_sensor, T_lidar0_board, rays, axis, bounds) ->
                      False)[0]
 
 
-def edge_sigmas(L: np.ndarray, ranges: np.ndarray, *, beam_rad: float) -> np.ndarray:
-    """(E,) m: the uniform quantisation of each interval (L / sqrt(12)) and the beam's blur at the
-    edge (``beam_rad`` x range: where along a partly covered footprint a return still comes from
-    the board) in quadrature. The range noise does not enter: both rays are crossed with the
-    board's plane, their measured ranges are not used."""
-    return np.sqrt(L**2 / 12 + (beam_rad * ranges) ** 2)
+def edge_sigmas(ends: np.ndarray, ranges: np.ndarray, axis: np.ndarray, bounds: np.ndarray, *,
+                beam_rad: float) -> np.ndarray:
+    """(E,) m: the uniform quantisation of each interval (L / sqrt(12), L = |ends[:, 1] - ends[:, 0]|)
+    and the beam's blur at the edge (``beam_rad`` x range: where along a partly covered footprint
+    a return still comes from the board) in quadrature; the range noise does not enter (both rays
+    are crossed with the board's plane, their measured ranges are not used). Per side (``axis``,
+    ``bounds``), scaled by one factor where the intervals' common part W says less than their
+    sigmas together claim: the side known to W^2 / 12 plus the blur averaged over them."""
+    ends, axis, bounds = np.asarray(ends, float).reshape(-1, 2), np.asarray(axis), np.asarray(bounds, float)
+    blur2 = (beam_rad * np.asarray(ranges, float)) ** 2
+    var = (ends[:, 1] - ends[:, 0]) ** 2 / 12 + blur2
+    if len(var):
+        _, side = np.unique(np.c_[axis, bounds], axis=0, return_inverse=True)
+        for k in np.unique(side):
+            sel = side.ravel() == k
+            W = ends[sel].max(axis=1).min() - ends[sel].min(axis=1).max()
+            if sel.sum() < 2 or W <= 0:
+                continue
+            shared = W**2 / 12 + (1 / np.sum(1 / blur2[sel]) if np.all(blur2[sel] > 0) else 0.0)
+            var[sel] *= max(1.0, shared * np.sum(1 / var[sel]))
+    return np.sqrt(var)
 
 
 def lidar_edge_factor(sensor_key: int | None, board_key: int, rays, axis, bounds, sigmas):

@@ -68,13 +68,14 @@ def test_an_interval_straddling_the_edge_has_zero_residual_and_the_side_is_found
     # the sides' outward normals as the LIDAR saw them: a few degrees off the board's own
     normals = np.array([[-1, 0.05, 0], [1, -0.05, 0], [0.05, -1, 0], [0, 1, 0.05]]) @ R.T
     rays = np.concatenate([rays, (normals / np.linalg.norm(normals, axis=1, keepdims=True))[:, None]], axis=1)
-    keep, axis, bounds, L, rng_m = edge_sides(None, Tb, rays, BOARD)
+    keep, axis, bounds, ends, rng_m = edge_sides(None, Tb, rays, BOARD)
     assert keep.all() and list(axis) == [0, 0, 1, 1]
     np.testing.assert_allclose(bounds, [xmin, xmax, ymin, ymax])
+    L = np.abs(ends[:, 1] - ends[:, 0])
     np.testing.assert_allclose(L, [0.02, 0.014, 0.024, 0.018], atol=1e-12)
     np.testing.assert_allclose(lidar_edge_residuals(None, Tb, rays, axis, bounds), 0, atol=1e-12)
     np.testing.assert_allclose(rng_m, np.linalg.norm(np.c_[q_in, np.zeros(4)] @ R.T + t, axis=1))
-    sig = edge_sigmas(L, rng_m, beam_rad=0.0013)
+    sig = edge_sigmas(ends, rng_m, axis, bounds, beam_rad=0.0013)  # one interval per side: its own
     np.testing.assert_allclose(sig, np.sqrt(L**2 / 12 + (0.0013 * rng_m) ** 2))
     # 5 mm off along x for the first interval: error 5 mm
     moved = pose3_from_rt(rt_b).compose(gtsam.Pose3(gtsam.Rot3(), np.array([0.005, 0, 0])))
@@ -280,3 +281,31 @@ def test_rings_and_intervals_round_trip_through_the_dump(tmp_path):
 
     with pytest.raises(DataError, match="corrupt problem dump"):
         load_problem(tmp_path / "bad.npz")
+
+
+@pytest.mark.parametrize("stagger", ["aligned", "random"])
+def test_a_side_crossed_at_the_same_columns_is_known_to_one_quantisation(stagger):
+    """Monte Carlo of one side crossed by 8 rings whose rays are L apart: at the same columns
+    (an upright side, a level top) the rings' quantisation is one error, the side known to
+    L / sqrt(12); at random phases to ~L / sqrt(12 n). The stated sigma of the weighted mean of
+    the midpoints is the spread of its error in both cases."""
+    rng = np.random.default_rng(5)
+    n, L, h = 8, 0.02, 0.425
+    errors, stated = [], []
+    for _ in range(3000):
+        phase = np.full(n, rng.uniform(0, L)) if stagger == "aligned" else rng.uniform(0, L, n)
+        inside = h - phase  # the last ray on the board, then the next one L further, past the edge
+        ends = np.c_[inside, inside + L]
+        sig = edge_sigmas(ends, np.full(n, 4.0), np.zeros(n, int), np.full(n, h), beam_rad=0.0)
+        w = 1 / sig**2
+        errors.append(np.sum(w * (ends.mean(axis=1) - h)) / np.sum(w))
+        stated.append(1 / np.sqrt(np.sum(w)))
+    spread, claim = np.std(errors), np.sqrt(np.mean(np.square(stated)))
+    want = L / np.sqrt(12) if stagger == "aligned" else L / np.sqrt(12 * n)
+    assert 0.93 < spread / want < 1.07, (spread, want)
+    assert 0.9 < claim / spread < 1.3, (claim, spread)  # honest, not inflated for random phases
+    # two sides never share: the same intervals split over x+ and y- keep their own sigmas
+    ends = np.c_[np.full(4, 0.41), np.full(4, 0.43)]
+    both = edge_sigmas(ends, np.full(4, 4.0), np.array([0, 0, 1, 1]), np.array([0.425, 0.425, -0.3, -0.3]),
+                       beam_rad=0.0)
+    np.testing.assert_allclose(1 / np.sum(1 / both[:2] ** 2), 0.02**2 / 12)
