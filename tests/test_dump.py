@@ -15,7 +15,10 @@ from clcgraph.types import (BoardGeometry, CameraBoardObservation, LidarBoardObs
 def _problem():
     rng = np.random.default_rng(3)
     cam = Sensor("/cam0/image", "camera", "LENSMODEL_OPENCV8", rng.normal(size=12), (1280, 1024))
-    sensors = (Sensor("/l0", "lidar"), Sensor("/l1", "lidar"), cam)
+    M = rng.normal(size=(12, 12))
+    cam2 = Sensor("/cam1/image", "camera", "LENSMODEL_OPENCV8", rng.normal(size=12), (640, 480),
+                  intrinsics_covariance=M @ M.T)  # from mrcal's optimization_inputs
+    sensors = (Sensor("/l0", "lidar"), Sensor("/l1", "lidar"), cam, cam2)
     lidar = (
         LidarBoardObservation(0, 0, rng.normal(size=(17, 3)), rng.normal(size=4), 0.011, np.arange(17) * 3),
         LidarBoardObservation(1, 0, rng.normal(size=(5, 3)), rng.normal(size=4), 0.02, None),
@@ -52,6 +55,8 @@ def test_round_trip_exact(tmp_path):
         [(s.topic, s.kind, s.lensmodel, s.imagersize) for s in p.sensors]
     for s, t in zip(p.sensors, q.sensors):
         _same(s.intrinsics, t.intrinsics)
+        _same(s.intrinsics_covariance, t.intrinsics_covariance)  # a replay keeps the intrinsics' term
+    assert q.sensors[3].intrinsics_covariance is not None
     assert q.board == p.board
     for o, r in zip(p.lidar_observations, q.lidar_observations, strict=True):
         assert (o.sensor, o.snapshot, o.rms_m) == (r.sensor, r.snapshot, r.rms_m)

@@ -11,7 +11,8 @@ spacing_m/margin_m, are read and converted): one ``.npz`` (numpy's zip of ``.npy
   scalar/ragged bookkeeping of the observations;
 - plain numeric arrays: concatenated LIDAR points (with per-observation counts), planes,
   indices, optional per-point rings and edge intervals (ragged, with counts), camera corners,
-  priors, visibility points, snapshot stamps, intrinsics.
+  priors, visibility points, snapshot stamps, intrinsics (and their covariance, where the camera
+  model gave one).
 
 Floats are stored as float64 and so round-trip bit-exactly.
 """
@@ -63,10 +64,13 @@ def save_problem(path: str | Path, problem: Problem, config: Config | None = Non
         sensors.append(
             dict(topic=s.topic, kind=s.kind, lensmodel=s.lensmodel,
                  imagersize=None if s.imagersize is None else [int(v) for v in s.imagersize],
-                 has_intrinsics=s.intrinsics is not None)
+                 has_intrinsics=s.intrinsics is not None,
+                 has_intrinsics_covariance=s.intrinsics_covariance is not None)
         )
         if s.intrinsics is not None:
             arrays[f"intrinsics_{i}"] = np.asarray(s.intrinsics, float)
+        if s.intrinsics_covariance is not None:  # a replay keeps the intrinsics' uncertainty term
+            arrays[f"intrinsics_covariance_{i}"] = np.asarray(s.intrinsics_covariance, float)
     lo = problem.lidar_observations
     arrays["lidar_points"], arrays["lidar_counts"] = _concat([o.points for o in lo], (3,))
     arrays["lidar_planes"] = np.array([o.plane for o in lo], float).reshape(-1, 4)
@@ -124,7 +128,8 @@ _MAX_MEMBERS = 10_000
 _INFLATE_ALLOWANCE = 64 << 20
 _MAX_INFLATE_RATIO = 200
 
-# member name -> (dtype kind, trailing shape) of the fixed arrays; intrinsics_i and visibility_k below
+# member name -> (dtype kind, trailing shape) of the fixed arrays; intrinsics_i, intrinsics_covariance_i and
+# visibility_k below
 _LAYOUT = {
     "meta": ("U", None),
     "lidar_points": ("f", (3,)), "lidar_counts": ("i", ()), "lidar_planes": ("f", (4,)),
@@ -222,6 +227,11 @@ def _check_layout(a: dict, meta: dict, path: Path) -> None:
                 bad(f"camera {sd['topic']} lens model {sd.get('lensmodel')!r}")
             if x.dtype.kind != "f" or x.shape != (n,) or not np.all(np.isfinite(x)):
                 bad(f"camera {sd['topic']} intrinsics {x.dtype} {x.shape} for {sd['lensmodel']} ({n})")
+            if sd.get("has_intrinsics_covariance"):  # optional: older dumps have none
+                c = a.get(f"intrinsics_covariance_{i}")
+                if c is None or c.dtype.kind != "f" or c.shape != (n, n) or not np.all(np.isfinite(c)) \
+                        or not np.allclose(c, c.T, rtol=1e-9, atol=0):
+                    bad(f"camera {sd['topic']} intrinsics covariance is not a symmetric {n}x{n} matrix")
     if "lidar" not in kinds:
         bad("no LIDAR")
 
@@ -318,6 +328,7 @@ def load_problem(path: str | Path) -> tuple[Problem, Config]:
         sensors = tuple(
             Sensor(topic=s["topic"], kind=s["kind"], lensmodel=s["lensmodel"],
                    intrinsics=a[f"intrinsics_{i}"] if s["has_intrinsics"] else None,
+                   intrinsics_covariance=a[f"intrinsics_covariance_{i}"] if s.get("has_intrinsics_covariance") else None,
                    imagersize=None if s["imagersize"] is None else tuple(s["imagersize"]))
             for i, s in enumerate(meta["sensors"])
         )

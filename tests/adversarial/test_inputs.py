@@ -467,6 +467,13 @@ def _tamper(case, src, dst):
     elif case == "intrinsics of the wrong lens model":
         k = next(n for n in a if n.startswith("intrinsics_"))
         _rewrite(src, dst, **{k: a[k][:4]})
+    elif case == "asymmetric intrinsics covariance":
+        k = next(n for n in a if n.startswith("intrinsics_"))
+        m = json.loads(str(a["meta"]))
+        m["sensors"][int(k.rsplit("_", 1)[1])]["has_intrinsics_covariance"] = True
+        n = len(a[k])
+        _rewrite(src, dst, meta=np.array(json.dumps(m)), **{k.replace("intrinsics_", "intrinsics_covariance_"):
+                                                           np.triu(np.ones((n, n)))})
     elif case == "version 99":
         _rewrite(src, dst, meta=_meta(src, version=99))
     elif case == "config out of range":
@@ -484,7 +491,7 @@ def _tamper(case, src, dst):
 DUMPS = ["truncated", "empty file", "not a zip", "sensor 99", "snapshot -1", "camera observation on a lidar",
          "zip bomb", "lying npy header", "points as strings", "indices as floats", "pickled object array",
          "counts do not add up", "NaN points", "prior sigma 0", "missing member", "wrong shape",
-         "intrinsics of the wrong lens model", "version 99", "config out of range", "deeply nested meta",
+         "intrinsics of the wrong lens model", "asymmetric intrinsics covariance", "version 99", "config out of range", "deeply nested meta",
          "no sensors"]
 
 
