@@ -73,7 +73,9 @@ def test_leave_one_out_statistic_follows_its_chi_square_law():
     """With Gaussian noise as modelled, the leave-one-snapshot-out chi-squares add up to their
     degrees of freedom (sum over 30 snapshots: sd ~ sqrt(2 dof), so 25 % is ~3 sd)."""
     problem, _ = simulate_problem(rig=make_rig(2, 1), n_snapshots=30, seed=7)
-    opts = SolveOptions(reject_outliers=False, lidar_edge_beam_rad=0.0)  # the simulated beam is a line: no blur
+    # planes and corners: the outline's error is uniform within its interval, which its sigma bounds
+    # (its whitened mean square is ~0.5 here with no beam blur stated, 0.5-0.64 on the real ACFR captures)
+    opts = SolveOptions(reject_outliers=False, lidar_edges=False)
     r = calibrate(problem, opts)
     assert not [x for x in r.rejected if x.stage == "seed"]
     sig = np.array([r.noise["per_sensor"][i] for i in range(len(problem.sensors))])
