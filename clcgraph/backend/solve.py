@@ -287,7 +287,7 @@ def _solve_with_effects(problem, active, rt_sensor, rt_board, sig, options, nomi
                            effect_values=values)[0]
 
         # the consider terms' errors are in the data too: D and the white noise get what they leave
-        known = consider.known_columns(problem, g, v, rebuild, options)
+        known = consider.known_columns(problem, at, g, rebuild, options)
         new_sig, new_effects, _ = N.estimate_components(problem, at.with_known(*known) if known else at, sig, effects,
                                                         select=rnd == 0)
         change = max([float(np.max(np.abs(new_sig / sig - 1)))]
@@ -439,7 +439,7 @@ def calibrate(problem: Problem, options) -> Result:
 
     # the consider terms' errors as columns of the final linearization: the jackknife's expected
     # ratio and the consistency checks count them in
-    known = consider.known_columns(problem, g, values, rebuild, options)
+    known = consider.known_columns(problem, lin, g, rebuild, options)
     # the jackknife judges the board-to-board part: it cannot see the common part of errors fixed for the capture
     jk = jackknife(problem, lin, rt_sensor, cov, known=lin.with_known(*known) if known else None)
     times["jackknife"] = time.perf_counter() - t
