@@ -164,6 +164,7 @@ class Linearization:
         out = object.__new__(Linearization)
         out.variable_sensors, out.ns, out.local, out.groups = self.variable_sensors, self.ns, self.local, self.groups
         out._context, out.factors, out.values = self._context, self.factors, self.values
+        out._layout_cache = self._layout()
         out.terms, out.rows = list(self.terms), list(self.rows)
         for f in factors:
             terms, rows, _ = self._linearize(f, g.at(f), self.values)
@@ -178,6 +179,7 @@ class Linearization:
         out = object.__new__(Linearization)
         out.variable_sensors, out.ns, out.local, out.groups = self.variable_sensors, self.ns, self.local, self.groups
         out._context, out.factors, out.values = self._context, self.factors, self.values
+        out._layout_cache = getattr(self, "_layout_cache", None)
         out.terms, out.rows = [], None if self.rows is None else []
         for t, (snapshot, cols, group, AtA, Atb, btb, rows) in enumerate(self.terms):
             w = 1.0 if group is None else weights.get(group, 1.0)
@@ -217,6 +219,42 @@ class Linearization:
         out.terms.append((None, c, None, np.eye(m), np.zeros(m), 0.0, 0))
         return out
 
+    def _layout(self):
+        """Where _batches puts each term's numbers: (groups, {size: the snapshots}, the sensor-only
+        terms, {size: (its terms, M's and v's row and group indices, btb's and rows' (group,
+        snapshot) indices)}). It depends on the terms' snapshots, columns and groups only, so the
+        relinearized and reweighted copies share it."""
+        if getattr(self, "_layout_cache", None) is None:
+            ns = self.ns
+            groups = [None, *self.groups]
+            gi = {g: a for a, g in enumerate(groups)}
+            by_size: dict = {}
+            for k in sorted(self.local):
+                by_size.setdefault(len(self.local[k]), []).append(k)
+            where = {k: (size, b) for size, ks in by_size.items() for b, k in enumerate(ks)}
+            parts = {size: ([], [], [], [], [], []) for size in by_size}  # terms, M rows, v rows; group, size per term; snapshot
+            alone = []
+            for t, (snapshot, cols, group, AtA, _, _, _) in enumerate(self.terms):
+                if snapshot is None:
+                    alone.append(t)
+                    continue
+                size, b = where[snapshot]
+                n = ns + 6 * size
+                e = parts[size]
+                e[0].append(t)
+                e[1].append(((b * n + cols[:, None]) * n + cols[None, :]).ravel())
+                e[2].append(b * n + cols)
+                e[3].append(gi[group])
+                e[4].append(len(cols))
+                e[5].append(b)
+            layout = {}
+            for size, (ts, Mr, vr, ga, nc, bs) in parts.items():
+                ga, nc = np.array(ga), np.array(nc)
+                layout[size] = (ts, np.concatenate(Mr), np.repeat(ga, nc * nc), np.concatenate(vr), np.repeat(ga, nc),
+                                (ga, np.array(bs)))
+            self._layout_cache = (groups, by_size, alone, layout)
+        return self._layout_cache
+
     def _batches(self):
         """The normal equations split by group, so reweighting is a weighted sum, built once:
         [(snapshots, n, M (K*n*n, G), v (K*n, G), M^T, v^T, btb (G,K), rows (G,K))] per size of the
@@ -227,44 +265,29 @@ class Linearization:
             from scipy.sparse import csr_matrix
 
             ns = self.ns
-            groups = [None, *self.groups]
+            groups, by_size, alone, layout = self._layout()
             gi = {g: a for a, g in enumerate(groups)}
-            by_size: dict = {}
-            for k in sorted(self.local):
-                by_size.setdefault(len(self.local[k]), []).append(k)
-            where = {k: (size, b) for size, ks in by_size.items() for b, k in enumerate(ks)}
-            entries = {size: ([], [], [], [], [], []) for size in by_size}  # M rows, cols, values; v rows, cols, values
-            btb = {size: np.zeros((len(groups), len(ks))) for size, ks in by_size.items()}
-            rows = {size: np.zeros((len(groups), len(ks))) for size, ks in by_size.items()}
             M0, v0 = np.zeros((len(groups), ns, ns)), np.zeros((len(groups), ns))
             btb0, rows0 = np.zeros(len(groups)), np.zeros(len(groups))
-            for snapshot, cols, group, AtA, Atb, bb, nrows in self.terms:
+            for t in alone:
+                _, cols, group, AtA, Atb, bb, nrows = self.terms[t]
                 a = gi[group]
-                if snapshot is None:
-                    M0[a][np.ix_(cols, cols)] += AtA
-                    v0[a][cols] += Atb
-                    btb0[a] += bb
-                    rows0[a] += nrows
-                    continue
-                size, b = where[snapshot]
-                n = ns + 6 * size
-                e = entries[size]
-                e[0].append(((b * n + cols[:, None]) * n + cols[None, :]).ravel())
-                e[1].append(np.full(AtA.size, a))
-                e[2].append(AtA.ravel())
-                e[3].append(b * n + cols)
-                e[4].append(np.full(len(cols), a))
-                e[5].append(Atb)
-                btb[size][a, b] += bb
-                rows[size][a, b] += nrows
+                M0[a][np.ix_(cols, cols)] += AtA
+                v0[a][cols] += Atb
+                btb0[a] += bb
+                rows0[a] += nrows
             batches = []
             for size, ks in sorted(by_size.items()):
-                n, e = ns + 6 * size, entries[size]
-                M = csr_matrix((np.concatenate(e[2]), (np.concatenate(e[0]), np.concatenate(e[1]))),
+                n = ns + 6 * size
+                ts, Mr, Mg, vr, vg, at = layout[size]
+                terms = [self.terms[t] for t in ts]
+                M = csr_matrix((np.concatenate([x[3].ravel() for x in terms]), (Mr, Mg)),
                                shape=(len(ks) * n * n, len(groups)))  # duplicates summed
-                v = csr_matrix((np.concatenate(e[5]), (np.concatenate(e[3]), np.concatenate(e[4]))),
-                               shape=(len(ks) * n, len(groups)))
-                batches.append((ks, n, M, v, M.T.tocsr(), v.T.tocsr(), btb[size], rows[size]))  # .T once: it copies
+                v = csr_matrix((np.concatenate([x[4] for x in terms]), (vr, vg)), shape=(len(ks) * n, len(groups)))
+                btb, rows = np.zeros((len(groups), len(ks))), np.zeros((len(groups), len(ks)))
+                np.add.at(btb, at, [x[5] for x in terms])  # in the terms' order, like a loop
+                np.add.at(rows, at, [x[6] for x in terms])
+                batches.append((ks, n, M, v, M.T.tocsr(), v.T.tocsr(), btb, rows))  # .T once: it copies
             self._batch_cache = (groups, batches, (M0, v0, btb0, rows0))
         return self._batch_cache
 
