@@ -203,31 +203,49 @@ LENS_GRID = (16, 12)  # nodes over the image; >= 3 per cycle at the field's high
 LENS_MODES_VARIANCE = 0.95  # share of the field's variance the modes kept carry
 
 
-def lens_field_modes(imagersize, rms_px: float):
-    """[(K,2) -> (K,) 1-sigma field of one pixel axis at image points] for a smooth lens-model
-    error field of ``rms_px`` (RMS of the error vector, both axes; lens_field_kernel in x and y):
-    the leading eigenmodes on a grid, extended to any point by the field's own regression
-    (Nystrom: the grid's kernel inverted over each mode)."""
-    w, h = imagersize
+def _lens_kernel(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(A, B) lens_field_kernel in x times in y between points (fractions of the image)."""
+    return lens_field_kernel(a[:, None, 0] - b[None, :, 0]) * lens_field_kernel(a[:, None, 1] - b[None, :, 1])
+
+
+@dataclasses.dataclass(frozen=True)
+class LensFieldModes:
+    """The leading eigenmodes of a smooth lens-model error field (lens_field_modes): called on
+    image points (K,2) px, the (K, n) 1-sigma field of one pixel axis of each mode there, the
+    grid's modes extended to any point by the field's own regression (Nystrom: the grid's kernel
+    inverted over each mode). One kernel evaluation for every mode."""
+
+    imagersize: tuple
+    grid: np.ndarray  # (G,2) nodes, fractions of the image
+    vectors: np.ndarray  # (G, n) the grid kernel's leading eigenvectors
+    values: np.ndarray  # (n,) their eigenvalues
+    sigma: float  # the field's 1-sigma per pixel axis
+
+    def __len__(self) -> int:
+        return len(self.values)
+
+    def __call__(self, q: np.ndarray) -> np.ndarray:
+        w, h = self.imagersize
+        return self.sigma * (_lens_kernel(np.c_[q[:, 0] / w, q[:, 1] / h], self.grid) @ self.vectors) / np.sqrt(self.values)
+
+
+def lens_field_modes(imagersize, rms_px: float) -> LensFieldModes:
+    """The modes of a smooth lens-model error field of ``rms_px`` (RMS of the error vector, both
+    axes; lens_field_kernel in x and y) that carry LENS_MODES_VARIANCE of its variance on a grid."""
     gx, gy = np.meshgrid(np.linspace(0, 1, LENS_GRID[0]), np.linspace(0, 1, LENS_GRID[1]))
     grid = np.c_[gx.ravel(), gy.ravel()]
-
-    def k(a, b):
-        return lens_field_kernel(a[:, None, 0] - b[None, :, 0]) * lens_field_kernel(a[:, None, 1] - b[None, :, 1])
-
-    lam, V = np.linalg.eigh(k(grid, grid))
+    lam, V = np.linalg.eigh(_lens_kernel(grid, grid))
     lam, V = lam[::-1], V[:, ::-1]
     m = int(np.searchsorted(np.cumsum(lam) / lam.sum(), LENS_MODES_VARIANCE)) + 1
-    var = rms_px**2 / 2  # per axis
-    return [lambda q, v=V[:, j], l=lam[j]: np.sqrt(var) * (k(np.c_[q[:, 0] / w, q[:, 1] / h], grid) @ v) / np.sqrt(l)
-            for j in range(m)]
+    return LensFieldModes(tuple(imagersize), grid, np.ascontiguousarray(V[:, :m]), lam[:m], float(np.sqrt(rms_px**2 / 2)))
 
 
-def _lens_moves(problem: Problem, sensor: int, mode, axis: int, h: float):
-    """The observations with camera ``sensor``'s corners moved by ``h`` times a lens-field mode along ``axis``."""
+def _lens_moves(problem: Problem, sensor: int, modes: LensFieldModes, mode: int, axis: int, h: float):
+    """The observations with camera ``sensor``'s corners moved by ``h`` times lens-field mode
+    ``mode`` along ``axis``."""
     def moved(o):
         dq = np.zeros_like(o.corners_px)
-        dq[:, axis] = h * mode(o.corners_px)
+        dq[:, axis] = h * modes(o.corners_px)[:, mode]
         return dataclasses.replace(o, corners_px=o.corners_px + dq)
     camera = [moved(o) if o.sensor == sensor else o for o in problem.camera_observations]
     return dataclasses.replace(problem, camera_observations=tuple(camera))
@@ -261,10 +279,14 @@ def consider_terms(problem: Problem, build, values, options, S: np.ndarray | Non
     wanted, lens = _wanted(problem, values, options)
     if not wanted and not lens:
         return {}
+    g, lin = None, None
+    if S is None or lens:
+        g = build(problem)
+        lin = Linearization(problem, g, values)
     if S is None:
-        S = Linearization(problem, build(problem), values).reduced()[0]
+        S = lin.reduced()[0]
     out = {f"lens field {problem.sensors[i].topic}": np.linalg.solve(S, dr)
-           for i, dr in _lens_field_dr(problem, build, values, lens).items()}
+           for i, dr in _lens_field_dr(problem, lin, g, lens).items()}
     if not wanted:
         return out
 
@@ -276,35 +298,33 @@ def consider_terms(problem: Problem, build, values, options, S: np.ndarray | Non
                for name, dirs in wanted.items()}, **out}
 
 
-def known_columns(problem: Problem, g, values, build, options):
+def known_columns(problem: Problem, lin, g, build, options):
     """The consider terms' errors as columns of the linearized measurements, for the models that
     must know them (noise.Linearization.with_known, consistency.linearize): ({factor index of
     ``g``: (rows, m) the change of its whitened b when the measurements move by +1 sigma along
-    each of the m directions}, m), or None when no term is stated. ``build(problem) -> graph``:
-    ``g`` with other measurements (same masks, sigmas, D). One linearization per direction (the
-    measurements are linear in c far below the noise); the lens field's in closed form."""
-    import gtsam
-
-    wanted, lens = _wanted(problem, values, options)
+    each of the m directions}, m), or None when no term is stated. ``lin``: noise.Linearization
+    of ``g`` (its b, and whose factor is which); ``build(problem) -> graph``: ``g`` with other
+    measurements (same masks, sigmas, D). Per direction, only the factors whose measurements it
+    moves are linearized again (the measurements are linear in c far below the noise); the lens
+    field's in closed form."""
+    wanted, lens = _wanted(problem, lin.values, options)
     if not wanted and not lens:
         return None
     cols: dict = {}  # factor index -> [(column, (rows,))]
     m = 0
-    if wanted:
-        measured = [f for f in range(g.size()) if not isinstance(g.at(f), gtsam.PriorFactorPose3)]
-        b0 = {f: g.at(f).linearize(values).jacobian()[1] for f in measured}
-        for dirs in wanted.values():
-            for moved in dirs:
-                gm = build(moved(1))
-                for f in measured:
-                    db = gm.at(f).linearize(values).jacobian()[1] - b0[f]
-                    if np.any(db):
-                        cols.setdefault(f, []).append((m, db))
-                m += 1
+    for dirs in wanted.values():
+        for moved in dirs:
+            p = moved(1)
+            gm = build(p)
+            for f in moved_factors(problem, p, lin):
+                db = gm.at(f).linearize(lin.values).jacobian()[1] - lin.rows[lin.factors[f][3].start][2]
+                if np.any(db):
+                    cols.setdefault(f, []).append((m, db))
+            m += 1
     first = {}  # camera -> its first lens-field column
     for i, modes in lens.items():
         first[i], m = m, m + 2 * len(modes)
-    for f, i, db in _lens_field_db(problem, g, lens):
+    for f, i, db in _lens_field_db(problem, lin, g, lens):
         cols.setdefault(f, []).extend((first[i] + j, db[:, j]) for j in range(db.shape[1]))
     dense = {}
     for f, cs in cols.items():
@@ -313,6 +333,17 @@ def known_columns(problem: Problem, g, values, build, options):
             G_f[:, j] = c
         dense[f] = G_f
     return dense, m
+
+
+def moved_factors(problem: Problem, moved: Problem, lin) -> list:
+    """The measurement factors of ``lin`` (a noise.Linearization of ``problem``'s graph) that
+    ``moved`` changes: of its observations that are not ``problem``'s (by identity), and every
+    one of a sensor it replaced (intrinsics). The others linearize the same in both."""
+    sensors = {i for i, (a, b) in enumerate(zip(problem.sensors, moved.sensors)) if a is not b}
+    obs = {(o.sensor, o.snapshot) for a, b in ((problem.lidar_observations, moved.lidar_observations),
+                                                (problem.camera_observations, moved.camera_observations))
+           for o, o_m in zip(a, b) if o is not o_m}
+    return [f for f, (i, k, _, _) in enumerate(lin.factors) if i is not None and (i in sensors or (i, k) in obs)]
 
 
 def _wanted(problem: Problem, values, options):
@@ -350,20 +381,15 @@ def _wanted(problem: Problem, values, options):
     return wanted, lens
 
 
-def _lens_field_dr(problem: Problem, build, values, lens: dict) -> dict:
+def _lens_field_dr(problem: Problem, lin, g, lens: dict) -> dict:
     """{camera: (ns, m) the change of the sensor-only vector r when its corners move along each
     of its lens-field modes (both pixel axes)}, in closed form: a camera factor's residual is
     linear in its corners (whitened ``(q - project) / sigma``), so only b moves, by the moved
     corners over sigma, and r by ``sum_k dv_s - B_k L_k^-1 dv_local`` over the snapshots (the
-    Schur complement ``reduced`` uses). Same numbers as a relinearization per mode, far cheaper."""
-    import gtsam
-
-    from .noise import Linearization
-
+    Schur complement ``reduced`` uses). Same numbers as a relinearization per mode, far cheaper.
+    ``lin``: noise.Linearization of the graph ``g`` at the final values (its factors' A and columns)."""
     if not lens:
         return {}
-    g = build(problem)
-    lin = Linearization(problem, g, values)
     ns = lin.ns
     _, batches, _ = lin._batches()
     gain = {}  # snapshot -> (K = B L^-1 (ns, nl), n)
@@ -372,46 +398,31 @@ def _lens_field_dr(problem: Problem, build, values, lens: dict) -> dict:
         S_k, r_k, iL, B, _ = lin._eliminate((Mg @ wv).reshape(len(ks), n, n), (vg @ wv).reshape(len(ks), n))
         for b, k in enumerate(ks):
             gain[k] = B[b] @ iL[b]
-    sensor_col = {G.sensor_key(i): 6 * a for a, i in enumerate(lin.variable_sensors)}
     out = {i: np.zeros((ns, 2 * len(modes))) for i, modes in lens.items()}
-    for f, i, db in _lens_field_db(problem, g, lens):
-        factor = g.at(f)
-        keys = list(factor.keys())
-        syms = [gtsam.Symbol(k) for k in keys]
-        chars = [chr(x.chr()) for x in syms]
-        k = next(int(x.index()) for x, c in zip(syms, chars) if c == "b")
-        A, _ = factor.linearize(values).jacobian()
-        cols = np.concatenate([np.arange(6) + (sensor_col[key] if c == "s" else ns + lin.local[k][key])
-                               for key, c in zip(keys, chars)])
+    for f, i, db in _lens_field_db(problem, lin, g, lens):
+        _, k, cols, terms = lin.factors[f]
+        A = lin.rows[terms.start][1]  # a corner factor is one term of every row
         dv = np.zeros((ns + 6 * len(lin.local[k]), db.shape[1]))
         np.add.at(dv, cols, A.T @ db)
         out[i] += dv[:ns] - gain[k] @ dv[ns:]
     return out
 
 
-def _lens_field_db(problem: Problem, g, lens: dict):
+def _lens_field_db(problem: Problem, lin, g, lens: dict):
     """[(factor index, camera, (rows, 2 x modes) the change of its whitened b per unit of each of
     the camera's lens-field modes, both pixel axes)] over ``g``'s corner factors of the cameras
-    in ``lens``: a camera residual is linear in its corners (whitened ``(q - project) / sigma``)."""
-    import gtsam
-
+    in ``lens`` (``lin``: noise.Linearization of ``g``, which says whose factor is which): a camera
+    residual is linear in its corners (whitened ``(q - project) / sigma``)."""
     obs = {(o.sensor, o.snapshot): o for o in problem.camera_observations}
     out = []
-    for f in range(g.size() if lens else 0):
-        factor = g.at(f)
-        keys = list(factor.keys())
-        cam = [i for i in lens if G.sensor_key(i) in keys]
-        if not cam or "PriorFactor" in type(factor).__name__:
+    for f, (i, k, _, _) in enumerate(lin.factors if lens else ()):
+        if i not in lens or k is None:
             continue
-        syms = [gtsam.Symbol(k) for k in keys]
-        k = next((int(x.index()) for x in syms if chr(x.chr()) == "b"), None)
-        if k is None:
-            continue
-        i = cam[0]
         q = obs[(i, k)].corners_px
-        dq = np.stack([np.c_[m(q), np.zeros(len(q))] if a == 0 else np.c_[np.zeros(len(q)), m(q)]
-                       for m in lens[i] for a in (0, 1)], axis=-1).reshape(2 * len(q), -1)  # (rows, modes)
-        out.append((f, i, -_whiten(factor, np.nan_to_num(dq))))  # undetected corners: zero rows of A
+        F = lens[i](q)  # (K, modes)
+        dq = np.zeros((len(q), 2, 2 * F.shape[1]))
+        dq[:, 0, 0::2], dq[:, 1, 1::2] = F, F  # column 2 j + a: mode j along pixel axis a
+        out.append((f, i, -_whiten(g.at(f), np.nan_to_num(dq.reshape(2 * len(q), -1)))))  # undetected corners: zero rows of A
     return out
 
 
@@ -481,15 +492,17 @@ def unit_error_sensitivities(problem: Problem, build, values, S: np.ndarray | No
     from .noise import Linearization
 
     ns = 6 * (len(problem.sensors) - 1)
-    if S is None:
-        S = Linearization(problem, build(problem), values).reduced()[0]
+    g = build(problem)
+    lin = Linearization(problem, g, values)
+    S_, r0, _ = lin.reduced()
+    S = S_ if S is None else S
 
-    def r_of(p):
-        return Linearization(p, build(p), values).reduced()[1]
+    def r_of(p):  # only the factors p moves are linearized again: the others' terms are lin's
+        return lin.relinearized(build(p), moved_factors(problem, p, lin)).reduced()[1]
 
     moves = {"ring range bias": _ring_range_moves,
              "ring elevation": lambda p, i, e0, ab: _ring_elevation_moves(p, values, i, e0, ab)}
-    errors, columns, r0 = [], [], None
+    errors, columns = [], []
     for i, s in enumerate(problem.sensors):
         if not s.is_lidar or not any(o.sensor == i for o in problem.lidar_observations):
             continue
@@ -497,14 +510,13 @@ def unit_error_sensitivities(problem: Problem, build, values, S: np.ndarray | No
         P, e0 = ring_trend_projection(elevations, counts)
         for kind, unit, h in UNIT_ERRORS:  # one-sided: a range bias moves the residuals linearly, an elevation
             # error to far below the noise at this step
-            r0 = r_of(problem) if r0 is None else r0
             dr = [(r_of(moves[kind](problem, i, e0, h * u)) - r0) / h for u in np.eye(2)[:len(P)]]  # per unit of a, b
             columns.append(np.linalg.solve(S, np.stack(dr, axis=1)) @ P)
             errors += [{"sensor": s.topic, "error": kind, "unit": unit, "ring_elevation_deg": float(np.degrees(e))}
                        for e in elevations]
     lens = {i: lens_field_modes(s.imagersize, 1.0) for i, s in enumerate(problem.sensors)
             if s.is_camera and any(o.sensor == i for o in problem.camera_observations)}
-    for i, dr in _lens_field_dr(problem, build, values, lens).items():
+    for i, dr in _lens_field_dr(problem, lin, g, lens).items():
         columns.append(np.linalg.solve(S, dr))
         errors += [{"sensor": problem.sensors[i].topic, "error": LENS_FIELD, "unit": "px", "mode": j, "axis": "xy"[a]}
                    for j in range(len(lens[i])) for a in (0, 1)]

@@ -89,7 +89,7 @@ def sigma_of(sigma, sensor: int) -> float:
 
 def build(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.ndarray, *, lidar: str,
           sigma_lidar_m, sigma_camera_px, options, board_nominal: np.ndarray | None = None,
-          effects: np.ndarray | None = None, effect_values=None):
+          effects: np.ndarray | None = None, effect_values=None, edge_factors: list | None = None):
     """(gtsam.NonlinearFactorGraph, gtsam.Values) for the active observations.
 
     ``lidar``: "plane" (point-to-plane) or "range" (maximum likelihood).
@@ -98,12 +98,12 @@ def build(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.
     ``effects``: (Nsensors,6) sigmas of each observation's own board-pose error D (board-centre
     tangent [omega, v]; backend/noise.py): every observation factor gets its D variable, with a
     zero-mean prior of these sigmas; None = independent noise only. ``effect_values``: gtsam.Values
-    to start the D variables from (default: identity).
+    to start the D variables from (default: identity). ``edge_factors``: lidar_edge_factors made
+    beforehand (they depend on the poses and edge rays only), for graphs built many times.
     """
     import gtsam
 
     make = lidar_plane_factor if lidar == "plane" else lidar_range_factor
-    edges = lidar == "range" and getattr(options, "lidar_edges", False)  # from a rough seed the sides may be wrong
     g = gtsam.NonlinearFactorGraph()
     v = gtsam.Values()
     centre = board_centre(problem)
@@ -128,13 +128,9 @@ def build(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.
             g.add(camera_corners_factor(sensor_key(o.sensor), board_key(o.snapshot), q, s.lensmodel,
                                         s.intrinsics, problem.board, sigma_of(sigma_camera_px, o.sensor),
                                         **effect("camera", j, o.sensor)))
-    if edges:
-        for o, m in zip(problem.lidar_observations, active.lidar):
-            if m is not None and m.any() and o.edge_rays is not None and len(o.edge_rays):
-                f = edge_factor(problem, o, _pose(problem, rt_sensor, o.sensor), pose3_from_rt(rt_board[o.snapshot]),
-                                beam_rad=options.lidar_edge_beam_rad)
-                if f is not None:
-                    g.add(f)
+    if lidar == "range":  # from a rough seed (point-to-plane) the sides may be wrong
+        for f in lidar_edge_factors(problem, active, rt_sensor, rt_board, options) if edge_factors is None else edge_factors:
+            g.add(f)
     used, seen_by_camera = active.boards(problem)
     nominal = rt_board if board_nominal is None else board_nominal
     for k in sorted(used - seen_by_camera):
@@ -153,6 +149,21 @@ def build(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.
 
 def _pose(problem: Problem, rt_sensor: np.ndarray, i: int):
     return None if i == problem.reference else pose3_from_rt(rt_sensor[i])
+
+
+def lidar_edge_factors(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.ndarray, options) -> list:
+    """The edge factors of the active LIDAR observations at the given poses (edge_factor), none
+    unless ``options.lidar_edges``."""
+    out = []
+    if not getattr(options, "lidar_edges", False):
+        return out
+    for o, m in zip(problem.lidar_observations, active.lidar):
+        if m is not None and m.any() and o.edge_rays is not None and len(o.edge_rays):
+            f = edge_factor(problem, o, _pose(problem, rt_sensor, o.sensor), pose3_from_rt(rt_board[o.snapshot]),
+                            beam_rad=options.lidar_edge_beam_rad)
+            if f is not None:
+                out.append(f)
+    return out
 
 
 def edge_factor(problem: Problem, o, T_sensor, T_board, *, beam_rad: float):

@@ -92,54 +92,85 @@ class Linearization:
     factor is kept as terms (snapshot or None, columns, group, A^T A, A^T b, b^T b, rows) in
     gtsam's whitening at ``values``; ``weights`` rescale groups (VCE) without relinearizing.
     Groups: ("white", sensor), ("effect", sensor, component), or None (priors, fixed).
+    ``rows``: per term (factor index, whitened A, b); ``factors``: per factor of ``g`` (its
+    sensor, problem.reference for lidar0's, None for a prior; its snapshot or None; its columns;
+    the slice of its terms), so the consider terms need not decode or relinearize it again.
     """
 
     def __init__(self, problem, g, values):
-        import gtsam
-
         self.variable_sensors = [i for i in range(len(problem.sensors)) if i != problem.reference]
         self.ns = 6 * len(self.variable_sensors)
-        sensor_col = {G.sensor_key(i): 6 * a for a, i in enumerate(self.variable_sensors)}
         obs = {G.effect_key("lidar", j): o for j, o in enumerate(problem.lidar_observations)}
         obs.update({G.effect_key("camera", j): o for j, o in enumerate(problem.camera_observations)})
-        obs_sensor = {k: o.sensor for k, o in obs.items()}
-        comp = components(problem)
+        self._context = ({G.sensor_key(i): 6 * a for a, i in enumerate(self.variable_sensors)},
+                         {k: (o.sensor, o.snapshot) for k, o in obs.items()}, components(problem), problem.reference,
+                         {})  # sensor key -> column; D key -> (sensor, snapshot); components; lidar0; decoded keys
+        self.values = values
         self.local: dict[int, dict] = {}  # snapshot -> {key: column offset after the sensors}
         self.terms = []
         self.rows = []  # per term: (factor index, its whitened A, b), for with_known
-        symbols: dict = {}  # key -> gtsam.Symbol, decoded once
+        self.factors = []  # per factor: (sensor or None for a prior, snapshot or None, columns, its terms' slice)
         for f in range(g.size()):
-            factor = g.at(f)
-            lin = factor.linearize(values)
-            A, b = lin.jacobian()
-            keys = list(lin.keys())
-            syms = [symbols[k] if k in symbols else symbols.setdefault(k, gtsam.Symbol(k)) for k in keys]
-            chars = [chr(s.chr()) for s in syms]
-            effect = next((k for k, c in zip(keys, chars) if c in "de"), None)
-            snapshot = obs[effect].snapshot if effect is not None else \
-                next((int(s.index()) for s, c in zip(syms, chars) if c == "b"), None)
-            if snapshot is not None:
-                loc = self.local.setdefault(snapshot, {})
-                for k, c in zip(keys, chars):
-                    if c in "bde" and k not in loc:
-                        loc[k] = 6 * len(loc)
-            cols = np.concatenate([np.arange(6) + (sensor_col[k] if c == "s" else self.ns + self.local[snapshot][k])
-                                   for k, c in zip(keys, chars)])
-            is_prior = "PriorFactor" in type(factor).__name__
-            if effect is not None and is_prior:  # D's prior: rows are D's DOFs, one group per component
-                i = obs_sensor[effect]
-                rows_of = {("effect", i, c): list(d) for c, d in comp[i].items()}
-                rows_of[None] = [d for d in range(6) if not any(d in x for x in comp[i].values())]
-            elif effect is not None:
-                rows_of = {("white", obs_sensor[effect]): None}  # None: every row (no copy of A)
-            else:
-                rows_of = {None: None}
-            for group, rows in rows_of.items():
-                Ar, br = (A, b) if rows is None else (A[rows], b[rows])
-                n = int(np.count_nonzero(np.any(Ar != 0, axis=1)))  # masked corners are zero rows
-                self.terms.append((snapshot, cols, group, Ar.T @ Ar, Ar.T @ br, float(br @ br), n))
-                self.rows.append((f, Ar if rows is None else None, br if rows is None else None))
+            terms, rows, record = self._linearize(f, g.at(f), values)
+            self.factors.append((*record, slice(len(self.terms), len(self.terms) + len(terms))))
+            self.terms += terms
+            self.rows += rows
         self.groups = sorted({t[2] for t in self.terms if t[2] is not None}, key=str)
+
+    def _linearize(self, f: int, factor, values):
+        """Factor ``f``'s terms and rows, and its (sensor, snapshot, columns); new snapshots' and
+        keys' columns are added to ``local`` in the order they are met."""
+        import gtsam
+
+        sensor_col, effect_of, comp, reference, symbols = self._context
+        lin = factor.linearize(values)
+        A, b = lin.jacobian()
+        keys = list(lin.keys())
+        syms = [symbols[k] if k in symbols else symbols.setdefault(k, gtsam.Symbol(k)) for k in keys]
+        chars = [chr(s.chr()) for s in syms]
+        effect = next((k for k, c in zip(keys, chars) if c in "de"), None)
+        snapshot = effect_of[effect][1] if effect is not None else \
+            next((int(s.index()) for s, c in zip(syms, chars) if c == "b"), None)
+        if snapshot is not None:
+            loc = self.local.setdefault(snapshot, {})
+            for k, c in zip(keys, chars):
+                if c in "bde" and k not in loc:
+                    loc[k] = 6 * len(loc)
+        cols = np.concatenate([np.arange(6) + (sensor_col[k] if c == "s" else self.ns + self.local[snapshot][k])
+                               for k, c in zip(keys, chars)])
+        is_prior = "PriorFactor" in type(factor).__name__
+        if effect is not None and is_prior:  # D's prior: rows are D's DOFs, one group per component
+            i = effect_of[effect][0]
+            rows_of = {("effect", i, c): list(d) for c, d in comp[i].items()}
+            rows_of[None] = [d for d in range(6) if not any(d in x for x in comp[i].values())]
+        elif effect is not None:
+            rows_of = {("white", effect_of[effect][0]): None}  # None: every row (no copy of A)
+        else:
+            rows_of = {None: None}
+        terms, rows = [], []
+        for group, r in rows_of.items():
+            Ar, br = (A, b) if r is None else (A[r], b[r])
+            n = int(np.count_nonzero(np.any(Ar != 0, axis=1)))  # masked corners are zero rows
+            terms.append((snapshot, cols, group, Ar.T @ Ar, Ar.T @ br, float(br @ br), n))
+            rows.append((f, Ar if r is None else None, br if r is None else None))
+        sensors = [int(s.index()) for s, c in zip(syms, chars) if c == "s"]
+        sensor = None if is_prior else (sensors[0] if sensors else reference)
+        return terms, rows, (sensor, snapshot, cols)
+
+    def relinearized(self, g, factors) -> "Linearization":
+        """The system with the given factors taken from ``g`` (the same graph but for those
+        factors' measurements: same keys, values and noise models), the others' terms shared:
+        what a fresh linearization of ``g`` gives, evaluating only those factors."""
+        out = object.__new__(Linearization)
+        out.variable_sensors, out.ns, out.local, out.groups = self.variable_sensors, self.ns, self.local, self.groups
+        out._context, out.factors, out.values = self._context, self.factors, self.values
+        out._layout_cache = self._layout()
+        out.terms, out.rows = list(self.terms), list(self.rows)
+        for f in factors:
+            terms, rows, _ = self._linearize(f, g.at(f), self.values)
+            span = self.factors[f][3]
+            out.terms[span], out.rows[span] = terms, rows
+        return out
 
     def reweighted(self, weights: dict) -> "Linearization":
         """The same system with groups rescaled (``{group: w}``, w = (old sigma / new sigma)^2):
@@ -147,6 +178,8 @@ class Linearization:
         evaluating the factors again."""
         out = object.__new__(Linearization)
         out.variable_sensors, out.ns, out.local, out.groups = self.variable_sensors, self.ns, self.local, self.groups
+        out._context, out.factors, out.values = self._context, self.factors, self.values
+        out._layout_cache = getattr(self, "_layout_cache", None)
         out.terms, out.rows = [], None if self.rows is None else []
         for t, (snapshot, cols, group, AtA, Atb, btb, rows) in enumerate(self.terms):
             w = 1.0 if group is None else weights.get(group, 1.0)
@@ -186,6 +219,42 @@ class Linearization:
         out.terms.append((None, c, None, np.eye(m), np.zeros(m), 0.0, 0))
         return out
 
+    def _layout(self):
+        """Where _batches puts each term's numbers: (groups, {size: the snapshots}, the sensor-only
+        terms, {size: (its terms, M's and v's row and group indices, btb's and rows' (group,
+        snapshot) indices)}). It depends on the terms' snapshots, columns and groups only, so the
+        relinearized and reweighted copies share it."""
+        if getattr(self, "_layout_cache", None) is None:
+            ns = self.ns
+            groups = [None, *self.groups]
+            gi = {g: a for a, g in enumerate(groups)}
+            by_size: dict = {}
+            for k in sorted(self.local):
+                by_size.setdefault(len(self.local[k]), []).append(k)
+            where = {k: (size, b) for size, ks in by_size.items() for b, k in enumerate(ks)}
+            parts = {size: ([], [], [], [], [], []) for size in by_size}  # terms, M rows, v rows; group, size per term; snapshot
+            alone = []
+            for t, (snapshot, cols, group, AtA, _, _, _) in enumerate(self.terms):
+                if snapshot is None:
+                    alone.append(t)
+                    continue
+                size, b = where[snapshot]
+                n = ns + 6 * size
+                e = parts[size]
+                e[0].append(t)
+                e[1].append(((b * n + cols[:, None]) * n + cols[None, :]).ravel())
+                e[2].append(b * n + cols)
+                e[3].append(gi[group])
+                e[4].append(len(cols))
+                e[5].append(b)
+            layout = {}
+            for size, (ts, Mr, vr, ga, nc, bs) in parts.items():
+                ga, nc = np.array(ga), np.array(nc)
+                layout[size] = (ts, np.concatenate(Mr), np.repeat(ga, nc * nc), np.concatenate(vr), np.repeat(ga, nc),
+                                (ga, np.array(bs)))
+            self._layout_cache = (groups, by_size, alone, layout)
+        return self._layout_cache
+
     def _batches(self):
         """The normal equations split by group, so reweighting is a weighted sum, built once:
         [(snapshots, n, M (K*n*n, G), v (K*n, G), M^T, v^T, btb (G,K), rows (G,K))] per size of the
@@ -196,44 +265,29 @@ class Linearization:
             from scipy.sparse import csr_matrix
 
             ns = self.ns
-            groups = [None, *self.groups]
+            groups, by_size, alone, layout = self._layout()
             gi = {g: a for a, g in enumerate(groups)}
-            by_size: dict = {}
-            for k in sorted(self.local):
-                by_size.setdefault(len(self.local[k]), []).append(k)
-            where = {k: (size, b) for size, ks in by_size.items() for b, k in enumerate(ks)}
-            entries = {size: ([], [], [], [], [], []) for size in by_size}  # M rows, cols, values; v rows, cols, values
-            btb = {size: np.zeros((len(groups), len(ks))) for size, ks in by_size.items()}
-            rows = {size: np.zeros((len(groups), len(ks))) for size, ks in by_size.items()}
             M0, v0 = np.zeros((len(groups), ns, ns)), np.zeros((len(groups), ns))
             btb0, rows0 = np.zeros(len(groups)), np.zeros(len(groups))
-            for snapshot, cols, group, AtA, Atb, bb, nrows in self.terms:
+            for t in alone:
+                _, cols, group, AtA, Atb, bb, nrows = self.terms[t]
                 a = gi[group]
-                if snapshot is None:
-                    M0[a][np.ix_(cols, cols)] += AtA
-                    v0[a][cols] += Atb
-                    btb0[a] += bb
-                    rows0[a] += nrows
-                    continue
-                size, b = where[snapshot]
-                n = ns + 6 * size
-                e = entries[size]
-                e[0].append(((b * n + cols[:, None]) * n + cols[None, :]).ravel())
-                e[1].append(np.full(AtA.size, a))
-                e[2].append(AtA.ravel())
-                e[3].append(b * n + cols)
-                e[4].append(np.full(len(cols), a))
-                e[5].append(Atb)
-                btb[size][a, b] += bb
-                rows[size][a, b] += nrows
+                M0[a][np.ix_(cols, cols)] += AtA
+                v0[a][cols] += Atb
+                btb0[a] += bb
+                rows0[a] += nrows
             batches = []
             for size, ks in sorted(by_size.items()):
-                n, e = ns + 6 * size, entries[size]
-                M = csr_matrix((np.concatenate(e[2]), (np.concatenate(e[0]), np.concatenate(e[1]))),
+                n = ns + 6 * size
+                ts, Mr, Mg, vr, vg, at = layout[size]
+                terms = [self.terms[t] for t in ts]
+                M = csr_matrix((np.concatenate([x[3].ravel() for x in terms]), (Mr, Mg)),
                                shape=(len(ks) * n * n, len(groups)))  # duplicates summed
-                v = csr_matrix((np.concatenate(e[5]), (np.concatenate(e[3]), np.concatenate(e[4]))),
-                               shape=(len(ks) * n, len(groups)))
-                batches.append((ks, n, M, v, M.T.tocsr(), v.T.tocsr(), btb[size], rows[size]))  # .T once: it copies
+                v = csr_matrix((np.concatenate([x[4] for x in terms]), (vr, vg)), shape=(len(ks) * n, len(groups)))
+                btb, rows = np.zeros((len(groups), len(ks))), np.zeros((len(groups), len(ks)))
+                np.add.at(btb, at, [x[5] for x in terms])  # in the terms' order, like a loop
+                np.add.at(rows, at, [x[6] for x in terms])
+                batches.append((ks, n, M, v, M.T.tocsr(), v.T.tocsr(), btb, rows))  # .T once: it copies
             self._batch_cache = (groups, batches, (M0, v0, btb0, rows0))
         return self._batch_cache
 

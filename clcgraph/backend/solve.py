@@ -287,7 +287,7 @@ def _solve_with_effects(problem, active, rt_sensor, rt_board, sig, options, nomi
                            effect_values=values)[0]
 
         # the consider terms' errors are in the data too: D and the white noise get what they leave
-        known = consider.known_columns(problem, g, v, rebuild, options)
+        known = consider.known_columns(problem, at, g, rebuild, options)
         new_sig, new_effects, _ = N.estimate_components(problem, at.with_known(*known) if known else at, sig, effects,
                                                         select=rnd == 0)
         change = max([float(np.max(np.abs(new_sig / sig - 1)))]
@@ -433,13 +433,17 @@ def calibrate(problem: Problem, options) -> Result:
     lin = lin or N.Linearization(problem, g, values)  # the noise components' own, when it is at the final values
     effect_sig = None if effects is None else N.effect_sigmas(problem, effects)
 
+    # made once: the consider terms' moves leave the edge rays alone (they move points and corners)
+    edges = G.lidar_edge_factors(problem, active, rt_sensor, rt_board, options)
+
     def rebuild(p):  # the final graph of p: the same masks, sigmas and D, other measurements
         return G.build(p, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig, sigma_camera_px=sig,
-                       options=options, board_nominal=nominal, effects=effect_sig, effect_values=values)[0]
+                       options=options, board_nominal=nominal, effects=effect_sig, effect_values=values,
+                       edge_factors=edges)[0]
 
     # the consider terms' errors as columns of the final linearization: the jackknife's expected
     # ratio and the consistency checks count them in
-    known = consider.known_columns(problem, g, values, rebuild, options)
+    known = consider.known_columns(problem, lin, g, rebuild, options)
     # the jackknife judges the board-to-board part: it cannot see the common part of errors fixed for the capture
     jk = jackknife(problem, lin, rt_sensor, cov, known=lin.with_known(*known) if known else None)
     times["jackknife"] = time.perf_counter() - t
