@@ -11,7 +11,9 @@ Figures, each with what it is measured against:
   same images (the first of each camera in each bag, as solve uses; uncompressed PGM,
   ``--jobs 2``). Goal: <= 2x.
 - detection: the API's detection stage (misses and retries included) vs that mrgingham run.
-  Goal: <= 1.3x.
+  Goal: <= 1.3x. Its wall time counts the first pass whole, though that pass runs beside the
+  LIDAR segmentation (and shares the cores with it); its CPU time (first pass, board regions and
+  retries, each run alone) against mrgingham's is the figure a loaded machine does not distort.
 - report: the report's wall time (pictures + HTML) in the API run. Goal: <= 0.5 s. Its CPU time too:
   the pictures are drawn by two processes, so the larger of their CPU times is its critical path.
 Timings on a shared 2-core machine are noisy: the floor measured in the same run is what
@@ -229,8 +231,12 @@ def main() -> str:
     out.append(f"{'report (CPU s)':28s} {max(r_self, r_child):9.2f} {GOALS['report_s']:11.2f} {'goal':24s} "
                f"{max(r_self, r_child) / GOALS['report_s']:6.2f}   (the larger of this process {r_self:.2f} and "
                f"the drawing process {r_child:.2f}; one process draws {r_self + r_child:.2f})")
-    out.append("in-process stages (s): " + ", ".join(f"{k} {v:.2f}" for k, v in stage.items()))
     fe = frontend_cpu(bags_glob, topics, models)
+    c_detect = sum(v for k, v in fe.items() if k.startswith("detect"))
+    out.append(f"{'detection stage (CPU s)':28s} {c_detect:9.2f} {c_det:11.2f} {'mrgingham, CPU':24s} "
+               f"{c_detect / c_det:6.2f} {'<= ' + format(GOALS['detection'], 'g'):>6s}"
+               f"{'' if c_detect / c_det <= GOALS['detection'] else '  MISSED'}   (each step alone, once)")
+    out.append("in-process stages (s): " + ", ".join(f"{k} {v:.2f}" for k, v in stage.items()))
     out.append("frontend stages alone, CPU s (incl. mrgingham): " + ", ".join(f"{k} {v:.2f}" for k, v in fe.items())
                + f"; mrgingham floor {c_det:.2f}")
     worst = max(errors, key=lambda e: e["rotation_deg"])
