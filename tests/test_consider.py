@@ -357,3 +357,22 @@ def test_a_stated_fixed_error_is_not_taken_again_by_the_observation_effects():
     for i in res.variable_sensors():  # the term alone accounts for the error
         z = (res.rt_lidar0_sensor[i] - truth.rt_lidar0_sensor[i]) / res.stdev_rt(i)
         assert np.all(np.abs(z) < 3.5), (i, z)
+
+
+def test_a_ring_elevation_error_moves_the_outline_with_the_rays(solved):
+    """The rays really leave 1 mrad higher: the points' ranges change (their directions are the
+    reported ones) and the outline, crossed by the same real rays, is reported 1 mrad lower."""
+    problem, truth, options, sigma, solve, build, idx, x, values = solved
+    moved = consider._ring_elevation_moves(problem, values, 0, 0.0, np.array([1e-3, 0.0]))
+    n = 0
+    for o, m in zip(problem.lidar_observations, moved.lidar_observations):
+        if o.edge_rays is None or not len(o.edge_rays):
+            continue
+        n += 1
+        a, b = np.asarray(o.edge_rays).reshape(-1, 3, 3), np.asarray(m.edge_rays).reshape(-1, 3, 3)
+        el = lambda u: np.arcsin(u[..., 2])  # noqa: E731
+        np.testing.assert_allclose(el(b[:, :2]), el(a[:, :2]) - 1e-3, atol=1e-9)
+        np.testing.assert_allclose(np.arctan2(b[:, :2, 1], b[:, :2, 0]), np.arctan2(a[:, :2, 1], a[:, :2, 0]), atol=1e-12)
+        np.testing.assert_allclose(np.linalg.norm(b[:, :2], axis=2), 1.0, atol=1e-12)
+        np.testing.assert_array_equal(b[:, 2], a[:, 2])  # the sides' normals as seen
+    assert n >= 5

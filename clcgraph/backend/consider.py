@@ -164,10 +164,19 @@ def _ring_range_moves(problem: Problem, sensor: int, e0: float, ab: np.ndarray):
     return dataclasses.replace(problem, lidar_observations=tuple(lidar))
 
 
+def _raised(u: np.ndarray, e0: float, ab: np.ndarray, sign: float = 1.0) -> np.ndarray:
+    """(M,3) unit rays ``u`` (M,3) turned ``sign (a + b (e - e0))`` (rad) up in elevation, azimuth kept."""
+    e = np.arcsin(np.clip(u[:, 2], -1.0, 1.0))
+    up = np.c_[-np.sin(e)[:, None] * u[:, :2] / np.maximum(np.cos(e), 1e-9)[:, None], np.cos(e)]  # du/de
+    de = sign * (ab[0] + ab[1] * (e - e0))
+    return np.cos(de)[:, None] * u + np.sin(de)[:, None] * up
+
+
 def _ring_elevation_moves(problem: Problem, values, sensor: int, e0: float, ab: np.ndarray):
     """The observations with LIDAR ``sensor``'s rays really leaving ``a + b (e - e0)`` (rad) higher
     than reported: each range is where the raised ray meets its board's plane (at the solution),
-    the point still reported along the nominal ray."""
+    the point still reported along the nominal ray; the board's outline is crossed by the same
+    real rays, so its intervals are reported that much lower."""
     rt_s = _poses(problem, values)
     lidar = []
     for o in problem.lidar_observations:
@@ -179,13 +188,13 @@ def _ring_elevation_moves(problem: Problem, values, sensor: int, e0: float, ab: 
         n = R_from_r(rt_sensor_board[:3])[:, 2]
         r = np.linalg.norm(o.points, axis=1)
         u = o.points / r[:, None]
-        e = _elevations(o.points)
-        up = np.c_[-np.sin(e)[:, None] * u[:, :2] / np.maximum(np.cos(e), 1e-9)[:, None], np.cos(e)]  # du/de
-        de = ab[0] + ab[1] * (e - e0)
-        raised = np.cos(de)[:, None] * u + np.sin(de)[:, None] * up
-        cos, cos_raised = u @ n, raised @ n
+        cos, cos_raised = u @ n, _raised(u, e0, ab) @ n
         ratio = np.where(np.abs(cos_raised) > 0.05, cos / np.where(np.abs(cos_raised) > 0.05, cos_raised, 1.0), 1.0)
-        lidar.append(dataclasses.replace(o, points=o.points * ratio[:, None]))
+        edges = o.edge_rays
+        if edges is not None and len(edges):  # (E,3,3): two rays and the side's normal, kept
+            edges = np.array(edges, float)
+            edges[:, :2] = _raised(edges[:, :2].reshape(-1, 3), e0, ab, -1.0).reshape(-1, 2, 3)
+        lidar.append(dataclasses.replace(o, points=o.points * ratio[:, None], edge_rays=edges))
     return dataclasses.replace(problem, lidar_observations=tuple(lidar))
 
 

@@ -433,13 +433,14 @@ def calibrate(problem: Problem, options) -> Result:
     lin = lin or N.Linearization(problem, g, values)  # the noise components' own, when it is at the final values
     effect_sig = None if effects is None else N.effect_sigmas(problem, effects)
 
-    # made once: the consider terms' moves leave the edge rays alone (they move points and corners)
+    # made once, for the moves that leave the edge rays alone (all but the ring elevations')
     edges = G.lidar_edge_factors(problem, active, rt_sensor, rt_board, options)
 
     def rebuild(p):  # the final graph of p: the same masks, sigmas and D, other measurements
+        same = all(a.edge_rays is b.edge_rays for a, b in zip(problem.lidar_observations, p.lidar_observations))
         return G.build(p, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig, sigma_camera_px=sig,
                        options=options, board_nominal=nominal, effects=effect_sig, effect_values=values,
-                       edge_factors=edges)[0]
+                       edge_factors=edges if same else None)[0]
 
     # the consider terms' errors as columns of the final linearization: the jackknife's expected
     # ratio and the consistency checks count them in
