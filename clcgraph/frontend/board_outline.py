@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..types import LidarScan
-from .lidar_preprocess import missed_rays, prepare, ring_neighbours
+from .lidar_preprocess import Rings, missed_rays, prepare, ring_neighbours
 
 # The fine search grid: cells of half the point spacing, within these bounds (m).
 _CELL_M = (0.01, 0.03)
@@ -63,7 +63,8 @@ class Outline:
 class ScanRays:
     """Every ray of a scan: its returns, and far points along the rays that returned nothing;
     per ray the scan rows of its neighbours along the ring (-1: none, or a ray that returned
-    nothing)."""
+    nothing). ``rings``: the scan's valid returns (``prepare`` without range limits) and
+    ``missed``: ``missed_rays`` of them at ``step_rad``, for the board's edges (``board_edges``)."""
 
     points: np.ndarray  # (M,3)
     prev: np.ndarray  # (M,)
@@ -72,6 +73,9 @@ class ScanRays:
     by_azimuth: np.ndarray | None = None  # (M,) the rays in azimuth order (-pi..pi)
     azimuth: np.ndarray | None = None  # (M,) sorted: the azimuth of by_azimuth's rays
     elevation: np.ndarray | None = None  # (M,) per ray (not sorted)
+    rings: Rings | None = None
+    missed: tuple | None = None  # (directions (K,3), position before, position after)
+    step_rad: float = 0.0
 
     def away_from(self, rows: np.ndarray) -> np.ndarray:
         """(M,) the rays that are not ring neighbours of the scan rows ``rows``: where a ring
@@ -117,10 +121,11 @@ class ScanRays:
         return k[(self.elevation[k] >= el_lo) & (self.elevation[k] <= el_hi)]
 
 
-def scan_rays(scan: LidarScan, step_rad: float, far_m: float = 1e4) -> ScanRays:
+def scan_rays(scan: LidarScan, step_rad: float, far_m: float = 1e4, *, rings: Rings | None = None) -> ScanRays:
     """ScanRays of ``scan`` (every valid return, static scene and any range included; ``far_m``
-    along each missed ray); ``step_rad``: the azimuth step."""
-    R = prepare(scan, min_range_m=0.0, max_range_m=np.inf)
+    along each missed ray); ``step_rad``: the azimuth step; ``rings``: ``prepare(scan)`` if
+    already made."""
+    R = prepare(scan) if rings is None else rings
     ok = R.range > 0
     prv, nxt = ring_neighbours(R)
     dirs, before, after = missed_rays(R, step_rad)
@@ -130,7 +135,8 @@ def scan_rays(scan: LidarScan, step_rad: float, far_m: float = 1e4) -> ScanRays:
     az = np.arctan2(u[:, 1], u[:, 0])
     order = np.argsort(az, kind="stable")
     return ScanRays(pts, np.r_[rows[prv[ok]], rows[before]], np.r_[rows[nxt[ok]], rows[after]], len(scan.points),
-                    by_azimuth=order, azimuth=az[order], elevation=np.arcsin(np.clip(u[:, 2], -1, 1)))
+                    by_azimuth=order, azimuth=az[order], elevation=np.arcsin(np.clip(u[:, 2], -1, 1)), rings=R,
+                    missed=(dirs, before, after), step_rad=step_rad)
 
 
 def plane_basis(n: np.ndarray, d: float) -> tuple[np.ndarray, np.ndarray]:
