@@ -384,8 +384,11 @@ def fit_outline(points: np.ndarray, others: np.ndarray, n: np.ndarray, d: float,
     _, th, centre = _search(xy, xy_b, np.arange(0.0, period, cell_c / (diag / 2)), size, cell_c, 1, c0)
     cell = float(np.clip(s_edge / 2, *_CELL_M))
     dth = cell / (diag / 2)
-    score, th, centre = _search(xy, xy_b, th + np.arange(-cell_c / cell, cell_c / cell + 1) * dth, size, cell,
-                                0, c0, hint=centre, reach=2 * cell_c)
+    # the fine grid (at any angle) lies within half a board, the reach and 3 cells of the coarse
+    # centre along its axes: returns farther off would only be dropped from it
+    near = lambda q: q[np.hypot(*(q - centre).T) <= np.hypot(*(size / 2 + 2 * cell_c + 4 * cell))]  # noqa: E731
+    score, th, centre = _search(near(xy), near(xy_b), th + np.arange(-cell_c / cell, cell_c / cell + 1) * dth, size,
+                                cell, 0, c0, hint=centre, reach=2 * cell_c)
     axes = np.array([[np.cos(th), np.sin(th)], [-np.sin(th), np.cos(th)]])
     # A plane return is inside the scored cells, or within tol of them along its ring: the edge
     # lies between a ring's last return on the board and its next ray, so within half a spacing of
