@@ -12,7 +12,7 @@ it (the holder's body touching it) says nothing either. Each interval is kept as
 from the board pose (factors/lidar_edge.py).
 
 SYNOPSIS
-    rays = edge_rays(scan, board_rows (K,), n, d, step_rad=2*pi/2048, plane_tol_m=0.05)
+    rays = edge_rays(scan_rays(scan, 2*pi/2048), board_rows (K,), n, d, outline, plane_tol_m=0.05)
     rays   # (E,2,3): per interval the ray of the return on the board, then the ray past the edge
 """
 
@@ -20,9 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..types import LidarScan
-from .board_outline import Outline, ray_plane
-from .lidar_preprocess import missed_rays, prepare, ring_neighbours
+from .board_outline import Outline, ScanRays, ray_plane
+from .lidar_preprocess import ring_neighbours
 
 # How far a fitted rectangle's side may lie from the board's (board_outline's finest grid cell:
 # its centre to a cell, its angle to a cell at the corners)
@@ -63,26 +62,26 @@ def _behind_or_missed(R, pos: np.ndarray, n: np.ndarray, d: float, tol: float) -
     return out
 
 
-def edge_rays(scan: LidarScan, rows: np.ndarray, n: np.ndarray, d: float, outline: Outline, *, step_rad: float,
+def edge_rays(rays: ScanRays, rows: np.ndarray, n: np.ndarray, d: float, outline: Outline, *,
               plane_tol_m: float) -> np.ndarray:
-    """(E,3,3) the board's edge intervals in ``scan`` (LIDAR frame: unit ray on the board, unit ray
-    past its edge, outward normal of that side of ``outline``). ``rows``: the scan rows of the
-    board's returns (one unbroken piece per ring); n . x = d its plane; ``outline``: the board's
-    rectangle fitted to them; ``step_rad``: the azimuth step; ``plane_tol_m``: how far behind the
-    plane a return must be to show the ray passed the board."""
+    """(E,3,3) the board's edge intervals in the scan of ``rays`` (``scan_rays``; LIDAR frame: unit
+    ray on the board, unit ray past its edge, outward normal of that side of ``outline``). ``rows``:
+    the scan rows of the board's returns (one unbroken piece per ring); n . x = d its plane;
+    ``outline``: the board's rectangle fitted to them; ``plane_tol_m``: how far behind the plane a
+    return must be to show the ray passed the board."""
     rows = np.asarray(rows, np.int64)
     n = np.asarray(n, float)
     if d > 0:
         n, d = -n, -d
-    R = prepare(scan, min_range_m=0.0, max_range_m=np.inf)
+    R, step_rad = rays.rings, rays.step_rad
     if not len(R.index) or not len(rows):
         return np.zeros((0, 3, 3))
-    pos_of_row = np.full(len(scan.points), -1, np.int64)
+    pos_of_row = np.full(rays.n_rows, -1, np.int64)
     pos_of_row[R.index] = np.arange(len(R.index))
     pos = pos_of_row[rows]
     pos = np.sort(pos[pos >= 0])
     prv, nxt = ring_neighbours(R)
-    dirs, before, after = missed_rays(R, step_rad)
+    dirs, before, after = rays.missed
     first_miss_after = np.full(len(R.index), -1, np.int64)  # per return: the missed ray right after it
     first_miss_after[before[before >= 0]] = np.flatnonzero(before >= 0)
     last_miss_before = np.full(len(R.index), -1, np.int64)

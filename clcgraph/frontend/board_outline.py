@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..types import LidarScan
-from .lidar_preprocess import missed_rays, prepare, ring_neighbours
+from .lidar_preprocess import Rings, missed_rays, prepare, ring_neighbours
 
 # The fine search grid: cells of half the point spacing, within these bounds (m).
 _CELL_M = (0.01, 0.03)
@@ -63,7 +63,8 @@ class Outline:
 class ScanRays:
     """Every ray of a scan: its returns, and far points along the rays that returned nothing;
     per ray the scan rows of its neighbours along the ring (-1: none, or a ray that returned
-    nothing)."""
+    nothing). ``rings``: the scan's valid returns (``prepare`` without range limits) and
+    ``missed``: ``missed_rays`` of them at ``step_rad``, for the board's edges (``board_edges``)."""
 
     points: np.ndarray  # (M,3)
     prev: np.ndarray  # (M,)
@@ -72,6 +73,9 @@ class ScanRays:
     by_azimuth: np.ndarray | None = None  # (M,) the rays in azimuth order (-pi..pi)
     azimuth: np.ndarray | None = None  # (M,) sorted: the azimuth of by_azimuth's rays
     elevation: np.ndarray | None = None  # (M,) per ray (not sorted)
+    rings: Rings | None = None
+    missed: tuple | None = None  # (directions (K,3), position before, position after)
+    step_rad: float = 0.0
 
     def away_from(self, rows: np.ndarray) -> np.ndarray:
         """(M,) the rays that are not ring neighbours of the scan rows ``rows``: where a ring
@@ -117,10 +121,11 @@ class ScanRays:
         return k[(self.elevation[k] >= el_lo) & (self.elevation[k] <= el_hi)]
 
 
-def scan_rays(scan: LidarScan, step_rad: float, far_m: float = 1e4) -> ScanRays:
+def scan_rays(scan: LidarScan, step_rad: float, far_m: float = 1e4, *, rings: Rings | None = None) -> ScanRays:
     """ScanRays of ``scan`` (every valid return, static scene and any range included; ``far_m``
-    along each missed ray); ``step_rad``: the azimuth step."""
-    R = prepare(scan, min_range_m=0.0, max_range_m=np.inf)
+    along each missed ray); ``step_rad``: the azimuth step; ``rings``: ``prepare(scan)`` if
+    already made."""
+    R = prepare(scan) if rings is None else rings
     ok = R.range > 0
     prv, nxt = ring_neighbours(R)
     dirs, before, after = missed_rays(R, step_rad)
@@ -130,7 +135,8 @@ def scan_rays(scan: LidarScan, step_rad: float, far_m: float = 1e4) -> ScanRays:
     az = np.arctan2(u[:, 1], u[:, 0])
     order = np.argsort(az, kind="stable")
     return ScanRays(pts, np.r_[rows[prv[ok]], rows[before]], np.r_[rows[nxt[ok]], rows[after]], len(scan.points),
-                    by_azimuth=order, azimuth=az[order], elevation=np.arcsin(np.clip(u[:, 2], -1, 1)))
+                    by_azimuth=order, azimuth=az[order], elevation=np.arcsin(np.clip(u[:, 2], -1, 1)), rings=R,
+                    missed=(dirs, before, after), step_rad=step_rad)
 
 
 def plane_basis(n: np.ndarray, d: float) -> tuple[np.ndarray, np.ndarray]:
@@ -170,15 +176,60 @@ def along_ring_step(points: np.ndarray, n: np.ndarray, d: float, step_rad: float
     return t[:, None] * (du - ((du @ n) / un)[:, None] * u) * step_rad
 
 
-def _box_sums(S: np.ndarray, kx: int, ky: int, ox: int = 0, oy: int = 0) -> np.ndarray:
-    """Sums over boxes [i+ox, i+kx-ox) x [j+oy, j+ky-oy) for every anchor (i, j) with the box
-    inside the block, from summed-area tables S (B, cells+1, cells+1)."""
-    nx, ny = S.shape[1] - kx, S.shape[2] - ky
-    a0, a1, b0, b1 = ox, kx - ox, oy, ky - oy
-    if a1 <= a0 or b1 <= b0:
-        return np.zeros((S.shape[0], nx, ny), S.dtype)
-    return (S[:, a1:a1 + nx, b1:b1 + ny] - S[:, a0:a0 + nx, b1:b1 + ny]
-            - S[:, a1:a1 + nx, b0:b0 + ny] + S[:, a0:a0 + nx, b0:b0 + ny])
+def _box_counts(tables, blocks: np.ndarray, cells: np.ndarray, k: np.ndarray, tile: np.ndarray,
+                how: str | None = None) -> np.ndarray:
+    """(B, tile[0], tile[1]) per anchor a of the sorted ``blocks`` (B,): the sum over ``tables``
+    [(members, ox, sign)] of sign x the returns of ``members`` (block, cell in its block, of
+    ``cells`` (2,) cells padded by one before each axis) in the anchor's box [a + ox, a + k - ox)
+    per axis.
+
+    The counts are exact either way, and taken the cheaper of two ways: a summed-area table of
+    the blocks' cells (an entry per return), or a difference grid of the anchors, a box of them
+    per return with +-1 at its corners (four entries per return, but a grid as large as the
+    anchors: those of the fine search are 40x fewer than its cells). ``how``: "table" or "grid"
+    to choose."""
+    B = len(blocks)
+    P0, P1 = cells[0] + 1, cells[1] + 1
+    picked = []
+    for m, ox, sign in tables:
+        if m is None or k.min() <= 2 * ox:  # no returns, or boxes of no cell
+            continue
+        if blocks[-1] - blocks[0] + 1 == B:  # consecutive blocks (one per angle): no search
+            b = m[0] - blocks[0]
+            hit = (b >= 0) & (b < B)
+        else:
+            b = np.minimum(np.searchsorted(blocks, m[0]), B - 1)
+            hit = blocks[b] == m[0]
+        picked.append((b[hit], m[1][hit], ox, sign))
+    out = np.zeros((B, tile[0], tile[1]), np.int64)
+    n = sum(len(p[0]) for p in picked)
+    if how is None:  # numpy passes over the entries and over the table / grid, roughly
+        cheaper = 10 * n + 6 * B * P0 * P1 * len(picked) < 36 * n + 4 * B * (tile[0] + 1) * (tile[1] + 1)
+        how = "table" if cheaper else "grid"
+    if how == "table":
+        for b, loc, ox, sign in picked:
+            S = np.bincount(b * (P0 * P1) + loc, minlength=B * P0 * P1).reshape(B, P0, P1).cumsum(axis=1).cumsum(axis=2)
+            i0, i1, j0, j1 = ox, k[0] - ox, ox, k[1] - ox
+            box = S[:, i1:i1 + tile[0], j1:j1 + tile[1]] - S[:, i0:i0 + tile[0], j1:j1 + tile[1]] \
+                - S[:, i1:i1 + tile[0], j0:j0 + tile[1]] + S[:, i0:i0 + tile[0], j0:j0 + tile[1]]
+            (np.add if sign > 0 else np.subtract)(out, box, out=out)
+        return out
+    T0, T1 = tile[0] + 1, tile[1] + 1
+    D = np.zeros(B * T0 * T1, np.int64)
+    for b, loc, ox, sign in picked:
+        # int32 (D is far smaller than 2**31 cells) and temporaries dropped early: memory
+        ci, cj = np.divmod(loc.astype(np.int32), np.int32(P1))
+        b = b.astype(np.int32) * np.int32(T0 * T1)
+        i0 = np.minimum(np.maximum(ci - (k[0] - ox), 0), tile[0]) * T1 + b  # ci - 1: the cell, unpadded
+        i1 = np.minimum(np.maximum(ci - ox, 0), tile[0]) * T1 + b
+        del b, ci
+        j0 = np.minimum(np.maximum(cj - (k[1] - ox), 0), tile[1])
+        j1 = np.minimum(np.maximum(cj - ox, 0), tile[1])
+        del cj
+        for at, s in ((i0 + j0, sign), (i1 + j1, sign), (i1 + j0, -sign), (i0 + j1, -sign)):
+            (np.add if s > 0 else np.subtract)(D, np.bincount(at, minlength=D.size), out=D)
+    out += D.reshape(B, T0, T1).cumsum(axis=1).cumsum(axis=2)[:, :tile[0], :tile[1]]
+    return out
 
 
 def _search(xy_on, xy_behind, angles, size, cell, margin, c0, hint=None, reach=0.0):
@@ -227,13 +278,14 @@ def _search(xy_on, xy_behind, angles, size, cell, margin, c0, hint=None, reach=0
         corner_j = lo[:, 1, None] + (np.array([0, n_anchor[1] - 1]) + k[1] / 2) * cell - r0[:, 1, None]
         far = np.sqrt(np.max(np.max(corner_i**2, axis=1) + np.max(corner_j**2, axis=1)))
         for a0 in range(0, A, sub):
-            angle = np.arange(a0, min(a0 + sub, A))
+            a1 = min(a0 + sub, A)
 
-            def members(q):  # (block, cell in the block) of each of the returns q's blocks
-                i = np.floor((q[0][angle] - lo[angle, :1]) / cell).astype(np.int64)
-                j = np.floor((q[1][angle] - lo[angle, 1:]) / cell).astype(np.int64)
-                ok = (i >= 0) & (i < G[0]) & (j >= 0) & (j < G[1])  # cells off the grid hold no rectangle
-                ia, i, j = angle[np.nonzero(ok)[0]], i[ok], j[ok]
+            def members(q):  # (block, cell in the block, padded) of each of the returns q's blocks
+                i = np.floor((q[0][a0:a1] - lo[a0:a1, :1]) / cell).astype(np.int64)
+                j = np.floor((q[1][a0:a1] - lo[a0:a1, 1:]) / cell).astype(np.int64)
+                # cells off the grid hold no rectangle (read unsigned, a negative cell is off it too)
+                ok = (i.view(np.uint64) < np.uint64(G[0])) & (j.view(np.uint64) < np.uint64(G[1]))
+                ia, i, j = np.nonzero(ok)[0] + a0, i[ok], j[ok]
 
                 def along(i, ax):  # [(tile, cell in its block, mask)]: the tile of i's anchors, the one before
                     if n_tile[ax] == 1:
@@ -246,7 +298,7 @@ def _search(xy_on, xy_behind, angles, size, cell, margin, c0, hint=None, reach=0
                 for ti, li, mi in along(i, 0):
                     for tj, lj, mj in along(j, 1):
                         blk = ia if n_tile[0] * n_tile[1] == 1 else (ia * n_tile[0] + ti) * n_tile[1] + tj
-                        loc = li * cells[1] + lj
+                        loc = (li + 1) * (cells[1] + 1) + lj + 1
                         m = mi if mj is None else mj if mi is None else mi & mj
                         block.append(blk if m is None else blk[m])
                         local.append(loc if m is None else loc[m])
@@ -257,49 +309,34 @@ def _search(xy_on, xy_behind, angles, size, cell, margin, c0, hint=None, reach=0
             m_on = members((qx, qy))
             m_b = members((bx, by)) if bx is not None else None
             # the blocks: where the plane returns are (with a hint, every angle's one block)
-            blocks, count = np.unique(m_on[0], return_counts=True) if hint is None else (angle, None)
+            blocks, n_on = np.unique(m_on[0], return_counts=True) if hint is None else (np.arange(a0, a1), None)
             per_batch = max(1, (1 << 19) // int(cells[0] * cells[1]))  # blocks at a time: ~0.5M cells
-            if count is not None:  # the blocks holding the most returns first
-                order = np.argsort(-count, kind="stable")
-                blocks, count = blocks[order], count[order]
+            if n_on is not None:  # the blocks holding the most returns first
+                order = np.argsort(-n_on, kind="stable")
+                blocks, n_on = blocks[order], n_on[order]
             for b0 in range(0, len(blocks), per_batch):
-                if count is not None and count[b0] < best[0]:
+                if n_on is not None and n_on[b0] < best[0]:
                     break  # no rectangle in the blocks left holds more returns than the best one scores
                 bl = np.sort(blocks[b0:b0 + per_batch])
-
-                def sums(m, ox):  # box sums (B, tile, tile) of the returns m over the blocks' anchors
-                    if bl[-1] - bl[0] + 1 == len(bl):  # consecutive blocks (one per angle): no search
-                        b = m[0] - bl[0]
-                        hit = (b >= 0) & (b < len(bl))
-                    else:
-                        b = np.minimum(np.searchsorted(bl, m[0]), len(bl) - 1)
-                        hit = bl[b] == m[0]
-                    flat = b[hit] * (cells[0] * cells[1]) + m[1][hit]
-                    S = np.zeros((len(bl), cells[0] + 1, cells[1] + 1), np.int32)
-                    inner = S[:, 1:, 1:]  # summed in place, in int32 (counts of returns)
-                    np.cumsum(np.bincount(flat, minlength=len(bl) * cells[0] * cells[1]).reshape(len(bl), *cells),
-                              axis=1, out=inner)
-                    np.cumsum(inner, axis=2, out=inner)
-                    return _box_sums(S, k[0], k[1], ox, ox)[:, :tile[0], :tile[1]]
-
-                score = sums(m_on, 0).astype(np.float64)
-                if m_b is not None:
-                    score -= sums(m_b, margin)
+                # per anchor: the plane returns in its rectangle less the behind-returns in it (away
+                # from its edges by the margin)
+                count = _box_counts([(m_on, 0, 1), (m_b, margin, -1)], bl, cells, k, tile).astype(np.float64)
                 ba = bl // (n_tile[0] * n_tile[1])
-                ai = (bl // n_tile[1] % n_tile[0] * tile[0])[:, None] + np.arange(tile[0])  # (B, tile) anchors
-                aj = (bl % n_tile[1] * tile[1])[:, None] + np.arange(tile[1])
-                ci = lo[ba, 0, None] + (ai + k[0] / 2) * cell  # (B, tile) rotated centres
-                cj = lo[ba, 1, None] + (aj + k[1] / 2) * cell
-                # ties (a board seen in part may slide over where nothing was seen): the rectangle
-                # centred nearest c0, by a penalty below one return
-                dist = np.hypot(ci[:, :, None] - r0[ba, 0, None, None], cj[:, None, :] - r0[ba, 1, None, None])
-                score -= 0.5 * dist / (far + 1e-9)
                 if (tile < n_anchor).any():  # the last tiles' anchors past the grid's
-                    score[(ai >= n_anchor[0])[:, :, None] | (aj >= n_anchor[1])[:, None, :]] = -np.inf
-                ib, i, j = np.unravel_index(int(np.argmax(score)), score.shape)
-                if score[ib, i, j] > best[0]:
-                    best = (float(score[ib, i, j]), float(th[ba[ib]]),
-                            rot[ba[ib]].T @ np.array([ci[ib, i], cj[ib, j]]))
+                    ai = (bl // n_tile[1] % n_tile[0] * tile[0])[:, None] + np.arange(tile[0])  # (B, tile) anchors
+                    aj = (bl % n_tile[1] * tile[1])[:, None] + np.arange(tile[1])
+                    count[(ai >= n_anchor[0])[:, :, None] | (aj >= n_anchor[1])[:, None, :]] = -np.inf
+                # ties (a board seen in part may slide over where nothing was seen): the rectangle
+                # centred nearest c0, by a penalty below one return (below 1/2: so only the anchors
+                # of the most returns can win, and only theirs are computed)
+                top = count.max()
+                ib, i, j = np.unravel_index(np.flatnonzero(count.reshape(-1) == top), count.shape)
+                ci = lo[ba[ib], 0] + (bl[ib] // n_tile[1] % n_tile[0] * tile[0] + i + k[0] / 2) * cell
+                cj = lo[ba[ib], 1] + (bl[ib] % n_tile[1] * tile[1] + j + k[1] / 2) * cell
+                score = top - 0.5 * np.hypot(ci - r0[ba[ib], 0], cj - r0[ba[ib], 1]) / (far + 1e-9)
+                w = int(np.argmax(score))
+                if score[w] > best[0]:
+                    best = (float(score[w]), float(th[ba[ib[w]]]), rot[ba[ib[w]]].T @ np.array([ci[w], cj[w]]))
     return best
 
 
@@ -347,8 +384,11 @@ def fit_outline(points: np.ndarray, others: np.ndarray, n: np.ndarray, d: float,
     _, th, centre = _search(xy, xy_b, np.arange(0.0, period, cell_c / (diag / 2)), size, cell_c, 1, c0)
     cell = float(np.clip(s_edge / 2, *_CELL_M))
     dth = cell / (diag / 2)
-    score, th, centre = _search(xy, xy_b, th + np.arange(-cell_c / cell, cell_c / cell + 1) * dth, size, cell,
-                                0, c0, hint=centre, reach=2 * cell_c)
+    # the fine grid (at any angle) lies within half a board, the reach and 3 cells of the coarse
+    # centre along its axes: returns farther off would only be dropped from it
+    near = lambda q: q[np.hypot(*(q - centre).T) <= np.hypot(*(size / 2 + 2 * cell_c + 4 * cell))]  # noqa: E731
+    score, th, centre = _search(near(xy), near(xy_b), th + np.arange(-cell_c / cell, cell_c / cell + 1) * dth, size,
+                                cell, 0, c0, hint=centre, reach=2 * cell_c)
     axes = np.array([[np.cos(th), np.sin(th)], [-np.sin(th), np.cos(th)]])
     # A plane return is inside the scored cells, or within tol of them along its ring: the edge
     # lies between a ring's last return on the board and its next ray, so within half a spacing of

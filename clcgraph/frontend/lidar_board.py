@@ -440,7 +440,8 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
     def rejected(why):
         return Rejected(f"{scan.topic} at {scan.stamp_ns} ns: {why}", STAGE, sensor, snapshot)
 
-    R = prepare(scan, min_range_m=lidar_options.min_range_m, max_range_m=lidar_options.max_range_m, exclude=exclude)
+    every = prepare(scan)  # the board's outline and edges look at every ray, the segmentation within range
+    R = every.within(min_range_m=lidar_options.min_range_m, max_range_m=lidar_options.max_range_m, exclude=exclude)
     if len(R.index) < o.points_per_segment * o.min_rings:
         return rejected(f"only {len(R.index)} points within {lidar_options.min_range_m}-"
                         f"{lidar_options.max_range_m} m")
@@ -483,7 +484,7 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
     found = []
     # every ray of the scan, those that returned nothing included: where one passed behind a
     # candidate plane, no board was in its way
-    rays = scan_rays(scan, step)
+    rays = scan_rays(scan, step, rings=every)
     intensity = None if scan.intensity is None else np.asarray(scan.intensity, float)[R.index]
     diag = float(np.hypot(*board.size_m))
     for rows in _merge(pieces, R.points, o.point_plane_tolerance_m, diag):
@@ -532,7 +533,7 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
         if offset:
             log.debug("%s: the board's weak returns range %.1f mm long; corrected", scan.topic, offset * 1e3)
     ring = ring_of(scan)[idx]
-    edges = edge_rays(scan, idx, n, d, outline, step_rad=step, plane_tol_m=o.point_plane_tolerance_m)
+    edges = edge_rays(rays, idx, n, d, outline, plane_tol_m=o.point_plane_tolerance_m)
     return LidarBoardObservation(sensor=sensor, snapshot=snapshot, points=pts, plane=np.r_[n, d], rms_m=rms,
                                  indices=idx, ring=ring, edge_rays=edges)
 

@@ -4,6 +4,7 @@ and static-scene suppression over a session.
 
 SYNOPSIS
     r = prepare(scan, min_range_m=0.5, max_range_m=9.0)   # Rings: per-ring sorted indices
+    every = prepare(scan); r = every.within(min_range_m=0.5, max_range_m=9.0)  # the same
     n_rings, npoints = infer_lidar_spacing(scans)
     static = static_masks(scans, npoints_per_rotation=1800)  # per scan: points at the session's mode range
 """
@@ -53,24 +54,37 @@ class Rings:
     starts: np.ndarray  # (Nrings+1,) slice bounds of each ring in the sorted arrays
     ring_ids: np.ndarray  # (Nrings,) the ring number of each slice
 
+    def within(self, *, min_range_m: float, max_range_m: float, exclude: np.ndarray | None = None) -> "Rings":
+        """The points within [min, max] range, minus the scan rows ``exclude`` (N,) (a mask), in the
+        same (ring, azimuth) order."""
+        ok = (self.range >= min_range_m) & (self.range <= max_range_m)
+        if exclude is not None:
+            ok &= ~exclude[self.index]
+        idx = np.flatnonzero(ok)
+        r = self.ring[idx]
+        starts = np.flatnonzero(np.r_[True, r[1:] != r[:-1]]) if len(r) else np.zeros(0, np.int64)
+        return Rings(self.index[idx], r, self.azimuth[idx], self.range[idx], self.points[idx],
+                     np.r_[starts, len(idx)], r[starts])
 
-def prepare(scan: LidarScan, *, min_range_m: float, max_range_m: float, exclude: np.ndarray | None = None) -> Rings:
-    """Valid, finite points within [min, max] range (minus ``exclude``), sorted by ring then azimuth."""
+
+def prepare(scan: LidarScan, *, min_range_m: float = 0.0, max_range_m: float = np.inf,
+            exclude: np.ndarray | None = None) -> Rings:
+    """Valid, finite points within [min, max] range (minus ``exclude``), sorted by ring then azimuth.
+    The default range keeps every valid return (``Rings.within`` then cuts it without sorting again)."""
     p = np.asarray(scan.points, float)
     with np.errstate(invalid="ignore", over="ignore"):  # inf / huge garbage points fail the range test
         rng = np.linalg.norm(p, axis=1)
-    ok = np.asarray(scan.valid, bool) & np.all(np.isfinite(p), axis=1) & (rng >= min_range_m) & (rng <= max_range_m)
-    if exclude is not None:
-        ok &= ~exclude
     ring = ring_of(scan)
-    ok &= ring >= 0
-    idx = np.flatnonzero(ok)
+    idx = np.flatnonzero(np.asarray(scan.valid, bool) & np.all(np.isfinite(p), axis=1) & (ring >= 0))
     az = np.arctan2(p[idx, 1], p[idx, 0])
     order = np.lexsort((az, ring[idx]))
     idx = idx[order]
     r = ring[idx]
     ring_ids, starts = np.unique(r, return_index=True)
-    return Rings(idx, r, az[order], rng[idx], p[idx], np.r_[starts, len(idx)], ring_ids)
+    every = Rings(idx, r, az[order], rng[idx], p[idx], np.r_[starts, len(idx)], ring_ids)
+    if min_range_m <= 0 and max_range_m == np.inf and exclude is None:
+        return every
+    return every.within(min_range_m=min_range_m, max_range_m=max_range_m, exclude=exclude)
 
 
 def ring_neighbours(R: Rings) -> tuple[np.ndarray, np.ndarray]:

@@ -159,7 +159,7 @@ def test_an_edge_hidden_behind_an_arm_is_not_an_edge():
         every = scan_rays(scan, step)  # the board's rectangle as segment_board fits it
         outline = fit_outline(scan.points[rows], every.points[every.away_from(rows)], n, d, size_m=(0.85, 0.61),
                               step_rad=step, plane_tol_m=0.05)
-        rays = edge_rays(scan, rows, n, d, outline, step_rad=step, plane_tol_m=0.05)
+        rays = edge_rays(every, rows, n, d, outline, plane_tol_m=0.05)
         # each interval's side: outward normal -y (right), +y (left), +-z (top, bottom)
         assert np.all(np.abs(rays[:, 2] @ np.array([0, 1.0, 0]) * (np.abs(rays[:, 2, 1]) > 0.5)
                              + rays[:, 2] @ np.array([0, 0, 1.0]) * (np.abs(rays[:, 2, 2]) > 0.5)) > 0.99)

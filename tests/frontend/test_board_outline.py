@@ -187,3 +187,34 @@ def test_rays_around_a_board_hold_every_ray_crossing_its_plane_near_it(seed):
     kept[rays.around(pts, n, d, reach)] = True
     assert near.sum() > 100 and kept[near].all(), (~kept[near]).sum()
     assert kept.mean() < 0.25, kept.mean()
+
+
+@pytest.mark.parametrize("seed", (0, 1))
+def test_box_counts_by_table_and_by_grid_are_the_exact_counts(seed):
+    """The outline search counts returns per rectangle by a summed-area table of the cells or by a
+    difference grid of the anchors, whichever is cheaper: both give the counts of a brute-force
+    loop over the anchors (plane returns less behind-returns, these away from the edges by a margin),
+    on blocks that are not consecutive."""
+    from clcgraph.frontend.board_outline import _box_counts
+
+    rng = np.random.default_rng(seed)
+    k, tile = np.array([5, 4]), np.array([6, 7])
+    cells = tile + k - 1
+    blocks = np.array([1, 4, 5])
+
+    def members(n):  # (block, padded cell) of n returns, some in blocks not scored
+        b = rng.integers(0, 7, n)
+        i, j = rng.integers(0, cells[0], n), rng.integers(0, cells[1], n)
+        return b, (i + 1) * (cells[1] + 1) + j + 1, i, j
+
+    on, behind = members(300), members(200)
+    want = np.zeros((len(blocks), *tile), np.int64)
+    for (b, _, i, j), ox, sign in ((on, 0, 1), (behind, 1, -1)):
+        for x, blk in enumerate(blocks):
+            for a0 in range(tile[0]):
+                for a1 in range(tile[1]):
+                    inside = (b == blk) & (i >= a0 + ox) & (i < a0 + k[0] - ox) & (j >= a1 + ox) & (j < a1 + k[1] - ox)
+                    want[x, a0, a1] += sign * inside.sum()
+    tables = [(on[:2], 0, 1), (behind[:2], 1, -1)]
+    for how in ("table", "grid", None):
+        assert np.array_equal(_box_counts(tables, blocks, cells, k, tile, how=how), want), how
