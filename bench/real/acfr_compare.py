@@ -36,11 +36,17 @@ def _angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
 
 def jackknife(dump: Path, sensor: int = 1) -> tuple[np.ndarray, np.ndarray, list[int]]:
     """(full rt (6,), leave-one-out rts (n,6), the snapshot left out of each)."""
-    from clcgraph.api import replay
+    import dataclasses
 
-    full = replay(dump)
+    from clcgraph.backend.replay import replay_problem
+    from clcgraph.outputs.dump import load_problem
+
+    problem, config = load_problem(dump)
+    # a board left out may leave a direction resting on one board (refused by default): still a sample
+    options = dataclasses.replace(config.solve, refuse_inconsistent=False)
+    full = replay_problem(problem, options)
     used = [int(k) for k in np.flatnonzero(np.isfinite(full.rt_lidar0_board).all(axis=1))]
-    rts = [replay(dump, exclude=[k]).rt_lidar0_sensor[sensor] for k in used]
+    rts = [replay_problem(problem, options, exclude=[k]).rt_lidar0_sensor[sensor] for k in used]
     return full, np.array(rts), used
 
 
