@@ -1,5 +1,6 @@
 """The stress set: simulated captures that vary what real recordings vary, run through the
-CLI with DEFAULT settings (only the board described), judged against the simulator's truth.
+CLI with DEFAULT settings (only the board described; one capture, vertical-boards-planes, also
+what its user would set: ``Capture.settings``), judged against the simulator's truth.
 
 Each capture either (a) returns every sensor within the accuracy bar (target-based 0.1 deg /
 5 mm, targetless 0.02 deg / 3 mm) and within 3 of its reported sigmas, or (b) is refused:
