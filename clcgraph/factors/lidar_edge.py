@@ -135,10 +135,13 @@ def edge_sigmas(ends: np.ndarray, ranges: np.ndarray, axis: np.ndarray, bounds: 
     var = (ends[:, 1] - ends[:, 0]) ** 2 / 12 + blur2
     if len(var):
         _, side = np.unique(np.c_[axis, bounds], axis=0, return_inverse=True)
-        for k in np.unique(side):
-            sel = side.ravel() == k
+        side = side.ravel()
+        for k in range(side.max() + 1):
+            sel = side == k
+            if sel.sum() < 2:
+                continue
             W = ends[sel].max(axis=1).min() - ends[sel].min(axis=1).max()
-            if sel.sum() < 2 or W <= 0:
+            if W <= 0:
                 continue
             shared = W**2 / 12 + (1 / np.sum(1 / blur2[sel]) if np.all(blur2[sel] > 0) else 0.0)
             var[sel] *= max(1.0, shared * np.sum(1 / var[sel]))
