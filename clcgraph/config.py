@@ -55,6 +55,10 @@ class SnapshotOptions:
     # ... and call it motion if at least this many (ring, azimuth) cells changed (in runs; a
     # moving board changes ~100 or more, range noise a few at random).
     min_moving_cells: int = 20
+    # A bag per pose or a still interval: average each LIDAR's first this many scans of the still
+    # scene (range noise / sqrt(n); scans in which something moved are left out); 1: the first scan
+    # alone (clc).
+    max_scans_averaged: int = 5
 
 
 @dataclass(frozen=True)
@@ -579,6 +583,7 @@ _RANGES = {
     "snapshots.max_board_motion_m": "(0, inf)",
     "snapshots.motion_window_s": "(0, inf)",
     "snapshots.min_moving_cells": "[1, inf)",
+    "snapshots.max_scans_averaged": "[1, 1000]",
     "lidar.min_range_m": "[0, inf)",
     # no LIDAR return comes from beyond 10 km (and the static-scene range bins stay int64)
     "lidar.max_range_m": "(0, 10000]",

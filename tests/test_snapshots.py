@@ -359,3 +359,30 @@ def test_a_bag_too_short_for_two_still_intervals_is_not_decoded_for_them(tmp_pat
     full, _ = assemble_snapshots([short], ["/lidar0"], ["/cam0"], o)
     assert [(s.source, s.stamp_ns) for s in full] == [(snaps[0].source, snaps[0].stamp_ns)]
     assert np.array_equal(full[0].scans["/lidar0"].points, snaps[0].scans["/lidar0"].points)
+
+
+def test_bag_per_pose_averages_the_still_scans_and_leaves_out_a_moved_one(tmp_path):
+    """A bag per pose holding 4 scans, the board still in the first 3 and moved 0.3 m in the last:
+    the snapshot's scan is the first one's rays at the mean range of the 3 still ones (noise /
+    sqrt(3), the board where it was); ``max_scans_averaged=1`` keeps the first scan alone (clc)."""
+    rng = np.random.default_rng(7)
+    c = np.array([4.0, 0.0, 0.0])
+    p = tmp_path / "pose0.bag"
+    with BagWriter(p) as w:
+        for k, at in enumerate([c, c, c, c + [0.0, 0.3, 0.0]]):
+            w.write_pointcloud("/lidar0", cast(at, rng=rng, stamp_ns=T0 + k * 10**8), frame_id="lidar0",
+                               layout="velodyne")
+    truth = cast(c, rng=rng, noise=0.0)
+    board = np.abs(truth.points[:, 0] - 4.0) < 1e-6  # the board's rays
+
+    def board_noise(o):
+        snaps, _ = assemble_snapshots([p], ["/lidar0"], [], o)
+        scan = snaps[0].scans["/lidar0"]
+        assert scan.stamp_ns == T0
+        e = scan.points[board, 0] - 4.0
+        return abs(e.mean()), e.std()
+
+    bias, sd = board_noise(SnapshotOptions())
+    bias1, sd1 = board_noise(SnapshotOptions(max_scans_averaged=1))
+    assert bias < 0.002 and bias1 < 0.003
+    assert 0.009 < sd1 < 0.011 and 0.5 < sd / sd1 < 0.65  # 1/sqrt(3) = 0.58; 1/2 had the moved scan counted

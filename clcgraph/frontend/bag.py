@@ -6,6 +6,7 @@ SYNOPSIS
     for m in bag.read_messages(["a.bag", "b.bag"], ["/lidar/points", "/cam/image"]):
         m.bag, m.topic, m.index, m.stamp_ns, m.data      # data: LidarScan | Image
     first = bag.first_messages("a.bag", ["/lidar/points"])   # {topic: LidarScan | Image}
+    lead = bag.leading_messages("a.bag", ["/lidar/points"], {"/lidar/points": 5})  # {topic: [first 5]}
     tf = bag.read_tf_static(["a.bag"])
     T_base_lidar = tf.lookup("base_link", "lidar0")      # (4,4) T_target_source
     bag.frame_id("a.bag", "/lidar/points")               # header.frame_id
@@ -423,15 +424,26 @@ def message_count(paths, topic: str) -> int:
 
 def first_messages(path, topics: Sequence[str]) -> dict[str, LidarScan | Image]:
     """{topic: decoded first message of that topic in this bag} (one snapshot per bag)."""
-    out: dict[str, LidarScan | Image] = {}
+    return {t: ms[0] for t, ms in leading_messages(path, topics, {}).items()}
+
+
+def leading_messages(path, topics: Sequence[str], counts: dict[str, int]) -> dict[str, list[LidarScan | Image]]:
+    """{topic: the first ``counts.get(topic, 1)`` decoded messages of that topic in this bag}, in
+    stamp order (topics without messages left out)."""
+    out: dict[str, list] = {}
     with _Bag(path) as b:
         conns = b.connections(topics)
         for conn in conns:
             if conn.topic in out:
                 continue
+            n = max(1, int(counts.get(conn.topic, 1)))
+            got = []
             for c, i, logtime, msg in b.raw([c for c in conns if c.topic == conn.topic]):
-                out[c.topic] = b.decode(c, i, msg)
-                break
+                got.append(b.decode(c, i, msg))
+                if len(got) >= n:
+                    break
+            if got:
+                out[conn.topic] = sorted(got, key=lambda m: m.stamp_ns)
     return {t: out[t] for t in topics if t in out}
 
 

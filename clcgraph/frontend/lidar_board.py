@@ -312,6 +312,31 @@ def _main_piece_per_ring(pts: np.ndarray, ring: np.ndarray, step: float, o) -> n
     return np.isin(piece, list(best.values()))
 
 
+# A ring's piece this far off the plane of the board's other rings is something else (a head
+# above the board's edge, a shoulder behind its corner): real per-laser range offsets reach 2-3 cm.
+_OFF_PLANE_RING_M = 0.05
+
+
+def _off_plane_ring(pts: np.ndarray, ring: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """(N,) mask of the kept points of the ring whose pieces lie furthest off the plane of the other
+    kept rings (median distance), if that is beyond ``_OFF_PLANE_RING_M`` and 4 robust spreads of
+    every ring's such distance; all False if none is, or fewer than 4 rings are kept (3 must remain)."""
+    rings = np.unique(ring[keep])
+    none = np.zeros(len(pts), bool)
+    if len(rings) < 4:
+        return none
+    off = np.empty(len(rings))
+    for k, r in enumerate(rings):
+        n, d, _ = fit_plane(pts[keep & (ring != r)])
+        off[k] = np.median(pts[keep & (ring == r)] @ n - d)
+    dev = np.abs(off - np.median(off))
+    worst = int(np.argmax(dev))
+    spread = 1.4826 * np.median(np.delete(dev, worst))
+    if dev[worst] <= max(_OFF_PLANE_RING_M, 4.0 * spread):
+        return none
+    return keep & (ring == rings[worst])
+
+
 def _local_noise(pts: np.ndarray, ring: np.ndarray, k: int) -> float:
     """The range noise of the plane's own returns: the median RMS of straight-line fits to
     windows of ``k`` neighbouring returns along each ring, as _stage1 measures the scan's
@@ -383,6 +408,13 @@ def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: floa
         sigma = 1.4826 * np.median(res[keep])
         keep &= res <= max(3.0 * sigma, 0.01)
     keep[keep] = _main_piece_per_ring(pts[keep], ring[keep], step, o)
+    off = _off_plane_ring(pts, ring, keep)
+    if off.any():  # the board is not where that ring's rays crossed its plane: the outline again without it
+        keep &= ~off
+        n, d, _ = fit_plane(pts[keep])
+        outline = fit_outline(pts[keep], np.r_[others, pts[off]], n, d, size_m=(sx, sy), step_rad=step,
+                              plane_tol_m=o.point_plane_tolerance_m)
+        keep[keep] = outline.inside
     pts, ring = pts[keep], ring[keep]
     if intensity is not None:
         pts, _ = dark_square_correction(pts, intensity[keep])

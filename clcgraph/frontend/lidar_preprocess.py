@@ -7,10 +7,12 @@ SYNOPSIS
     every = prepare(scan); r = every.within(min_range_m=0.5, max_range_m=9.0)  # the same
     n_rings, npoints = infer_lidar_spacing(scans)
     static = static_masks(scans, npoints_per_rotation=1800)  # per scan: points at the session's mode range
+    scan, n = average_scans([scan0, scan1, scan2])   # scan0's rays at their mean range over still scans
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -134,6 +136,54 @@ def neighbour_steps(R: Rings) -> np.ndarray:
 def typical_step(d: np.ndarray) -> float | None:
     """The azimuth step of neighbouring returns, not of gaps over missing ones (None if no steps)."""
     return float(np.median(d[d < 3 * np.percentile(d, 25)])) if len(d) else None
+
+
+def average_scans(scans: list[LidarScan]) -> tuple[LidarScan, np.ndarray]:
+    """One scan of a still scene from several of the same LIDAR: ``scans[0]``'s rays, each at the
+    mean range of that ray in every scan that returned from the same surface there.
+
+    The other scans' ranges are interpolated along their ring to each ray's azimuth (a rotation's
+    azimuths jitter from one to the next; interpolation keeps a tilted surface's points on it) from
+    two neighbouring returns of one surface, and count only where they agree with the ray's range
+    within 4 robust sigmas of the scan-to-scan differences (not across a depth edge, a mixed pixel,
+    a stray return). Returns (the scan, (N,) how many scans each row's range averages; 0 where the
+    first scan has no valid return)."""
+    ref = scans[0]
+    R = prepare(ref)
+    n = np.zeros(len(ref.points), np.int64)
+    n[R.index] = 1
+    if len(scans) == 1 or not len(R.index):
+        return ref, n
+    total = np.zeros(len(ref.points))
+    total[R.index] = R.range
+    key_r = R.ring * 8.0 + R.azimuth  # ring, then azimuth in [-pi, pi): one sortable key
+    for scan in scans[1:]:
+        Q = prepare(scan)
+        steps = neighbour_steps(Q)
+        step = typical_step(steps)
+        if len(Q.index) < 2 or not step:
+            continue
+        key_q = Q.ring * 8.0 + Q.azimuth
+        j = np.clip(np.searchsorted(key_q, key_r, side="right"), 1, len(key_q) - 1)
+        a, b = j - 1, j
+        span = key_q[b] - key_q[a]
+        w = np.clip((key_r - key_q[a]) / np.where(span > 0, span, 1.0), 0.0, 1.0)
+        r_q = (1 - w) * Q.range[a] + w * Q.range[b]
+        same_ring = (Q.ring[a] == R.ring) & (Q.ring[b] == R.ring)
+        near = same_ring & (span <= 1.5 * step) & (key_r >= key_q[a] - 0.5 * step) & (key_r <= key_q[b] + 0.5 * step)
+        d = r_q - R.range
+        dq = np.abs(Q.range[b] - Q.range[a])
+        if not near.any():
+            continue
+        sigma = 1.4826 * np.median(np.abs(d[near]))
+        gate = max(4.0 * sigma, 1e-3)
+        ok = near & (np.abs(d) <= gate) & (dq <= gate + 2 * step * R.range)
+        total[R.index[ok]] += r_q[ok]
+        n[R.index[ok]] += 1
+    p = np.asarray(ref.points, float).copy()
+    rows = R.index
+    p[rows] *= (total[rows] / n[rows] / R.range)[:, None]
+    return dataclasses.replace(ref, points=p.astype(np.asarray(ref.points).dtype, copy=False)), n
 
 
 def infer_lidar_spacing(scans) -> tuple[int, int]:

@@ -6,9 +6,10 @@ SYNOPSIS
 
 Two capture schemes (the clc seed's):
 - one bag per board pose (``decimation_period_s`` None): the first message of every
-  topic in each bag. A bag in which the scene moves and stops more than once is a continuous
+  topic in each bag, a LIDAR's first scan averaged with the next ones of the still scene (up to
+  ``max_scans_averaged``: less range noise, one observation). A bag in which the scene moves and stops more than once is a continuous
   one, cut at the motion (``still_intervals``): one snapshot per still interval, from the
-  messages nearest its centre; so a single continuous bag needs no setting;
+  messages nearest its centre (as many LIDAR scans, averaged); so a single continuous bag needs no setting;
 - one continuous bag: periods of ``decimation_period_s`` from the first kept message
   (messages in header-stamp order, never log order: see ``frontend.bag``); per period and
   topic the message nearest the period's centre. Whether a period is usable rests on
@@ -372,11 +373,11 @@ def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
     Rejected carrying its index (see parse_exclude_bag).
 
     options: ``config.SnapshotOptions``. Without ``decimation_period_s``, one snapshot
-    per bag from the first message of each topic; with it, one per period of the
+    per bag from the first message of each topic (LIDAR scans averaged: ``_still_average``); with it, one per period of the
     (continuous) bags, streamed. Snapshot indices count the kept snapshots from 0.
     ``progress``: optional wrapper of the iteration over bags (the API's progress bar).
     """
-    from clcgraph.frontend.bag import first_messages, read_messages
+    from clcgraph.frontend.bag import leading_messages, read_messages
 
     tfilter = TimeFilter.from_options(options)
     lidar_topics, camera_topics = list(lidar_topics), list(camera_topics)
@@ -403,8 +404,8 @@ def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
                 snaps += s_new
                 rejected += r_new
                 continue
-            first = first_messages(b, topics)
-            chosen = {t: _Msg(t, d.stamp_ns, d) for t, d in first.items()}
+            lead = leading_messages(b, topics, {t: options.max_scans_averaged for t in lidar_topics})
+            chosen = {t: _Msg(t, ms[0].stamp_ns, _still_average(ms, options)) for t, ms in lead.items()}
             if not chosen:
                 rejected.append(Rejected(f"{b}: none of the topics present", "snapshot"))
                 continue
@@ -506,13 +507,14 @@ def _still_snapshots(bag: Path, still, moving_s: float, lidar_topics, camera_top
     if not still:
         return snaps, rejected
     starts = np.array([a for a, _, _ in still], np.int64)
-    picks: dict[str, tuple[int, object]] = {}
+    picks: dict[str, list[tuple[int, _Msg]]] = {}  # per topic the messages nearest the centre, nearest first
     k_open = -1
 
     def close(k):
         a, b, _ = still[k]
         where = f"{bag} still {a * 1e-9:.3f}-{b * 1e-9:.3f}s"
-        chosen = {t: m for t, (_, m) in picks.items()}
+        chosen = {t: _Msg(t, ms[0][1].stamp_ns, _still_average([m.data for _, m in ms], options))
+                  for t, ms in picks.items()}
         spread = _spread_rejection(chosen.values(), options)
         if spread:
             rejected.append(Rejected(f"{where}: {spread}", "snapshot"))
@@ -529,11 +531,31 @@ def _still_snapshots(bag: Path, still, moving_s: float, lidar_topics, camera_top
                 close(k_open)
             picks, k_open = {}, k
         dt = abs(m.stamp_ns - (still[k][0] + still[k][1]) // 2)
-        if m.topic not in picks or dt < picks[m.topic][0]:
-            picks[m.topic] = (dt, _Msg(m.topic, m.stamp_ns, m.data))
+        keep = options.max_scans_averaged if m.topic in lidar_topics else 1
+        ms = picks.setdefault(m.topic, [])
+        if len(ms) < keep or dt < ms[-1][0]:
+            ms.append((dt, _Msg(m.topic, m.stamp_ns, m.data)))
+            ms.sort(key=lambda x: x[0])
+            del ms[keep:]
     if k_open >= 0:
         close(k_open)
     return snaps, rejected
+
+
+def _still_average(messages: list, options) -> LidarScan | Image:
+    """The first of one topic's messages of a still scene; for a LIDAR, its rays at their mean range
+    over it and those of the others in which nothing moved since (``average_scans``; the scene
+    judged as for periods: ``max_board_motion_m``, ``min_moving_cells``)."""
+    first = messages[0]
+    if len(messages) == 1 or not isinstance(first, LidarScan):
+        return first
+    from clcgraph.frontend.lidar_preprocess import average_scans
+
+    image = range_image(first)
+    still = [first] + [m for m in messages[1:]
+                       if not motion_between(image, range_image(m), threshold_m=options.max_board_motion_m,
+                                             min_cells=options.min_moving_cells)[0]]
+    return average_scans(still)[0]
 
 
 @dataclass(frozen=True)

@@ -136,3 +136,54 @@ def test_all_nan_scan_gives_no_warning():
         assert len(prepare(nan, min_range_m=0.5, max_range_m=15.0).index) == 0
         assert infer_lidar_spacing([nan]) == (0, 0)
         static_masks([nan] * 4, npoints_per_rotation=1800, quantum_m=0.1)
+
+
+def _tilted_board_scan(rng, shift_rad, noise=0.01):
+    """16 rings x 1800 steps, the azimuths of this rotation shifted by ``shift_rad`` (a real rotation's
+    firing phase): a 1.2 m board in the plane x = 2.5 m centred at 45 deg azimuth (seen 45 deg off
+    head-on), a wall at x = 8 m behind it (depth edges at the board's sides); range noise."""
+    el = np.radians(np.linspace(-15, 15, 16))
+    az = np.linspace(-np.pi, np.pi, 1800, endpoint=False) + shift_rad
+    e, a = np.meshgrid(el, az, indexing="ij")
+    d = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3)
+    ahead = d[:, 0] > 0.1
+    x = np.where(ahead, d[:, 0], 1.0)
+    lam_board = np.where(ahead, 2.5 / x, 1e6)
+    lam_wall = np.where(ahead, 8.0 / x, 30.0)
+    hit = d * lam_board[:, None]
+    on = ahead & (np.abs(hit[:, 2]) < 0.6) & (np.abs(hit[:, 1] - 2.5) < 0.6)
+    lam = np.where(on, lam_board, lam_wall) + rng.normal(0, noise, len(d))
+    scan = LidarScan("/l", 0, d * lam[:, None], np.ones(len(d), bool), ring=np.repeat(np.arange(16), 1800))
+    return scan, on, np.array([1.0, 0.0, 0.0]), (lam_board, lam_wall)
+
+
+def test_average_scans_halves_the_noise_keeps_the_plane_and_the_depth_edges():
+    from clcgraph.frontend.lidar_preprocess import average_scans
+
+    rng = np.random.default_rng(4)
+    step = 2 * np.pi / 1800
+    scans = [_tilted_board_scan(rng, s) for s in (0.0, 0.43 * step, 0.31 * step, 0.12 * step)]
+    first, on, n, (lam_board, lam_wall) = scans[0]
+    avg, count = average_scans([s[0] for s in scans])
+    res_one = first.points[on] @ n - 2.5
+    res_avg = avg.points[on] @ n - 2.5
+    # on the tilted board the other rotations' returns are interpolated to the first's rays: no
+    # bias from the azimuth shift (a return ~0.2 steps away lies ~3 mm further along a 45-deg board)
+    assert on.sum() > 100 and abs(res_avg.mean()) < 1e-3
+    assert np.median(count[on]) == 4
+    assert 0.4 < res_avg.std() / res_one.std() < 0.6  # 1/sqrt(4) of the noise
+    # the rays stay the first rotation's
+    u = lambda p: p / np.linalg.norm(p, axis=1, keepdims=True)  # noqa: E731
+    assert np.allclose(u(avg.points), u(first.points), atol=1e-9)
+    # no return is averaged across the board's sides onto neither the board nor the wall
+    r = np.linalg.norm(avg.points, axis=1)
+    assert np.all((np.abs(r - lam_board) < 0.05) | (np.abs(r - lam_wall) < 0.05))
+    assert np.all(count[~on & (lam_wall < 20)] >= 1)
+
+
+def test_average_scans_of_one_scan_is_that_scan():
+    from clcgraph.frontend.lidar_preprocess import average_scans
+
+    scan = _tilted_board_scan(np.random.default_rng(1), 0.0)[0]
+    avg, count = average_scans([scan])
+    assert avg is scan and set(np.unique(count)) == {1}
