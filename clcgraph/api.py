@@ -776,10 +776,13 @@ def load_result(out_dir):
 
 
 def lidar_scans(bags, topic: str, *, every: bool = False, limit: int | None = None,
-                names: list | None = None) -> list:
+                names: list | None = None, snapshot_options=None) -> list:
     """The scans of a PointCloud2 topic: the first of each bag (or every one); InputError if the
-    topic holds something else. ``names``: if given, filled with each scan's bag file name."""
-    from .frontend.bag import first_messages, read_messages
+    topic holds something else. ``names``: if given, filled with each scan's bag file name.
+    ``snapshot_options``: the first of each bag averaged with its next still ones, as the solve's
+    snapshots take it (``snapshots.still_average``)."""
+    from .frontend.bag import leading_messages, read_messages
+    from .frontend.snapshots import still_average
     from .types import LidarScan
 
     paths = expand_bags(bags)[:limit]
@@ -787,7 +790,10 @@ def lidar_scans(bags, topic: str, *, every: bool = False, limit: int | None = No
         msgs = list(read_messages(paths, [topic]))
         scans, where = [m.data for m in msgs], [m.path for m in msgs]
     else:
-        scans, where = [first_messages(b, [topic]).get(topic) for b in paths], paths
+        n = snapshot_options.max_scans_averaged if snapshot_options is not None else 1
+        lead = [leading_messages(b, [topic], {topic: n}).get(topic) for b in paths]
+        scans = [None if ms is None else still_average(ms, snapshot_options) if n > 1 else ms[0] for ms in lead]
+        where = paths
     if names is not None:
         names[:] = [_bag_name(b) for b in where]
     bad = next((i for i, x in enumerate(scans) if not isinstance(x, LidarScan)), None)
@@ -843,7 +849,7 @@ def segment_bags(bags, topic: str, *, every: bool = False, config=None, dump=Non
 
     cfg = _config(config)
     names: list = []
-    scans = lidar_scans(bags, topic, every=every, names=names)
+    scans = lidar_scans(bags, topic, every=every, names=names, snapshot_options=cfg.snapshots)
     debugs = [Debug() for _ in scans]
     results = segment_many(scans, cfg.segmentation, cfg.lidar, board_geometry(cfg), debug=debugs)
     if dump:

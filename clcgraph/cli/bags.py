@@ -52,13 +52,14 @@ def add_segment(sub):
 
     p = add_command(sub, "segment", run=_segment,
                     help="LIDAR board segmentation of a topic: the board's plane or why not, per scan")
-    p.add_argument("bags", nargs="+", metavar="BAG", help=_BAGS_HELP + " (one scan per bag unless --every)")
+    p.add_argument("bags", nargs="+", metavar="BAG", help=_BAGS_HELP + " (one scan per bag unless --every: its first, "
+                   "averaged with the next still ones as the solve takes it, snapshots.max_scans_averaged)")
     p.add_argument("--topic", required=True, help="the PointCloud2 topic")
-    p.add_argument("--every", action="store_true", help="every scan, not just the first of each bag")
+    p.add_argument("--every", action="store_true", help="every scan, each alone, not just the first of each bag")
     p.add_argument("--dump", default=None, metavar="FILE.npz",
                    help="intermediate stages: segments, clusters, candidate planes with verdicts, accepted points")
     p.add_argument("--png", default=None, metavar="DIR", help="a picture of each scan's segmentation here")
-    config_args(p, "settings (sections 'board', 'lidar', 'segmentation'; see `clcgraph config dump`)")
+    config_args(p, "settings (sections 'board', 'lidar', 'segmentation', 'snapshots'; see `clcgraph config dump`)")
     p.add_argument("--debug-region", default=None, metavar="XMIN,XMAX,YMIN,YMAX",
                    help="report every candidate board plane in this region of the LIDAR's frame, with its verdict")
     seg_flags = section_flags(p, SegmentationOptions, "segmentation", "LIDAR segmentation")

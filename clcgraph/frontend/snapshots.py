@@ -373,7 +373,7 @@ def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
     Rejected carrying its index (see parse_exclude_bag).
 
     options: ``config.SnapshotOptions``. Without ``decimation_period_s``, one snapshot
-    per bag from the first message of each topic (LIDAR scans averaged: ``_still_average``); with it, one per period of the
+    per bag from the first message of each topic (LIDAR scans averaged: ``still_average``); with it, one per period of the
     (continuous) bags, streamed. Snapshot indices count the kept snapshots from 0.
     ``progress``: optional wrapper of the iteration over bags (the API's progress bar).
     """
@@ -405,7 +405,7 @@ def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
                 rejected += r_new
                 continue
             lead = leading_messages(b, topics, {t: options.max_scans_averaged for t in lidar_topics})
-            chosen = {t: _Msg(t, ms[0].stamp_ns, _still_average(ms, options)) for t, ms in lead.items()}
+            chosen = {t: _Msg(t, ms[0].stamp_ns, still_average(ms, options)) for t, ms in lead.items()}
             if not chosen:
                 rejected.append(Rejected(f"{b}: none of the topics present", "snapshot"))
                 continue
@@ -513,7 +513,7 @@ def _still_snapshots(bag: Path, still, moving_s: float, lidar_topics, camera_top
     def close(k):
         a, b, _ = still[k]
         where = f"{bag} still {a * 1e-9:.3f}-{b * 1e-9:.3f}s"
-        chosen = {t: _Msg(t, ms[0][1].stamp_ns, _still_average([m.data for _, m in ms], options))
+        chosen = {t: _Msg(t, ms[0][1].stamp_ns, still_average([m.data for _, m in ms], options))
                   for t, ms in picks.items()}
         spread = _spread_rejection(chosen.values(), options)
         if spread:
@@ -542,7 +542,7 @@ def _still_snapshots(bag: Path, still, moving_s: float, lidar_topics, camera_top
     return snaps, rejected
 
 
-def _still_average(messages: list, options) -> LidarScan | Image:
+def still_average(messages: list, options) -> LidarScan | Image:
     """The first of one topic's messages of a still scene; for a LIDAR, its rays at their mean range
     over it and those of the others in which nothing moved since (``average_scans``; the scene
     judged as for periods: ``max_board_motion_m``, ``min_moving_cells``)."""
