@@ -3,7 +3,8 @@
 
 A plane tells a LIDAR nothing about where the board sits within it; its outline does. Where a
 ring leaves the board, the board's edge lies between the ring's last return on the board and
-its next ray; above the highest ring on the board (below the lowest), between that ring and the
+its next ray (the ray after that if the next one returned nothing: a miss may be a dropout on
+the board); above the highest ring on the board (below the lowest), between that ring and the
 next ring's ray at the same azimuth. Such an interval is an edge only if that next ray went
 *behind* the board's plane (by more than ``plane_tol_m``) or returned nothing: a ray that hit
 something in front (the holder's arm, a hand) may hide the board, and one on the plane beside
@@ -99,14 +100,25 @@ def edge_rays(rays: ScanRays, rows: np.ndarray, n: np.ndarray, d: float, outline
     starts = np.r_[0, np.flatnonzero(np.diff(r_sorted)) + 1]
     ends = np.r_[starts[1:], len(p_sorted)] - 1
     out = []
-    for end, step_to, miss_of in ((p_sorted[ends], nxt, first_miss_after), (p_sorted[starts], prv, last_miss_before)):
+    for end, step_to, miss_of, way in ((p_sorted[ends], nxt, first_miss_after, 1),
+                                       (p_sorted[starts], prv, last_miss_before, -1)):
         # rel increases with azimuth, and a ring's positions run in azimuth order: the ray after
         # the highest-azimuth end is next along the ring (the first missed ray, or the next return)
         miss = miss_of[end]
         neighbour = np.where(miss >= 0, -1, step_to[end])
         ok = ~on[np.maximum(neighbour, 0)] | (neighbour < 0)
         ok &= _behind_or_missed(R, neighbour, n, d, plane_tol_m)
-        ray_out = np.where((miss >= 0)[:, None], dirs[np.maximum(miss, 0)], u[np.maximum(neighbour, 0)])
+        # A missed ray beside the board may be a dropout on it (dark squares drop often): the edge
+        # then lies before the ray after it, which bounds the interval instead (two steps long).
+        # After a lone miss that is the next return: it must have passed the board, else the board
+        # went on past a dropout and does not end here.
+        m = np.maximum(miss, 0)
+        lone = (miss >= 0) & ((after if way > 0 else before)[m] >= 0)
+        beyond = np.where(lone, (after if way > 0 else before)[m], -1)
+        ok &= ~lone | (~on[np.maximum(beyond, 0)] & _behind_or_missed(R, beyond, n, d, plane_tol_m))
+        second = np.clip(m + way, 0, max(len(dirs) - 1, 0))
+        ray_out = np.where((miss >= 0)[:, None], np.where(lone[:, None], u[np.maximum(beyond, 0)], dirs[second]),
+                           u[np.maximum(neighbour, 0)])
         out.append(np.stack([u[end], ray_out], axis=1)[ok])
 
     # across the rings: above the highest ring on the board, below the lowest, at the middle of

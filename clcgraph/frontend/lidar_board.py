@@ -312,6 +312,8 @@ def _main_piece_per_ring(pts: np.ndarray, ring: np.ndarray, step: float, o) -> n
     return np.isin(piece, list(best.values()))
 
 
+# Fewer returns than this on a ring are not a piece of the board's outline (_verdict).
+_MIN_RING_PIECE = 3
 # A ring's piece this far off the plane of the board's other rings is something else (a head
 # above the board's edge, a shoulder behind its corner): real per-laser range offsets reach 2-3 cm.
 _OFF_PLANE_RING_M = 0.05
@@ -408,13 +410,21 @@ def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: floa
         sigma = 1.4826 * np.median(res[keep])
         keep &= res <= max(3.0 * sigma, 0.01)
     keep[keep] = _main_piece_per_ring(pts[keep], ring[keep], step, o)
-    off = _off_plane_ring(pts, ring, keep)
-    if off.any():  # the board is not where that ring's rays crossed its plane: the outline again without it
-        keep &= ~off
+    # a ring's piece of one or two returns cannot tell the board from something coplanar beside it
+    # (a hand, a head just above its edge), and would place the outline's edge there
+    rings, counts = np.unique(ring[keep], return_counts=True)
+    short = keep & np.isin(ring, rings[counts < _MIN_RING_PIECE])
+    off = _off_plane_ring(pts, ring, keep & ~short)
+    if (short | off).any() and (keep & ~short & ~off).sum() >= 3:
+        keep &= ~(short | off)
         n, d, _ = fit_plane(pts[keep])
+        # the board is not where an off-plane ring's rays crossed its plane: the outline again without it
         outline = fit_outline(pts[keep], np.r_[others, pts[off]], n, d, size_m=(sx, sy), step_rad=step,
                               plane_tol_m=o.point_plane_tolerance_m)
         keep[keep] = outline.inside
+        if keep.sum() < o.points_per_segment * o.min_rings:
+            return (f"{at}: only {keep.sum()} of its {len(pts)} returns fit a {sx:.2f} x {sy:.2f} m rectangle "
+                    f"without its rings off the plane or of one or two returns"), (n, d, rms), keep, outline
     pts, ring = pts[keep], ring[keep]
     if intensity is not None:
         pts, _ = dark_square_correction(pts, intensity[keep])

@@ -309,3 +309,33 @@ def test_a_side_crossed_at_the_same_columns_is_known_to_one_quantisation(stagger
     both = edge_sigmas(ends, np.full(4, 4.0), np.array([0, 0, 1, 1]), np.array([0.425, 0.425, -0.3, -0.3]),
                        beam_rad=0.0)
     np.testing.assert_allclose(1 / np.sum(1 / both[:2] ** 2), 0.02**2 / 12)
+
+
+def test_a_dropout_at_the_boards_edge_does_not_move_the_edge_inward():
+    """The board's last return on some rings dropped (no return: dark squares drop often): the
+    missed ray may be on the board, so the interval runs to the ray after it (the wall behind),
+    and still straddles the board's edge."""
+    step = 2 * np.pi / 2048
+    scan, rows, n, d, _ = _scan_with_arm(False)
+    p = scan.points[rows]
+    ring = scan.ring[rows]
+    dropped = []
+    for r in np.unique(ring)[3:7]:  # the right-most (lowest y) board return of four rings
+        k = rows[ring == r]
+        dropped.append(k[np.argmin(scan.points[k, 1])])
+    valid = scan.valid.copy()
+    valid[dropped] = False
+    scan = dataclasses.replace(scan, valid=valid, points=np.where(valid[:, None], scan.points, np.nan))
+    rows = np.setdiff1d(rows, dropped)
+    every = scan_rays(scan, step)
+    outline = fit_outline(scan.points[rows], every.points[every.away_from(rows)], n, d, size_m=(0.85, 0.61),
+                          step_rad=step, plane_tol_m=0.05)
+    rays = edge_rays(every, rows, n, d, outline, plane_tol_m=0.05)
+    q_in = rays[:, 0] * (3.0 / rays[:, 0, 0])[:, None]
+    q_out = rays[:, 1] * (3.0 / rays[:, 1, 0])[:, None]
+    right = (q_out[:, 1] < q_in[:, 1] - 1e-6) & (np.abs(q_out[:, 2] - q_in[:, 2]) < 1e-3)
+    assert right.sum() >= 8
+    assert np.all((q_in[right, 1] >= -0.425) & (q_out[right, 1] < -0.425))  # every one straddles the edge
+    # those of the rings with a dropout are two steps long
+    width = q_in[right, 1] - q_out[right, 1]
+    assert np.sum(width > 1.5 * 3.0 * step) == 4 and np.all(width < 2.5 * 3.0 * step / np.cos(0.15) ** 2)

@@ -6,6 +6,8 @@ measured against the ray caster's truth."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -218,3 +220,34 @@ def test_a_ring_off_the_plane_of_the_others_is_not_the_board():
     pts2, ring2 = np.r_[pts, head], np.r_[ring, np.full(5, 6)]
     off = _off_plane_ring(pts2, ring2, np.ones(len(pts2), bool))
     assert np.array_equal(np.flatnonzero(off), np.arange(len(pts), len(pts2)))
+
+
+def test_one_return_on_a_ring_beside_the_board_is_not_its_outline():
+    """A hand held in the board's plane just above its top edge returns once on the ring above
+    the board, and that return reached the candidate: the rectangle fits it (the board is taller
+    than its rings show), but a ring's piece of one return cannot tell a board from anything
+    coplanar beside it. Dropped, it does not join the board."""
+    import sys
+    from pathlib import Path
+
+    from clcgraph.frontend.board_outline import scan_rays
+    from clcgraph.frontend.lidar_board import _verdict
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "factors"))
+    from test_lidar_edge import _scan_with_arm  # a 0.85 x 0.61 m board 3 m ahead, a wall at 6 m
+
+    step = 2 * np.pi / 2048
+    board = BoardGeometry.from_spec(corners=[7, 5], square_m=0.095, size_m=[0.85, 0.70])
+    scan, rows, n, d, _ = _scan_with_arm(False)
+    u = scan.points / np.linalg.norm(scan.points, axis=1, keepdims=True)
+    q = u * (3.0 / np.where(u[:, 0] > 0.1, u[:, 0], np.nan))[:, None]  # where each ray meets the plane x = 3
+    hand = np.flatnonzero(scan.valid & (q[:, 1] > 0.1) & (q[:, 1] < 0.1092) & (q[:, 2] > 0.34) & (q[:, 2] < 0.37))
+    assert len(hand) == 1
+    scan = dataclasses.replace(scan, points=np.where(np.isin(np.arange(len(q)), hand)[:, None], q, scan.points))
+    cand = np.r_[rows, hand]
+    every = scan_rays(scan, step)
+    others = every.points[every.away_from(cand)]
+    o = SegmentationOptions()
+    why, _, keep, _ = _verdict(scan.points[cand], scan.ring[cand], board, step, 0.005, o, None, others)
+    assert why is None, why
+    assert keep[:-1].all() and not keep[-1]
