@@ -144,7 +144,7 @@ def average_scans(scans: list[LidarScan]) -> tuple[LidarScan, np.ndarray]:
 
     The other scans' ranges are interpolated along their ring to each ray's azimuth (a rotation's
     azimuths jitter from one to the next; interpolation keeps a tilted surface's points on it) from
-    two neighbouring returns of one surface, and count only where they agree with the ray's range
+    two neighbouring returns of one surface (an organised cloud of fixed columns: the same row's), and count only where they agree with the ray's range
     within 4 robust sigmas of the scan-to-scan differences (not across a depth edge, a mixed pixel,
     a stray return). Returns (the scan, (N,) how many scans each row's range averages; 0 where the
     first scan has no valid return)."""
@@ -158,23 +158,11 @@ def average_scans(scans: list[LidarScan]) -> tuple[LidarScan, np.ndarray]:
     total[R.index] = R.range
     key_r = R.ring * 8.0 + R.azimuth  # ring, then azimuth in [-pi, pi): one sortable key
     for scan in scans[1:]:
-        Q = prepare(scan)
-        steps = neighbour_steps(Q)
-        step = typical_step(steps)
-        if len(Q.index) < 2 or not step:
+        found = _same_rays(ref, scan, R) or _along_rings(scan, R, key_r)
+        if found is None:
             continue
-        key_q = Q.ring * 8.0 + Q.azimuth
-        j = np.clip(np.searchsorted(key_q, key_r, side="right"), 1, len(key_q) - 1)
-        a, b = j - 1, j
-        span = key_q[b] - key_q[a]
-        w = np.clip((key_r - key_q[a]) / np.where(span > 0, span, 1.0), 0.0, 1.0)
-        r_q = (1 - w) * Q.range[a] + w * Q.range[b]
-        same_ring = (Q.ring[a] == R.ring) & (Q.ring[b] == R.ring)
-        near = same_ring & (span <= 1.5 * step) & (key_r >= key_q[a] - 0.5 * step) & (key_r <= key_q[b] + 0.5 * step)
+        r_q, near, dq, step = found
         d = r_q - R.range
-        dq = np.abs(Q.range[b] - Q.range[a])
-        if not near.any():
-            continue
         sigma = 1.4826 * np.median(np.abs(d[near]))
         gate = max(4.0 * sigma, 1e-3)
         ok = near & (np.abs(d) <= gate) & (dq <= gate + 2 * step * R.range)
@@ -184,6 +172,47 @@ def average_scans(scans: list[LidarScan]) -> tuple[LidarScan, np.ndarray]:
     rows = R.index
     p[rows] *= (total[rows] / n[rows] / R.range)[:, None]
     return dataclasses.replace(ref, points=p.astype(np.asarray(ref.points).dtype, copy=False)), n
+
+
+def _same_rays(ref: LidarScan, scan: LidarScan, R: Rings):
+    """An organised cloud of fixed columns (an Ouster's: every rotation fires at the same azimuths):
+    ``scan``'s range on each of R's rows, directly ((M,) ranges, (M,) usable, (M,) 0, the azimuth step);
+    None if the clouds' layouts or azimuths differ."""
+    if ref.shape is None or scan.shape != ref.shape or len(scan.points) != len(ref.points):
+        return None
+    p = np.asarray(scan.points, float)[R.index]
+    with np.errstate(invalid="ignore", over="ignore"):
+        r = np.linalg.norm(p, axis=1)
+    near = np.asarray(scan.valid, bool)[R.index] & np.isfinite(r) & (r > 0)
+    if scan.ring is not None:
+        near &= np.asarray(scan.ring)[R.index] == R.ring
+    if near.sum() < 2:
+        return None
+    daz = (np.arctan2(p[near, 1], p[near, 0]) - R.azimuth[near] + np.pi) % (2 * np.pi) - np.pi
+    step = typical_step(neighbour_steps(R))
+    if not step or np.median(np.abs(daz)) > 0.02 * step:
+        return None
+    return np.where(near, r, 0.0), near, np.zeros(len(r)), step
+
+
+def _along_rings(scan: LidarScan, R: Rings, key_r: np.ndarray):
+    """``scan``'s range on each of R's rays, interpolated along its ring between the two returns
+    either side of the ray's azimuth ((M,) ranges, (M,) usable: one ring, neighbouring returns,
+    (M,) their range difference, the azimuth step); None if it has too few returns."""
+    Q = prepare(scan)
+    step = typical_step(neighbour_steps(Q))
+    if len(Q.index) < 2 or not step:
+        return None
+    key_q = Q.ring * 8.0 + Q.azimuth
+    j = np.clip(np.searchsorted(key_q, key_r, side="right"), 1, len(key_q) - 1)
+    a, b = j - 1, j
+    span = key_q[b] - key_q[a]
+    w = np.clip((key_r - key_q[a]) / np.where(span > 0, span, 1.0), 0.0, 1.0)
+    same_ring = (Q.ring[a] == R.ring) & (Q.ring[b] == R.ring)
+    near = same_ring & (span <= 1.5 * step) & (key_r >= key_q[a] - 0.5 * step) & (key_r <= key_q[b] + 0.5 * step)
+    if not near.any():
+        return None
+    return (1 - w) * Q.range[a] + w * Q.range[b], near, np.abs(Q.range[b] - Q.range[a]), step
 
 
 def infer_lidar_spacing(scans) -> tuple[int, int]:
