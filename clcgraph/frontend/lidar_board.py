@@ -323,14 +323,21 @@ def _off_plane_ring(pts: np.ndarray, ring: np.ndarray, keep: np.ndarray) -> np.n
     """(N,) mask of the kept points of the ring whose pieces lie furthest off the plane of the other
     kept rings (median distance), if that is beyond ``_OFF_PLANE_RING_M`` and 4 robust spreads of
     every ring's such distance; all False if none is, or fewer than 4 rings are kept (3 must remain)."""
-    rings = np.unique(ring[keep])
+    rings, r = np.unique(ring[keep], return_inverse=True)
     none = np.zeros(len(pts), bool)
     if len(rings) < 4:
         return none
-    off = np.empty(len(rings))
-    for k, r in enumerate(rings):
-        n, d, _ = fit_plane(pts[keep & (ring != r)])
-        off[k] = np.median(pts[keep & (ring == r)] @ n - d)
+    # each plane of all rings but one from the per-ring sums (one pass, no refit per ring)
+    p = pts[keep] - pts[keep].mean(axis=0)
+    count = np.bincount(r, minlength=len(rings)).astype(float)
+    s1 = np.stack([np.bincount(r, p[:, a], len(rings)) for a in range(3)], axis=1)  # (R,3)
+    s2 = np.zeros((len(rings), 3, 3))
+    np.add.at(s2, r, p[:, :, None] * p[:, None, :])
+    n_o, s1_o, s2_o = count.sum() - count, s1.sum(axis=0) - s1, s2.sum(axis=0) - s2
+    c_o = s1_o / n_o[:, None]
+    normal = np.linalg.eigh(s2_o / n_o[:, None, None] - c_o[:, :, None] * c_o[:, None, :])[1][:, :, 0]
+    normal *= np.sign(normal @ normal[0])[:, None]  # one side of the board for every plane
+    off = np.array([np.median((p[r == k] - c_o[k]) @ normal[k]) for k in range(len(rings))])
     dev = np.abs(off - np.median(off))
     worst = int(np.argmax(dev))
     spread = 1.4826 * np.median(np.delete(dev, worst))
