@@ -89,16 +89,43 @@ def voxel_pick(points: np.ndarray, leaf: float) -> np.ndarray:
 
 
 class LocalMap:
-    """The mapping's registration target: points with covariances and a KD-tree (GICP), or a
-    Gaussian voxel map (VGICP, the NDT-like option; voxel size ``mapper_resolution``)."""
+    """The mapping's registration target, the latest ``local_map_num_keyframes`` keyframes in the
+    map frame: points with covariances and a KD-tree (GICP), rebuilt at every keyframe; or a
+    Gaussian voxel map (VGICP, the NDT-like option; voxel size ``mapper_resolution``) that each
+    new keyframe is inserted into (its points downsampled and their covariances estimated in its
+    own frame), voxels no keyframe touched among the latest ``local_map_num_keyframes`` dropped."""
 
-    def __init__(self, points: np.ndarray, leaf: float, o):
-        """``points``: (N,3) map points, downsampled here to ``leaf`` (once)."""
-        self.o = o
-        self.cloud, self.tree = gicp.preprocess(points, leaf, threads=o.mapper_num_threads)
-        self.voxels = None
-        if o.mapper_registrator in ("VGICP", "NDT"):
-            self.voxels = gicp.voxel_map(self.cloud, o.mapper_resolution)
+    def __init__(self, leaf: float, o):
+        self.o, self.leaf = o, leaf
+        self.incremental = o.mapper_registrator in ("VGICP", "NDT")
+        self.cloud = self.tree = self.voxels = None
+
+    def rebuild(self, frames, ids) -> None:
+        """The map of ``frames[ids]`` alone."""
+        if self.incremental:
+            self.voxels = None
+            for j in ids:
+                self._insert(frames[j])
+            return
+        cloud = np.concatenate([frames[j].points @ frames[j].T_map_lidar[:3, :3].T + frames[j].T_map_lidar[:3, 3]
+                                for j in ids])
+        self.cloud, self.tree = gicp.preprocess(cloud, self.leaf, threads=self.o.mapper_num_threads)
+
+    def add(self, frames, ids) -> None:
+        """``ids[-1]`` became a keyframe (``ids``: the keyframes of the local map, the new one last)."""
+        if self.incremental and self.voxels is not None:
+            self._insert(frames[ids[-1]])
+        else:
+            self.rebuild(frames, ids)
+
+    def _insert(self, f) -> None:
+        import small_gicp
+
+        if self.voxels is None:
+            self.voxels = small_gicp.GaussianVoxelMap(self.o.mapper_resolution)
+            self.voxels.set_lru(horizon=self.o.local_map_num_keyframes, clear_cycle=1)
+        cloud, _ = gicp.preprocess(f.points, self.leaf, threads=self.o.mapper_num_threads)
+        self.voxels.insert(cloud, f.T_map_lidar)
 
     def align(self, src, T0: np.ndarray, max_corr: float):
         kw = dict(init_T_target_source=T0, max_correspondence_distance=max_corr,
@@ -152,7 +179,8 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
             res.frames.append(f)
             res.keyframe_ids.append(0)
             local_ids = [0]
-            local = LocalMap(pts, map_leaf, o)
+            local = LocalMap(map_leaf, o)
+            local.rebuild(res.frames, local_ids)
             first_raw = (raw, tau)  # re-deskewed once the first twist is known
             T_last, last_stamp = f.T_map_lidar, scan.stamp_ns
             prev_scan_ns = scan.stamp_ns
@@ -169,7 +197,7 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
                 # the first frame (the map origin) was deskewed with zero twist: redo it, then re-register
                 f0 = res.frames[0]
                 f0.points, f0.twist = deskew(first_raw[0], first_raw[1], xi).astype(np.float32), xi.copy()
-                local = LocalMap(f0.points, map_leaf, o)
+                local.rebuild(res.frames, [0])
             src, _ = gicp.preprocess(deskew(raw[pick], None if tau is None else tau[pick], xi), leaf_in,
                                      threads=o.mapper_num_threads)
             fine = max(o.mapper_max_correspondence_distance, 3 * leaf_in)
@@ -221,9 +249,10 @@ def build_map(scans, opts, *, progress=None, max_cond: float = 1e4) -> MapResult
             f.keyframe = True
             res.keyframe_ids.append(k)
             local_ids = (local_ids + [k])[-o.local_map_num_keyframes:]
-            cloud = np.concatenate([res.frames[j].points @ res.frames[j].T_map_lidar[:3, :3].T
-                                    + res.frames[j].T_map_lidar[:3, 3] for j in local_ids])
-            local = LocalMap(cloud, map_leaf, o)
+            if lost:
+                local.rebuild(res.frames, local_ids)  # the local map restarts
+            else:
+                local.add(res.frames, local_ids)
         T_last, last_stamp, twist = T, scan.stamp_ns, xi
     if res.n_scans < 3:
         raise DataError(f"{res.topic}: only {res.n_scans} scans; mapping needs a drive")
