@@ -252,8 +252,9 @@ def _run(fd, T0, kind, corr, o, leaf):
     return gicp.align(target, src, fd.tree, registration_type=kind, **kw).T_target_source
 
 
-# The ensemble stops once this many frames in a row registered (all three ways, from the best so
-# far) to within their own uncertainty of the best: more frames from the same start find the same pose.
+# The ensemble stops once this many frames in a row (each registered three ways from the best so
+# far) left the best where it was, within their own uncertainty: more frames from the same start
+# find the same pose.
 _AGREEING_FRAMES = 3
 _CHI2_6DOF_99 = 16.81  # 99 % quantile of chi-square with 6 degrees of freedom
 
@@ -279,8 +280,10 @@ def ensemble(frames, T_guess: np.ndarray, o, *, progress=None):
     VGICP) and a batched ICP over all frames.
 
     Each registration starts from the best candidate so far; every candidate is scored
-    on all frames. Once ``_AGREEING_FRAMES`` frames in a row found nothing outside their own
-    uncertainty of the best (``agrees``), the other frames are not registered one by one.
+    on all frames. Once ``_AGREEING_FRAMES`` frames in a row left the best within their own
+    uncertainty of where it was before them (``agrees``: a candidate that scores worse, such as
+    point-to-point ICP's, biased by decimetres on a 16-ring scan, does not count), the other
+    frames are not registered one by one.
     Returns (T_best (4,4), list of (name, frame index (-1: all), score)).
     """
     best, best_s = T_guess, score(frames, T_guess, o)
@@ -288,7 +291,7 @@ def ensemble(frames, T_guess: np.ndarray, o, *, progress=None):
     leaf = 0.1
     in_a_row = 0
     for i, fd in enumerate(frames):
-        Ts = []
+        before = best
         for name in ("ICP coarse-to-fine", "GICP", "VGICP"):
             if name == "ICP coarse-to-fine":
                 T = _run(fd, best, "ICP", o.max_corr_dist_coarse, o, leaf)
@@ -301,15 +304,14 @@ def ensemble(frames, T_guess: np.ndarray, o, *, progress=None):
                 T = _run(fd, best, "VGICP", o.max_corr_dist_coarse, o, leaf)
             s = score(frames, T, o)
             cands.append((name, i, s))
-            Ts.append(T)
             if s < best_s:
                 best, best_s = T, s
         # the target's covariances stay for refine_per_frame (built once; it releases them)
         if progress is not None:
             progress(1)
-        in_a_row = in_a_row + 1 if agrees(fd, best, Ts, o) else 0
+        in_a_row = in_a_row + 1 if agrees(fd, before, [best], o) else 0
         if in_a_row >= _AGREEING_FRAMES and i + 1 < len(frames):
-            log.info("ensemble: %d frames in a row agree with the best within their uncertainty; "
+            log.info("ensemble: %d frames in a row left the best within their uncertainty; "
                      "%d of %d frames registered", in_a_row, i + 1, len(frames))
             break
     T = batched_icp(frames, best, o)  # all frames at once, from the best single-frame result
