@@ -11,9 +11,11 @@ SYNOPSIS
     res = calibrate_targetless_scans(scans_by_topic, mapping_topic=..., calibration_topics=[...],
                                      T_base_sensor_guess={...})   # in-memory variant (tests, sim)
 
-Stages (timed in ``res.stats["stage_time_s"]``, peak memory in ``res.stats["peak_rss_mb"]``): mapping (deskew + scan-to-map GICP), calibration
-frames, selection, registration (ensemble + per-frame refinement), graph (GTSAM fusion
-and Marginals), ground (base_link roll/pitch/z).
+Stages (timed in ``res.stats["stage_time_s"]``, peak memory in ``res.stats["peak_rss_mb"]``): mapping (deskew + scan-to-map
+VGICP), calibration frames, selection, registration (ensemble + per-frame refinement), graph
+(GTSAM fusion and Marginals), ground (base_link roll/pitch/z: computed in a forked child
+process beside the calibration frames, registration and graph; the stage is the wait for it
+at the end, and the child's memory is not in the peak).
 """
 
 from __future__ import annotations
@@ -67,6 +69,25 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
     with clock("mapping"):
         mp = build_map(scans[mapping_topic], o, progress=progress)
     G0 = np.asarray(T_base_sensor_guess[mapping_topic])
+    ground = None
+    if base_frame is not None:  # needs the map only: on the other core while the LIDARs are registered
+        from .background import Background
+        from .ground import calibrate_base
+
+        ground = Background(calibrate_base, mp, G0, o)
+    try:
+        return _calibrate(scans, mp, G0, ground, mapping_topic=mapping_topic, calibration_topics=calibration_topics,
+                          T_base_sensor_guess=T_base_sensor_guess, base_frame=base_frame, o=o, frames=frames,
+                          progress=progress, clock=clock, timings=timings, memory=memory)
+    finally:
+        if ground is not None:
+            ground.cancel()  # only where an error left it running
+
+
+def _calibrate(scans, mp, G0, ground, *, mapping_topic, calibration_topics, T_base_sensor_guess, base_frame, o,
+               frames, progress, clock, timings, memory) -> Result:
+    """The rest of :func:`calibrate_targetless_scans` once the map is there (``ground``: the
+    Background job of the base_link ground plane, or None)."""
     T_final_of, cov_of = {mapping_topic: np.eye(4)}, {mapping_topic: np.zeros((6, 6))}
     guess_of: dict = {mapping_topic: np.eye(4)}
     graph, convergence, per_frame, candidates, notes = {}, {}, {}, {}, []
@@ -132,11 +153,9 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
              "rt_frame": geo.rt_from_T(m.T).tolist(), **fd.cf.stats} for fd, m in zip(fr, meas)]
         pictures["alignment"][topic] = _alignment_pictures(fr, Tg, T_final, o)
     T_base_sensor: dict = {}
-    if base_frame is not None:
-        from .ground import calibrate_base
-
-        with clock("ground"):
-            T_b0, info = calibrate_base(mp, G0, o)
+    if ground is not None:
+        with clock("ground"):  # what is left of it: it ran beside the registration
+            T_b0, info = ground.result()
         T_base_sensor = {topic: T_b0 @ T for topic, T in T_final_of.items()}
     return _result(T_final_of, cov_of, frames=dict(frames or {}), base_frame=base_frame, T_base_sensor=T_base_sensor,
                    stats={"stage_time_s": timings, "peak_rss_mb": memory},

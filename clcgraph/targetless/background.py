@@ -1,0 +1,83 @@
+"""One computation in a forked child while this process goes on (the second core of a 2-core machine).
+
+SYNOPSIS
+    job = Background(calibrate_base, mp, G0, o)   # starts fn(*args) in a child process (Linux)
+    ...                                           # this process goes on (registration, graph)
+    T, info = job.result()                        # fn's return value, or its exception raised here
+    job.cancel()                                  # on the way out of an error: the child is killed
+
+The child is a fork: it reads this process's memory as it was at the fork (no copy of a drive's
+frames is sent), so ``fn`` must only read its arguments; its result comes back pickled through
+a pipe. Where fork is not there (or not safe: not Linux), ``fn`` runs at ``result()`` in this
+process. Either way the same function runs on the same data: the same result.
+
+The child resets SIGINT / SIGTERM to their defaults (an interrupted run's cleanup is the parent's)
+and leaves with ``os._exit`` (no atexit handlers, no flush of the parent's buffers).
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import signal
+import sys
+
+
+class Background:
+    """``fn(*args)`` computed in a forked child; ``result()`` waits for it."""
+
+    def __init__(self, fn, *args):
+        self.fn, self.args = fn, args
+        self.pid = None
+        self.fd = None
+        if sys.platform.startswith("linux") and hasattr(os, "fork"):
+            r, w = os.pipe()
+            pid = os.fork()
+            if pid == 0:  # the child
+                os.close(r)
+                for s in (signal.SIGINT, signal.SIGTERM):
+                    signal.signal(s, signal.SIG_DFL)
+                code = 0
+                try:
+                    try:
+                        out = (True, fn(*args))
+                    except BaseException as e:  # noqa: BLE001 - handed to the parent, raised there
+                        out = (False, e)
+                    data = pickle.dumps(out, protocol=pickle.HIGHEST_PROTOCOL)
+                    with os.fdopen(w, "wb") as f:
+                        f.write(data)
+                except BaseException:  # noqa: BLE001 - the parent sees the short read
+                    code = 1
+                os._exit(code)
+            os.close(w)
+            self.pid, self.fd = pid, r
+
+    def result(self):
+        """fn's return value (its exception raised here)."""
+        if self.pid is None:
+            return self.fn(*self.args)
+        with os.fdopen(self.fd, "rb") as f:
+            data = f.read()
+        self.fd = None
+        _, status = os.waitpid(self.pid, 0)
+        self.pid = None
+        if not data:
+            raise RuntimeError(f"{getattr(self.fn, '__name__', 'a background job')} died in its child process "
+                               f"(exit status {os.waitstatus_to_exitcode(status)})")
+        ok, value = pickle.loads(data)
+        if not ok:
+            raise value
+        return value
+
+    def cancel(self) -> None:
+        """Kill the child if it still runs (nothing to do after ``result``)."""
+        if self.pid is None:
+            return
+        try:
+            os.kill(self.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        os.waitpid(self.pid, 0)
+        if self.fd is not None:
+            os.close(self.fd)
+        self.pid = self.fd = None
