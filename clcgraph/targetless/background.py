@@ -81,3 +81,87 @@ class Background:
         if self.fd is not None:
             os.close(self.fd)
         self.pid = self.fd = None
+
+
+class Prefetched:
+    """``fn(item)`` for each of ``items``, computed in a forked child one item ahead of the
+    consumer (the child blocks once the pipe is full), yielded here in order; an exception of
+    the child's iteration or of ``fn`` is raised here where it happened in the sequence. Inline
+    where fork is not there. ``len()`` is the items' when they have one. Close it (or let it be
+    garbage-collected) to stop the child early.
+
+    SYNOPSIS
+        for prepared in Prefetched(scans, prepare): ...   # prepare(scan) runs on the other core
+    """
+
+    def __new__(cls, items, fn):
+        if cls is Prefetched and hasattr(items, "__len__"):
+            return super().__new__(_SizedPrefetched)
+        return super().__new__(cls)
+
+    def __init__(self, items, fn):
+        self.items, self.fn = items, fn
+        self._gen = None
+
+    def __iter__(self):
+        if self._gen is None:
+            self._gen = self._run()
+        return self._gen
+
+    def close(self) -> None:
+        if self._gen is not None:
+            self._gen.close()
+
+    def _run(self):
+        if not (sys.platform.startswith("linux") and hasattr(os, "fork")):
+            for item in self.items:
+                yield self.fn(item)
+            return
+        r, w = os.pipe()
+        pid = os.fork()
+        if pid == 0:  # the child: prepare and send, one pickle per item; (0, x) item, (1, e) error, (2,) end
+            os.close(r)
+            for s in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(s, signal.SIG_DFL)
+            code = 0
+            try:
+                with os.fdopen(w, "wb") as f:
+                    try:
+                        for item in self.items:
+                            pickle.dump((0, self.fn(item)), f, protocol=pickle.HIGHEST_PROTOCOL)
+                        pickle.dump((2,), f)
+                    except BaseException as e:  # noqa: BLE001 - raised in the parent, in sequence
+                        if isinstance(e, BrokenPipeError):
+                            raise
+                        pickle.dump((1, e), f, protocol=pickle.HIGHEST_PROTOCOL)
+            except BaseException:  # noqa: BLE001 - the parent stopped reading (or sees a short read)
+                code = 1
+            os._exit(code)
+        os.close(w)
+        f = os.fdopen(r, "rb")
+        try:
+            while True:
+                try:
+                    msg = pickle.load(f)
+                except EOFError:
+                    raise RuntimeError("the prefetching child process died") from None
+                if msg[0] == 0:
+                    yield msg[1]
+                elif msg[0] == 1:
+                    raise msg[1]
+                else:
+                    return
+        finally:
+            f.close()  # a child still writing gets a broken pipe
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            os.waitpid(pid, 0)
+
+
+class _SizedPrefetched(Prefetched):
+    """A Prefetched of items with a length (a progress bar's total)."""
+
+    def __len__(self):
+        return len(self.items)

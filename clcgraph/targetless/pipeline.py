@@ -11,11 +11,13 @@ SYNOPSIS
     res = calibrate_targetless_scans(scans_by_topic, mapping_topic=..., calibration_topics=[...],
                                      T_base_sensor_guess={...})   # in-memory variant (tests, sim)
 
-Stages (timed in ``res.stats["stage_time_s"]``, peak memory in ``res.stats["peak_rss_mb"]``): mapping (deskew + scan-to-map
-VGICP), calibration frames, selection, registration (ensemble + per-frame refinement), graph
-(GTSAM fusion and Marginals), ground (base_link roll/pitch/z: computed in a forked child
-process beside the calibration frames, registration and graph; the stage is the wait for it
-at the end, and the child's memory is not in the peak).
+Stages (timed in ``res.stats["stage_time_s"]``, peak memory in ``res.stats["peak_rss_mb"]``):
+mapping (deskew + scan-to-map VGICP; the scans read and prepared in a forked child process),
+calibration frames, selection, registration (ensemble + per-frame refinement), graph (GTSAM
+fusion and Marginals), ground (base_link roll/pitch/z: computed in a forked child process
+beside the calibration frames, registration and graph; the stage is the wait for it at the
+end). The children's memory is not in the peak (they share the parent's pages; their own
+buffers are tens of MB).
 """
 
 from __future__ import annotations
