@@ -11,6 +11,9 @@ frames is sent), so ``fn`` must only read its arguments; its result comes back p
 a pipe. Where fork is not there (or not safe: not Linux), ``fn`` runs at ``result()`` in this
 process. Either way the same function runs on the same data: the same result.
 
+``fn`` must not start OpenMP threads (small_gicp with num_threads > 1): the parent's OpenMP
+thread team does not survive the fork and a child asking for one hangs. One thread is fine.
+
 The child resets SIGINT / SIGTERM to their defaults (an interrupted run's cleanup is the parent's)
 and leaves with ``os._exit`` (no atexit handlers, no flush of the parent's buffers).
 """

@@ -433,6 +433,19 @@ def submap(mp, pos: int, *, max_frames: int = 3) -> np.ndarray:
     return np.concatenate(clouds)
 
 
+def all_keyframe_edges(mp, o) -> dict:
+    """``keyframe_edges``' cache for every keyframe of the map: (a, b) -> KeyframeEdge or None,
+    b = a + 1 and a + 2 (each registration depends on its two submaps only: the same edges as
+    those computed for fewer keyframes)."""
+    import dataclasses
+
+    cache: dict = {}
+    # one thread: run in a forked child (background.py), where OpenMP's thread team of the parent
+    # is gone (2 threads hung there); the same bytes whatever the thread count (gicp.py)
+    keyframe_edges(mp, range(len(mp.keyframe_ids)), dataclasses.replace(o, mapper_num_threads=1), cache=cache)
+    return cache
+
+
 def keyframe_edges(mp, positions, o, *, cache: dict | None = None, max_cond: float = 1e6,
                    min_inlier_share: float = 0.3) -> list:
     """Registrations of keyframe submaps j+1 and j+2 to j's, for the keyframe positions given
@@ -446,10 +459,14 @@ def keyframe_edges(mp, positions, o, *, cache: dict | None = None, max_cond: flo
     leaf = 2 * max(o.leaf_size_local_map, 0.05)  # neighbouring submaps overlap almost entirely: coarse is enough
     positions = sorted(set(int(p) for p in positions))
     pairs = [(a, b) for a in positions for b in (a + 1, a + 2) if b in positions and (a, b) not in cache]
-    needed = sorted({p for ab in pairs for p in ab})
-    clouds = {p: gicp.preprocess(submap(mp, p), leaf, threads=o.mapper_num_threads) for p in needed}
-    pose = {p: mp.frames[mp.keyframe_ids[p]].T_map_lidar for p in needed}
+    clouds = {}  # the submaps of a and after (pairs go by a), each preprocessed once
+    pose = {p: mp.frames[mp.keyframe_ids[p]].T_map_lidar for ab in pairs for p in ab}
     for a, b in pairs:
+        for p in [p for p in clouds if p < a]:
+            del clouds[p]
+        for p in (a, b):
+            if p not in clouds:
+                clouds[p] = gicp.preprocess(submap(mp, p), leaf, threads=o.mapper_num_threads)
         r = gicp.align(clouds[a][0], clouds[b][0], clouds[a][1],
                        init_T_target_source=np.linalg.inv(pose[a]) @ pose[b], registration_type="GICP",
                        max_correspondence_distance=o.max_corr_dist_fine, max_iterations=min(o.solver_iterations, 60))
