@@ -7,10 +7,10 @@ registration adds per-thread partial Hessians filled under a dynamic schedule (f
 sums in another order). Both changed the calibration in the last digits with the thread count,
 and from run to run with 2 threads. So those run on one thread; the steps that compute each
 point on its own (KD-tree construction: the same splits whatever the task order; per-point
-normals and covariances) keep ``threads``.
+covariances) keep ``threads``.
 
 Memory (measured with the installed small_gicp): a PointCloud's points take 32 B per point, its KD-tree 32 B,
-normals and covariances together 160 B (allocated only when estimated).
+covariances 128 B (allocated only when estimated; normals, 32 B more, are not: GICP does not use them).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ NUM_NEIGHBORS = 10  # neighbours of a point's normal and covariance
 
 def preprocess(points: np.ndarray, leaf: float, *, threads: int):
     """(cloud, tree): (N,3) points voxel-downsampled to ``leaf`` (single-threaded: deterministic),
-    then a KD-tree and per-point normals / covariances (``threads``: order-independent)."""
+    then a KD-tree and per-point covariances (``threads``: order-independent)."""
     import small_gicp
 
     return prepared(small_gicp.voxelgrid_sampling(np.ascontiguousarray(points, float), leaf, num_threads=1),
@@ -33,14 +33,14 @@ def preprocess(points: np.ndarray, leaf: float, *, threads: int):
 
 
 def prepared(points, *, threads: int, tree=None):
-    """(cloud, tree) of points already downsampled ((N,3) array or a PointCloud), with normals and
-    covariances; ``tree``: a KD-tree already built on the same points in the same order."""
+    """(cloud, tree) of points already downsampled ((N,3) array or a PointCloud), with covariances; ``tree``: a KD-tree already built on the same points in the same order."""
     import small_gicp
 
     cloud = points if isinstance(points, small_gicp.PointCloud) else small_gicp.PointCloud(
         np.ascontiguousarray(points, float))
     tree = small_gicp.KdTree(cloud, num_threads=threads) if tree is None else tree
-    small_gicp.estimate_normals_covariances(cloud, tree, num_neighbors=NUM_NEIGHBORS, num_threads=threads)
+    # covariances only: GICP uses no normals (the same covariances as estimate_normals_covariances')
+    small_gicp.estimate_covariances(cloud, tree, num_neighbors=NUM_NEIGHBORS, num_threads=threads)
     return cloud, tree
 
 

@@ -11,9 +11,13 @@ SYNOPSIS
     res = calibrate_targetless_scans(scans_by_topic, mapping_topic=..., calibration_topics=[...],
                                      T_base_sensor_guess={...})   # in-memory variant (tests, sim)
 
-Stages (timed in ``res.stats["stage_time_s"]``, peak memory in ``res.stats["peak_rss_mb"]``): mapping (deskew + scan-to-map GICP), calibration
-frames, selection, registration (ensemble + per-frame refinement), graph (GTSAM fusion
-and Marginals), ground (base_link roll/pitch/z).
+Stages (timed in ``res.stats["stage_time_s"]``, peak memory in ``res.stats["peak_rss_mb"]``):
+mapping (deskew + scan-to-map VGICP; the scans read and prepared in a forked child process),
+calibration frames, selection, registration (ensemble + per-frame refinement), graph (GTSAM
+fusion and Marginals; the keyframe submap registrations computed in a forked child process
+beside the calibration frames and registration), ground (base_link roll/pitch/z: in another
+forked child; the stage is the wait for it at the end). The children's memory is not in the
+peak (they share the parent's pages; their own buffers are tens of MB).
 """
 
 from __future__ import annotations
@@ -33,7 +37,8 @@ from . import gicp
 from .calibration_frames import make_calibration_frames, nearest_to_keyframes
 from .keyframe_graph import fuse
 from .mapping import build_map
-from .registration import deskew_sources, ensemble, keyframe_edges, prepare_frames, refine_per_frame, score
+from .registration import (all_keyframe_edges, deskew_sources, ensemble, keyframe_edges, prepare_frames,
+                           refine_per_frame, score)
 from .selection import adapt_to_drive, select_frames
 
 log = logging.getLogger(__name__)
@@ -67,6 +72,29 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
     with clock("mapping"):
         mp = build_map(scans[mapping_topic], o, progress=progress)
     G0 = np.asarray(T_base_sensor_guess[mapping_topic])
+    # what needs the map only goes on the other core while the LIDARs are registered: the
+    # submap registrations of the keyframe graph (all keyframes; the graph takes those it uses)
+    # and the ground plane
+    from .background import Background
+
+    jobs = {"edges": Background(all_keyframe_edges, mp, o)}
+    if base_frame is not None:
+        from .ground import calibrate_base
+
+        jobs["ground"] = Background(calibrate_base, mp, G0, o)
+    try:
+        return _calibrate(scans, mp, G0, jobs, mapping_topic=mapping_topic, calibration_topics=calibration_topics,
+                          T_base_sensor_guess=T_base_sensor_guess, base_frame=base_frame, o=o, frames=frames,
+                          progress=progress, clock=clock, timings=timings, memory=memory)
+    finally:
+        for job in jobs.values():
+            job.cancel()  # only where an error left it running
+
+
+def _calibrate(scans, mp, G0, jobs, *, mapping_topic, calibration_topics, T_base_sensor_guess, base_frame, o,
+               frames, progress, clock, timings, memory) -> Result:
+    """The rest of :func:`calibrate_targetless_scans` once the map is there (``jobs``: the
+    Background jobs "edges" (all_keyframe_edges) and, with a base frame, "ground")."""
     T_final_of, cov_of = {mapping_topic: np.eye(4)}, {mapping_topic: np.zeros((6, 6))}
     guess_of: dict = {mapping_topic: np.eye(4)}
     graph, convergence, per_frame, candidates, notes = {}, {}, {}, {}, []
@@ -97,6 +125,8 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
         with clock("graph"):
             used = sorted({m.anchor for m in meas} | {p for m in meas for p in m.influence})
             keyframes = {p: mp.frames[mp.keyframe_ids[p]].T_map_lidar for p in used}
+            if "edges" in jobs:
+                edge_cache.update(jobs.pop("edges").result())
             edges = keyframe_edges(mp, used, o, cache=edge_cache)
             est = fuse(meas, keyframes, edges, common_mode=o.registration_common_mode,
                        min_frames=o.lidar_calibration_min_frames)
@@ -132,11 +162,9 @@ def calibrate_targetless_scans(scans: dict, *, mapping_topic: str, calibration_t
              "rt_frame": geo.rt_from_T(m.T).tolist(), **fd.cf.stats} for fd, m in zip(fr, meas)]
         pictures["alignment"][topic] = _alignment_pictures(fr, Tg, T_final, o)
     T_base_sensor: dict = {}
-    if base_frame is not None:
-        from .ground import calibrate_base
-
-        with clock("ground"):
-            T_b0, info = calibrate_base(mp, G0, o)
+    if "ground" in jobs:
+        with clock("ground"):  # what is left of it: it ran beside the registration
+            T_b0, info = jobs["ground"].result()
         T_base_sensor = {topic: T_b0 @ T for topic, T in T_final_of.items()}
     return _result(T_final_of, cov_of, frames=dict(frames or {}), base_frame=base_frame, T_base_sensor=T_base_sensor,
                    stats={"stage_time_s": timings, "peak_rss_mb": memory},

@@ -41,10 +41,11 @@ class TargetParts:
 
 @dataclass
 class FrameData:
-    """One calibration frame's registration problem. Its dense target (~600k points on the 10 s
-    bench drive) is kept light: points, a KD-tree and the normals used so far (~90 B per point);
-    the GICP covariances (160 B per point) exist only while the frame is registered
-    (``gicp_target``, until ``release``). Source clouds are downsampled once per leaf size."""
+    """One calibration frame's registration problem. Its dense target (~300k points within the
+    source's reach on the 10 s bench drive) is kept light: points, a KD-tree and the normals used
+    so far (~90 B per point); the GICP covariances (128 B per point) are built once, when the
+    frame is first registered (``gicp_target``), and freed by ``release`` after its refinement.
+    Source clouds are downsampled once per leaf size."""
     cf: object  # CalibrationFrame
     target_pts: np.ndarray  # (M,3) float32 dense, lidar0 frame at the scan stamp (5 um at 80 m)
     source_pts: np.ndarray  # (N,3) deskewed sensor points
@@ -127,9 +128,42 @@ def keyframe_position(mp, frame_ids) -> np.ndarray:
     return np.searchsorted(np.asarray(mp.keyframe_ids), np.asarray(frame_ids), side="right") - 1
 
 
-def dense_target(mp, kid: int, T_map_lidar0: np.ndarray, o, *, max_frames: int = 40):
+def reach_mask(points: np.ndarray, source_pts: np.ndarray, origin: np.ndarray, *, cell: float = 1.0,
+               margin_m: float = 1.0, margin_per_m: float = np.tan(np.radians(3.0)), max_cells: int = 16) -> np.ndarray:
+    """(N,) mask of the ``points`` a registration of ``source_pts`` (same frame, placed by the
+    initial guess) can use: those in the cells of size ``cell`` within ``margin_m + margin_per_m *
+    range`` (range from ``origin``, the source sensor) of a source point's cell, so a guess that is
+    off by up to ~3 deg and a few decimetres still finds all its correspondences. The cells nest
+    the dense map's voxels (``cell`` a multiple of the leaf): a voxel is kept or left out whole."""
+    if len(points) == 0 or len(source_pts) == 0:
+        return np.zeros(len(points), bool)
+    own = np.unique(voxel_codes(source_pts, cell))
+    centre = (_decode(own) + 0.5) * cell
+    k = np.minimum(np.ceil((margin_m + margin_per_m * np.linalg.norm(centre - origin, axis=1)) / cell),
+                   max_cells).astype(np.int64)
+    reach = []
+    for kk in np.unique(k):  # a cube of +-kk cells, dilated one axis at a time
+        c = own[k == kk]
+        for shift in (1 << 38, 1 << 19, 1):
+            c = np.unique((c[:, None] + shift * np.arange(-kk, kk + 1)).ravel())
+        reach.append(c)
+    reach = np.unique(np.concatenate(reach))
+    code = voxel_codes(points, cell)
+    at = np.minimum(np.searchsorted(reach, code), len(reach) - 1)
+    return reach[at] == code
+
+
+def _decode(codes: np.ndarray) -> np.ndarray:
+    """(N,3) integer cell indices of voxel_codes."""
+    m = (1 << 19) - 1
+    return np.c_[(codes >> 38) & m, (codes >> 19) & m, codes & m] - (1 << 18)
+
+
+def dense_target(mp, kid: int, T_map_lidar0: np.ndarray, o, *, max_frames: int = 40, source=None):
     """(M,3) mapping points of the frames within +-dense_pointcloud_num_keyframes keyframes, in lidar0
-    at T, and the TargetParts telling which keyframe's submap each voxel came from."""
+    at T, and the TargetParts telling which keyframe's submap each voxel came from. ``source``:
+    (points (N,3), sensor origin (3,)) in lidar0 at the guess: only the target within its reach
+    (``reach_mask``) is kept."""
     kpos = mp.keyframe_ids.index(kid)
     lo = mp.keyframe_ids[max(0, kpos - o.dense_pointcloud_num_keyframes)]
     hi = mp.keyframe_ids[min(len(mp.keyframe_ids) - 1, kpos + o.dense_pointcloud_num_keyframes)]
@@ -146,8 +180,15 @@ def dense_target(mp, kid: int, T_map_lidar0: np.ndarray, o, *, max_frames: int =
         T = Tinv @ f.T_map_lidar
         clouds.append(f.points @ T[:3, :3].T + T[:3, 3])
         labels.append(np.full(len(f.points), np.searchsorted(positions, p), np.int64))
-    allp = np.concatenate(clouds)
-    pairs, counts = np.unique(voxel_codes(allp, leaf) * 64 + np.concatenate(labels), return_counts=True)
+    allp, labels = np.concatenate(clouds), np.concatenate(labels)
+    del clouds
+    if source is not None:
+        # cells of whole dense voxels (10 leaves: 0.5 m at the default 5 cm); the margin: the coarse
+        # correspondence distance and 0.5 m of guess error and point neighbourhood
+        keep = reach_mask(allp, source[0], source[1], cell=leaf * max(1, round(0.5 / leaf)),
+                          margin_m=o.max_corr_dist_coarse + 0.5)
+        allp, labels = allp[keep], labels[keep]
+    pairs, counts = np.unique(voxel_codes(allp, leaf) * 64 + labels, return_counts=True)
     parts = TargetParts(leaf, pairs, counts.astype(np.int32), positions, kpos,
                         {int(p): Tinv @ mp.frames[mp.keyframe_ids[p]].T_map_lidar for p in positions})
     pts = voxel_down(allp, leaf)
@@ -170,9 +211,10 @@ def prepare_frames(chosen, mp, T_guess: np.ndarray, o, *, deskew_on: bool = True
         m = s.valid & np.isfinite(r) & (r >= o.min_calibration_range) & (r <= o.max_calibration_range)
         raw, tau = s.points[m], (s.time_s[m] if (deskew_on and s.time_s is not None) else None)
         src = deskew(raw, tau, _adjoint_to_sensor(T_guess, cf.twist_lidar0))
-        tgt, parts = dense_target(mp, cf.keyframe_id, cf.T_map_lidar0, o)
+        src0 = src @ T_guess[:3, :3].T + T_guess[:3, 3]  # in lidar0, at the guess
+        tgt, parts = dense_target(mp, cf.keyframe_id, cf.T_map_lidar0, o, source=(src0, T_guess[:3, 3]))
         if o.crop_z_calibration_pointclouds:
-            zmax = (src @ T_guess[:3, :3].T + T_guess[:3, 3])[:, 2].max() + o.crop_z_calibration_pointclouds_value
+            zmax = src0[:, 2].max() + o.crop_z_calibration_pointclouds_value
             tgt = tgt[tgt[:, 2] <= zmax]
         out.append(FrameData.make(cf, tgt, src, threads=o.mapper_num_threads, parts=parts, raw_pts=raw, raw_time=tau))
         log.debug("frame at keyframe %d: dense target of %d points, source of %d", cf.keyframe_id, len(tgt), len(src))
@@ -210,8 +252,9 @@ def _run(fd, T0, kind, corr, o, leaf):
     return gicp.align(target, src, fd.tree, registration_type=kind, **kw).T_target_source
 
 
-# The ensemble stops once this many frames in a row registered (all three ways, from the best so
-# far) to within their own uncertainty of the best: more frames from the same start find the same pose.
+# The ensemble stops once this many frames in a row (each registered three ways from the best so
+# far) left the best where it was, within their own uncertainty: more frames from the same start
+# find the same pose.
 _AGREEING_FRAMES = 3
 _CHI2_6DOF_99 = 16.81  # 99 % quantile of chi-square with 6 degrees of freedom
 
@@ -237,8 +280,10 @@ def ensemble(frames, T_guess: np.ndarray, o, *, progress=None):
     VGICP) and a batched ICP over all frames.
 
     Each registration starts from the best candidate so far; every candidate is scored
-    on all frames. Once ``_AGREEING_FRAMES`` frames in a row found nothing outside their own
-    uncertainty of the best (``agrees``), the other frames are not registered one by one.
+    on all frames. Once ``_AGREEING_FRAMES`` frames in a row left the best within their own
+    uncertainty of where it was before them (``agrees``: a candidate that scores worse, such as
+    point-to-point ICP's, biased by decimetres on a 16-ring scan, does not count), the other
+    frames are not registered one by one.
     Returns (T_best (4,4), list of (name, frame index (-1: all), score)).
     """
     best, best_s = T_guess, score(frames, T_guess, o)
@@ -246,7 +291,7 @@ def ensemble(frames, T_guess: np.ndarray, o, *, progress=None):
     leaf = 0.1
     in_a_row = 0
     for i, fd in enumerate(frames):
-        Ts = []
+        before = best
         for name in ("ICP coarse-to-fine", "GICP", "VGICP"):
             if name == "ICP coarse-to-fine":
                 T = _run(fd, best, "ICP", o.max_corr_dist_coarse, o, leaf)
@@ -259,15 +304,14 @@ def ensemble(frames, T_guess: np.ndarray, o, *, progress=None):
                 T = _run(fd, best, "VGICP", o.max_corr_dist_coarse, o, leaf)
             s = score(frames, T, o)
             cands.append((name, i, s))
-            Ts.append(T)
             if s < best_s:
                 best, best_s = T, s
-        fd.release()  # the next frames' covariances need the memory
+        # the target's covariances stay for refine_per_frame (built once; it releases them)
         if progress is not None:
             progress(1)
-        in_a_row = in_a_row + 1 if agrees(fd, best, Ts, o) else 0
+        in_a_row = in_a_row + 1 if agrees(fd, before, [best], o) else 0
         if in_a_row >= _AGREEING_FRAMES and i + 1 < len(frames):
-            log.info("ensemble: %d frames in a row agree with the best within their uncertainty; "
+            log.info("ensemble: %d frames in a row left the best within their uncertainty; "
                      "%d of %d frames registered", in_a_row, i + 1, len(frames))
             break
     T = batched_icp(frames, best, o)  # all frames at once, from the best single-frame result
@@ -389,6 +433,19 @@ def submap(mp, pos: int, *, max_frames: int = 3) -> np.ndarray:
     return np.concatenate(clouds)
 
 
+def all_keyframe_edges(mp, o) -> dict:
+    """``keyframe_edges``' cache for every keyframe of the map: (a, b) -> KeyframeEdge or None,
+    b = a + 1 and a + 2 (each registration depends on its two submaps only: the same edges as
+    those computed for fewer keyframes)."""
+    import dataclasses
+
+    cache: dict = {}
+    # one thread: run in a forked child (background.py), where OpenMP's thread team of the parent
+    # is gone (2 threads hung there); the same bytes whatever the thread count (gicp.py)
+    keyframe_edges(mp, range(len(mp.keyframe_ids)), dataclasses.replace(o, mapper_num_threads=1), cache=cache)
+    return cache
+
+
 def keyframe_edges(mp, positions, o, *, cache: dict | None = None, max_cond: float = 1e6,
                    min_inlier_share: float = 0.3) -> list:
     """Registrations of keyframe submaps j+1 and j+2 to j's, for the keyframe positions given
@@ -402,10 +459,14 @@ def keyframe_edges(mp, positions, o, *, cache: dict | None = None, max_cond: flo
     leaf = 2 * max(o.leaf_size_local_map, 0.05)  # neighbouring submaps overlap almost entirely: coarse is enough
     positions = sorted(set(int(p) for p in positions))
     pairs = [(a, b) for a in positions for b in (a + 1, a + 2) if b in positions and (a, b) not in cache]
-    needed = sorted({p for ab in pairs for p in ab})
-    clouds = {p: gicp.preprocess(submap(mp, p), leaf, threads=o.mapper_num_threads) for p in needed}
-    pose = {p: mp.frames[mp.keyframe_ids[p]].T_map_lidar for p in needed}
+    clouds = {}  # the submaps of a and after (pairs go by a), each preprocessed once
+    pose = {p: mp.frames[mp.keyframe_ids[p]].T_map_lidar for ab in pairs for p in ab}
     for a, b in pairs:
+        for p in [p for p in clouds if p < a]:
+            del clouds[p]
+        for p in (a, b):
+            if p not in clouds:
+                clouds[p] = gicp.preprocess(submap(mp, p), leaf, threads=o.mapper_num_threads)
         r = gicp.align(clouds[a][0], clouds[b][0], clouds[a][1],
                        init_T_target_source=np.linalg.inv(pose[a]) @ pose[b], registration_type="GICP",
                        max_correspondence_distance=o.max_corr_dist_fine, max_iterations=min(o.solver_iterations, 60))
