@@ -582,7 +582,9 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
         if offset:
             log.debug("%s: the board's weak returns range %.1f mm long; corrected", scan.topic, offset * 1e3)
     ring = ring_of(scan)[idx]
-    edges = edge_rays(rays, idx, n, d, outline, plane_tol_m=o.point_plane_tolerance_m)
+    # a ray passed the board if its return lies behind the plane by more than the range noise explains
+    # (a board return 2 sigma long would otherwise end the board early on a noisy LIDAR)
+    edges = edge_rays(rays, idx, n, d, outline, plane_tol_m=max(o.point_plane_tolerance_m, 4.0 * noise))
     return LidarBoardObservation(sensor=sensor, snapshot=snapshot, points=pts, plane=np.r_[n, d], rms_m=rms,
                                  indices=idx, ring=ring, edge_rays=edges)
 

@@ -339,3 +339,27 @@ def test_a_dropout_at_the_boards_edge_does_not_move_the_edge_inward():
     # those of the rings with a dropout are two steps long
     width = q_in[right, 1] - q_out[right, 1]
     assert np.sum(width > 1.5 * 3.0 * step) == 4 and np.all(width < 2.5 * 3.0 * step / np.cos(0.15) ** 2)
+
+
+def test_a_noisy_lidars_long_board_return_does_not_end_the_board():
+    """2 cm range noise (clipped at 2 sigma: the scan's own estimate is 1.4 cm): the board's last return
+    on a ring ranges 5.3 cm long, beyond the plane tolerance (5 cm) but within 4 sigmas of the noise. It is no board return (too far off the
+    plane), and no proof that the ray passed the board either: no interval may end there, inside
+    the board."""
+    from clcgraph.config import LidarOptions, SegmentationOptions
+    from clcgraph.frontend.lidar_board import segment_board
+
+    board = BoardGeometry.from_spec(corners=[7, 5], square_m=0.095, size_m=[0.85, 0.61])
+    scan, rows, _, _, _ = _scan_with_arm(False)
+    rng = np.random.default_rng(3)
+    r = np.linalg.norm(np.nan_to_num(scan.points), axis=1)
+    noise = np.clip(rng.normal(0, 0.02, len(r)), -0.04, 0.04)
+    ring = scan.ring[rows]
+    for k in np.unique(ring)[2:-2]:  # the right-most board return of every ring but the outer two
+        last = rows[ring == k][np.argmin(scan.points[rows[ring == k], 1])]
+        noise[last] = 0.053
+    scan = dataclasses.replace(scan, points=scan.points * ((r + noise) / np.where(r > 0, r, 1))[:, None])
+    obs = segment_board(scan, SegmentationOptions(), LidarOptions(suppress_static=False), board)
+    q_out = obs.edge_rays[:, 1] * (3.0 / obs.edge_rays[:, 1, 0])[:, None]  # where the ray past the edge meets x = 3
+    inside = (np.abs(q_out[:, 1]) < 0.425 - 0.005) & (np.abs(q_out[:, 2]) < 0.305 - 0.005)
+    assert len(obs.edge_rays) >= 6 and not inside.any(), q_out[inside]
