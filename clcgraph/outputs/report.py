@@ -466,23 +466,43 @@ def _figure_jobs(result: Result, inputs) -> list[tuple[str, object]]:
     return jobs
 
 
-def start_figures(result: Result, inputs):
+# The figures drawn from the estimate alone (poses, board poses, noise sigmas, residuals, rejections):
+# `clcgraph solve` starts them while the solve still computes the covariance (start_estimate_figures).
+# The others need the covariance (the sectors) or the checks made with it (the LIDAR points on the images).
+ESTIMATE_FIGURES = ("clouds-before-after.png", "camera-residuals-and-coverage.png", "lidar-residuals.png",
+                    "residuals-histogram.png", "residuals-per-snapshot.png", "geometry.png", "coverage.png")
+
+
+def start_figures(result: Result, inputs, *, names=None):
     """An ``outputs.drawing.Drawing`` of the report's figures (all but the LIDAR points on the camera
-    images, drawn by ``_figures``), its second process drawing from now on."""
+    images, drawn by ``_figures``; ``names``: only these), its second process drawing from now on."""
     from .drawing import Drawing
 
-    jobs = _figure_jobs(result, inputs)
+    jobs = [(n, job) for n, job in _figure_jobs(result, inputs) if names is None or n in names]
     order = sorted(range(len(jobs)), key=lambda k: -_COST.get(jobs[k][0], 1))
     return Drawing([job for _, job in jobs], names=[name for name, _ in jobs], order=order)
 
 
-def _figures(result: Result, inputs, checks: dict, first=None, drawing=None) -> list[tuple[str, str, bytes]]:
+def start_estimate_figures(estimate: Result, inputs):
+    """``start_figures`` of the ESTIMATE_FIGURES, from the solve's estimate (``backend.solve.calibrate``'s
+    ``on_estimate``): they are the same pictures as the final result's. Give it to ``report_writer``
+    (``early``); close it if the solve fails."""
+    return start_figures(estimate, inputs, names=ESTIMATE_FIGURES)
+
+
+def _figures(result: Result, inputs, checks: dict, first=None, drawing=None, early=None) -> list[tuple[str, str, bytes]]:
     """[(name, caption, png)] of every figure, in report order; a failing one is logged and left out.
-    The figures are drawn by two processes (``drawing``: ``start_figures``, started earlier; else here).
-    ``first``: work of this process that the pictures do not need, done while the other process
-    already draws; ``checks`` (what the LIDAR points on the camera images show) may be filled by it:
-    those pictures are drawn after it, here."""
-    with drawing if drawing is not None else start_figures(result, inputs) as d:
+    The figures are drawn by two processes (``drawing``: ``start_figures``, started earlier; else here),
+    ``early`` (``start_estimate_figures``) the ones it drew from the estimate. ``first``: work of this
+    process that the pictures do not need, done while the other process already draws; ``checks``
+    (what the LIDAR points on the camera images show) may be filled by it: those pictures are drawn
+    after it, here."""
+    order = [name for name, _ in _figure_jobs(result, inputs)]
+    with contextlib.ExitStack() as stack:
+        if early is not None:
+            stack.enter_context(early)
+        d = stack.enter_context(drawing if drawing is not None else start_figures(
+            result, inputs, names=None if early is None else [n for n in order if n not in early.names]))
         if first is not None:
             first()
         try:
@@ -490,7 +510,11 @@ def _figures(result: Result, inputs, checks: dict, first=None, drawing=None) -> 
         except Exception:  # a diagnostic figure must never lose the calibration
             log.exception("could not draw the LIDAR points on the camera images")
             on_camera = []
-        return on_camera + [f for figs in d.results() for f in figs]
+        drawn = {}
+        for x in (early, d):  # the estimate's first: this process takes what is left of them
+            if x is not None:
+                drawn.update(zip(x.names, x.results()))
+        return on_camera + [f for name in order for f in drawn.get(name, [])]
 
 
 def _coverage(result) -> list[dict]:
@@ -600,9 +624,10 @@ def jk_n(result: Result) -> int:
 
 
 def report_html(result: Result, *, title: str = "clcgraph calibration", inputs: "ev.ReportInputs | None" = None,
-                drawing=None) -> str:
+                drawing=None, early=None) -> str:
     """The whole self-contained HTML text (figures embedded); ``drawing``: ``start_figures(result, inputs)``
-    started earlier (the pictures drawn while the caller did other work)."""
+    started earlier (the pictures drawn while the caller did other work), without the ``early`` ones
+    (``start_estimate_figures``, started during the solve) when given."""
     rms, noise = result.rms, result.noise
     used = int(np.sum(np.all(np.isfinite(np.asarray(result.rt_lidar0_board, float).reshape(-1, 6)), axis=1)))
     checks: dict = {}
@@ -614,7 +639,7 @@ def report_html(result: Result, *, title: str = "clcgraph calibration", inputs: 
             nom = np.array([rts["nominal /tf_static"].get(i, rt) for i, rt in enumerate(result.rt_lidar0_sensor)])
             checks["nominal /tf_static"] = ev.lidar_board_in_images(result, rt_lidar0_sensor=nom)
 
-    figures = _figures(result, inputs, checks, first=board_checks, drawing=drawing)
+    figures = _figures(result, inputs, checks, first=board_checks, drawing=drawing, early=early)
     coverage = _coverage(result)
     for c in coverage:
         if c["coverage"].get("warning"):
@@ -667,11 +692,13 @@ def write_report(result: Result, out_dir, *, title: str = "clcgraph calibration"
 
 
 @contextlib.contextmanager
-def report_writer(result: Result, *, title: str = "clcgraph calibration", inputs: "ev.ReportInputs | None" = None):
+def report_writer(result: Result, *, title: str = "clcgraph calibration", inputs: "ev.ReportInputs | None" = None,
+                  early=None):
     """``write_report`` in two steps: on entry the figures start drawing in a second process
     (target-based); the call it yields, ``write(out_dir) -> path``, writes the report. Work the
     caller does in between (the other result files) overlaps the drawing; leaving the block
-    without writing stops it.
+    without writing stops it. ``early``: the figures of the estimate, started during the solve
+    (``start_estimate_figures``): only the others start here.
 
     SYNOPSIS
         with report_writer(result, inputs=inputs) as write:
@@ -689,8 +716,9 @@ def report_writer(result: Result, *, title: str = "clcgraph calibration", inputs
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         path = out_dir / "report.html"
-        path.write_text(report_html(result, title=title, inputs=inputs, drawing=drawing))
+        path.write_text(report_html(result, title=title, inputs=inputs, drawing=drawing, early=early))
         return path
 
-    with start_figures(result, inputs) as drawing:
+    names = None if early is None else [n for n, _ in _figure_jobs(result, inputs) if n not in early.names]
+    with early if early is not None else contextlib.nullcontext(), start_figures(result, inputs, names=names) as drawing:
         yield write
