@@ -364,8 +364,9 @@ def _scan_clouds(result, inputs, k, *, max_points: int = 15000) -> dict:
     return out
 
 
-def _lidar_on_camera_figures(result, inputs, checks: dict) -> list[tuple[str, str, bytes]]:
-    """Per camera: (name, caption, png) of the LIDAR points on its image, solved beside nominal."""
+def _lidar_on_camera_pictures(result, inputs) -> list[tuple[str, dict, bytes]]:
+    """Per camera: (name, view, jpeg) of the LIDAR points on its image, solved beside nominal; ``view``
+    holds what its caption says but what the checks found (``_lidar_on_camera_caption``)."""
     from . import plots  # matplotlib only when drawing
 
     p = result.problem
@@ -384,22 +385,31 @@ def _lidar_on_camera_figures(result, inputs, checks: dict) -> list[tuple[str, st
         image = inputs.snapshots[k].images[cam.topic].pixels if k in with_image else None
         outline = ev.board_outline_px(ev.board_homography(obs[k].corners_px, p.board, cam), p.board, cam)
         clouds = _scan_clouds(result, inputs, k)
-        panels, says = [], []
-        for side, (label, rt) in zip(("left", "right"), rts.items()):
+        panels = []
+        for label, rt in rts.items():
             q, r = _into_camera(result, i_cam, rt, clouds)
-            rows = [x for x in checks.get(label, ()) if x["camera"] == i_cam and x["snapshot"] == k]
-            spill = "" if not rows else (f": board points spill {max(x['spill_px'] for x in rows):.1f} px past the outline"
-                                         + (f" ({max(x['spill_sigma'] for x in rows):.1f} sigma)" if label == "solved" else ""))
             panels.append({"q": q, "range": r, "outline": outline})
-            says.append(f"{side if len(rts) > 1 else 'the'} picture: {label} extrinsics{spill}")
         v = np.concatenate([x["range"] for x in panels])
         norm = (float(np.percentile(v, 1)), float(np.percentile(v, 99))) if len(v) else (0.0, 1.0)
-        what = "whole scans" if image is not None else "board points only (the report has no image of it)"
-        caption = (f"{i_cam}: {cam.topic}, {_snapshot_name(k, inputs)}, {what}. " + "; ".join(says)
-                   + f". Colour: LIDAR range, {norm[0]:.1f} m (blue) to {norm[1]:.1f} m (red), the bar at the bottom.")
-        out.append((f"lidar-on-camera-{i_cam}.jpg", caption,
+        view = {"camera": i_cam, "snapshot": k, "labels": list(rts), "whole_scans": image is not None, "norm": norm}
+        out.append((f"lidar-on-camera-{i_cam}.jpg", view,
                     _png(plots.plot_lidar_on_image, panels, cam.imagersize, image=image, norm=norm)))
     return out
+
+
+def _lidar_on_camera_caption(result, inputs, view: dict, checks: dict) -> str:
+    """The caption of a ``_lidar_on_camera_pictures`` picture: the camera, the snapshot, and how far the
+    LIDAR board points spill past the board's outline with each set of extrinsics (``checks``)."""
+    i_cam, k, labels, norm = view["camera"], view["snapshot"], view["labels"], view["norm"]
+    says = []
+    for side, label in zip(("left", "right"), labels):
+        rows = [x for x in checks.get(label, ()) if x["camera"] == i_cam and x["snapshot"] == k]
+        spill = "" if not rows else (f": board points spill {max(x['spill_px'] for x in rows):.1f} px past the outline"
+                                     + (f" ({max(x['spill_sigma'] for x in rows):.1f} sigma)" if label == "solved" else ""))
+        says.append(f"{side if len(labels) > 1 else 'the'} picture: {label} extrinsics{spill}")
+    what = "whole scans" if view["whole_scans"] else "board points only (the report has no image of it)"
+    return (f"{i_cam}: {result.problem.sensors[i_cam].topic}, {_snapshot_name(k, inputs)}, {what}. " + "; ".join(says)
+            + f". Colour: LIDAR range, {norm[0]:.1f} m (blue) to {norm[1]:.1f} m (red), the bar at the bottom.")
 
 
 def _clouds_figure(result, inputs) -> tuple[str, bytes] | None:
@@ -434,13 +444,14 @@ def _clouds_figure(result, inputs) -> tuple[str, bytes] | None:
 
 # Rough CPU cost of each picture relative to the others (the 24-pose bench capture): the drawing
 # processes take the costly ones first, so they finish together. Only the schedule depends on it.
-_COST = {"sectors.png": 9, "clouds-before-after.png": 6, "camera-residuals-and-coverage.png": 5,
+_COST = {"sectors.png": 9, "lidar-on-camera": 4, "clouds-before-after.png": 6, "camera-residuals-and-coverage.png": 5,
          "lidar-residuals.png": 4, "residuals-per-snapshot.png": 3}
 
 
 def _figure_jobs(result: Result, inputs) -> list[tuple[str, object]]:
-    """[(name, job)] of every figure but the LIDAR points on the camera images, in report order; a
-    job returns [(name, caption, png)] (none when there is nothing to draw)."""
+    """[(name, job)] of every figure, in report order; a job returns [(name, caption, png)] (none when
+    there is nothing to draw), the LIDAR points on the camera images' a view for the caption (their
+    checks are made beside the drawing: ``_lidar_on_camera_caption``)."""
     from . import plots
 
     p = result.problem
@@ -460,7 +471,8 @@ def _figure_jobs(result: Result, inputs) -> list[tuple[str, object]]:
         return [("lidar-residuals.png", "", _png(plots.plot_lidar_residuals, [
             {"title": f"{i}: {p.sensors[i].topic}", **v} for i, v in sorted(geo.items())]))] if geo else []
 
-    jobs = [("clouds-before-after.png", clouds), ("camera-residuals-and-coverage.png", camera_residuals),
+    jobs = [("lidar-on-camera", lambda: _lidar_on_camera_pictures(result, inputs)),
+            ("clouds-before-after.png", clouds), ("camera-residuals-and-coverage.png", camera_residuals),
             ("lidar-residuals.png", lidar_residuals)]
     jobs += [(name, lambda name=name, fn=fn: [(name, "", _png(fn, result))]) for name, fn in plots.PLOTS.items()]
     return jobs
@@ -468,14 +480,14 @@ def _figure_jobs(result: Result, inputs) -> list[tuple[str, object]]:
 
 # The figures drawn from the estimate alone (poses, board poses, noise sigmas, residuals, rejections):
 # `clcgraph solve` starts them while the solve still computes the covariance (start_estimate_figures).
-# The others need the covariance (the sectors) or the checks made with it (the LIDAR points on the images).
-ESTIMATE_FIGURES = ("clouds-before-after.png", "camera-residuals-and-coverage.png", "lidar-residuals.png",
+# The sectors need the covariance (and the captions of the LIDAR points on the images the checks made with it).
+ESTIMATE_FIGURES = ("lidar-on-camera", "clouds-before-after.png", "camera-residuals-and-coverage.png", "lidar-residuals.png",
                     "residuals-histogram.png", "residuals-per-snapshot.png", "geometry.png", "coverage.png")
 
 
 def start_figures(result: Result, inputs, *, names=None):
-    """An ``outputs.drawing.Drawing`` of the report's figures (all but the LIDAR points on the camera
-    images, drawn by ``_figures``; ``names``: only these), its second process drawing from now on."""
+    """An ``outputs.drawing.Drawing`` of the report's figures (``names``: only these), its second
+    process drawing from now on."""
     from .drawing import Drawing
 
     jobs = [(n, job) for n, job in _figure_jobs(result, inputs) if names is None or n in names]
@@ -495,8 +507,8 @@ def _figures(result: Result, inputs, checks: dict, first=None, drawing=None, ear
     The figures are drawn by two processes (``drawing``: ``start_figures``, started earlier; else here),
     ``early`` (``start_estimate_figures``) the ones it drew from the estimate. ``first``: work of this
     process that the pictures do not need, done while the other process already draws; ``checks``
-    (what the LIDAR points on the camera images show) may be filled by it: those pictures are drawn
-    after it, here."""
+    (what the LIDAR points on the camera images show) may be filled by it: their captions are
+    written after it."""
     order = [name for name, _ in _figure_jobs(result, inputs)]
     with contextlib.ExitStack() as stack:
         if early is not None:
@@ -505,16 +517,20 @@ def _figures(result: Result, inputs, checks: dict, first=None, drawing=None, ear
             result, inputs, names=None if early is None else [n for n in order if n not in early.names]))
         if first is not None:
             first()
-        try:
-            on_camera = _lidar_on_camera_figures(result, inputs, checks)
-        except Exception:  # a diagnostic figure must never lose the calibration
-            log.exception("could not draw the LIDAR points on the camera images")
-            on_camera = []
         drawn = {}
         for x in (early, d):  # the estimate's first: this process takes what is left of them
             if x is not None:
                 drawn.update(zip(x.names, x.results()))
-        return on_camera + [f for name in order for f in drawn.get(name, [])]
+    out = []
+    for name, caption, png in (f for n in order for f in drawn.get(n, [])):
+        if isinstance(caption, dict):  # a LIDAR-on-camera picture's view
+            try:
+                caption = _lidar_on_camera_caption(result, inputs, caption, checks)
+            except Exception:  # a diagnostic figure must never lose the calibration
+                log.exception("could not write the caption of %s", name)
+                caption = ""
+        out.append((name, caption, png))
+    return out
 
 
 def _coverage(result) -> list[dict]:
