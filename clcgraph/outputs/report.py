@@ -735,6 +735,11 @@ def report_writer(result: Result, *, title: str = "clcgraph calibration", inputs
         path.write_text(report_html(result, title=title, inputs=inputs, drawing=drawing, early=early))
         return path
 
+    from ..determinism import single_threaded_blas
+
     names = None if early is None else [n for n, _ in _figure_jobs(result, inputs) if n not in early.names]
-    with early if early is not None else contextlib.nullcontext(), start_figures(result, inputs, names=names) as drawing:
+    # BLAS on one thread (the drawing process too): the checks' small products gain nothing from a second
+    # one, whose waiting costs up to 3x their CPU time on a loaded machine (and the same bytes, always)
+    with single_threaded_blas(), early if early is not None else contextlib.nullcontext(), \
+            start_figures(result, inputs, names=names) as drawing:
         yield write
