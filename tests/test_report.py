@@ -7,6 +7,7 @@ import html
 import io
 import re
 import shutil
+import time
 
 import matplotlib.image as mpimg
 import numpy as np
@@ -215,3 +216,31 @@ def test_the_pictures_of_the_estimate_are_the_results(tmp_path):
     a, b = ((tmp_path / d / "report.html").read_text() for d in "ab")
     assert a == b
     assert len(re.findall("<img ", a)) >= len(ESTIMATE_FIGURES) + 1  # theirs and the sectors'
+
+
+def test_a_solve_failing_after_its_estimate_stops_the_drawing(tmp_path, monkeypatch):
+    # calibrate_bags starts the pictures at the estimate; a solve refused after it leaves no drawing process
+    import multiprocessing
+
+    from clcgraph import api
+    from clcgraph.backend import solve
+    from clcgraph.errors import SolveError
+    from clcgraph.outputs import report
+    from clcgraph.sim.observations import make_rig, simulate_problem
+
+    problem, _ = simulate_problem(rig=make_rig(n_lidars=2, n_cameras=1), n_snapshots=10, seed=1, planned_tilts=True)
+    monkeypatch.setattr(api, "read_problem", lambda *a, **k: problem)
+    drawings = []
+    real = report.start_estimate_figures
+    monkeypatch.setattr(report, "start_estimate_figures", lambda *a: drawings.append(real(*a)) or drawings[-1])
+
+    def refused(*a, **k):
+        time.sleep(0.3)  # the drawing process is busy
+        raise SolveError("refused after the estimate")
+
+    monkeypatch.setattr(solve, "_covariance", refused)
+    (tmp_path / "a.bag").write_bytes(b"")
+    with pytest.raises(SolveError, match="refused after the estimate"):
+        api.calibrate_bags([str(tmp_path / "a.bag")], [s.topic for s in problem.sensors], out=tmp_path / "out")
+    assert len(drawings) == 1 and drawings[0].child is None
+    assert not multiprocessing.active_children() and not (tmp_path / "out").exists()
