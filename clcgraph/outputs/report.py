@@ -444,8 +444,8 @@ def _clouds_figure(result, inputs) -> tuple[str, bytes] | None:
 
 # Rough CPU cost of each picture relative to the others (the 24-pose bench capture): the drawing
 # processes take the costly ones first, so they finish together. Only the schedule depends on it.
-_COST = {"sectors.png": 9, "lidar-on-camera": 4, "clouds-before-after.png": 6, "camera-residuals-and-coverage.png": 5,
-         "lidar-residuals.png": 4, "residuals-per-snapshot.png": 3}
+_COST = {"sectors.png": 9, "clouds-before-after.png": 6, "camera-residuals-and-coverage.png": 5,
+         "lidar-residuals.png": 4, "lidar-on-camera": 4, "residuals-per-snapshot.png": 3}
 
 
 def _figure_jobs(result: Result, inputs) -> list[tuple[str, object]]:
@@ -481,8 +481,9 @@ def _figure_jobs(result: Result, inputs) -> list[tuple[str, object]]:
 # The figures drawn from the estimate alone (poses, board poses, noise sigmas, residuals, rejections):
 # `clcgraph solve` starts them while the solve still computes the covariance (start_estimate_figures).
 # The sectors need the covariance (and the captions of the LIDAR points on the images the checks made with it).
-ESTIMATE_FIGURES = ("lidar-on-camera", "clouds-before-after.png", "camera-residuals-and-coverage.png", "lidar-residuals.png",
-                    "residuals-histogram.png", "residuals-per-snapshot.png", "geometry.png", "coverage.png")
+ESTIMATE_FIGURES = ("lidar-on-camera", "clouds-before-after.png", "camera-residuals-and-coverage.png",
+                    "lidar-residuals.png", "residuals-histogram.png", "residuals-per-snapshot.png", "geometry.png",
+                    "coverage.png")
 
 
 def start_figures(result: Result, inputs, *, names=None):
