@@ -425,15 +425,16 @@ def detect(images, *, config=None, board: BoardGeometry | None = None) -> list:
 
 
 @single_threaded_blas()
-def calibrate(problem: Problem, config=None, *, timings: dict | None = None) -> Result:
-    """Solve a Problem: seed, staged LM, noise re-estimation, outliers, covariance, sectors."""
+def calibrate(problem: Problem, config=None, *, timings: dict | None = None, on_estimate=None) -> Result:
+    """Solve a Problem: seed, staged LM, noise re-estimation, outliers, covariance, sectors.
+    ``on_estimate(estimate)``: called as soon as the poses are final (backend.solve.calibrate)."""
     from .backend.sectors import sector_report
     from .backend.solve import calibrate as solve
 
     cfg = _config(config)
     clock = StageClock(timings)
     with clock("solve"):
-        result = solve(problem, cfg.solve)
+        result = solve(problem, cfg.solve, on_estimate=on_estimate)
     with clock("uncertainty"):
         sectors = sector_report(result, cfg.sectors)
     return dataclasses.replace(result, sectors=sectors, rejected=explain_not_found(result))
@@ -474,7 +475,8 @@ def explain_not_found(result: Result) -> tuple[Rejected, ...]:
     return tuple(out)
 
 
-def write_outputs(result: Result, out_dir, config=None, *, force: bool = False, report_inputs=None) -> dict[str, Path]:
+def write_outputs(result: Result, out_dir, config=None, *, force: bool = False, report_inputs=None,
+                  figures=None) -> dict[str, Path]:
     """The one output path of both methods, atomically: calibration.yaml, .cameramodels,
     timings.yaml, config.resolved.yaml, report.html (one self-contained file), ros/ (when the
     frames are known), and (target-based) the replayable problem.npz.
@@ -482,7 +484,8 @@ def write_outputs(result: Result, out_dir, config=None, *, force: bool = False, 
     ``out_dir`` must be new, empty or a previous clcgraph output; ``force``: replace it anyway.
     ``report_inputs``: an ``outputs.evidence.ReportInputs`` (the run's record, images and clouds to
     draw, nominal poses); without it, ``gather_report_inputs(result, config)`` gathers them from the bags the
-    result names (the same report as `clcgraph solve`'s)."""
+    result names (the same report as `clcgraph solve`'s). ``figures``: the report's pictures of the
+    estimate, started before the solve ended (``outputs.report.start_estimate_figures``)."""
     from .outputs.dump import save_problem
     from .outputs.report import report_writer
     from .outputs.results import write_results
@@ -491,7 +494,7 @@ def write_outputs(result: Result, out_dir, config=None, *, force: bool = False, 
     inputs = report_inputs if report_inputs is not None else gather_report_inputs(
         result, cfg, call=f"clcgraph.write_outputs(result, {str(out_dir)!r})")
     # the report's pictures are drawn (in a second process) while the other files are written
-    with report_writer(result, inputs=inputs) as write_report:
+    with report_writer(result, inputs=inputs, early=figures) as write_report:
         return write_results(
             result, out_dir, config=cfg,
             problem_dump=(lambda problem, path: save_problem(path, problem, cfg)) if result.method == "target" else None,
@@ -514,14 +517,29 @@ def calibrate_bags(bags, topics: Sequence[str], models: Sequence[str | Path] = (
     if out is not None:
         _import_in_background("clcgraph.outputs.report", "clcgraph.outputs.plots")
     problem = read_problem(bags, topics, models, config=cfg, timings=timings, report_material=material)
-    result = calibrate(problem, cfg, timings=timings)
-    result = dataclasses.replace(result, stats={**result.stats, "stage_time_s": timings})
-    if out is not None:
-        with StageClock(timings)("report"):
-            call = (f"clcgraph.calibrate_bags({[str(b) for b in bags]!r}, {list(topics)!r}, "
-                    f"{[str(m) for m in models]!r}, out={str(out)!r})")
-            inputs = gather_report_inputs(result, cfg, bags=bags, models=models, call=call, material=material)
-            write_outputs(result, out, cfg, force=force, report_inputs=inputs)
+    call = (f"clcgraph.calibrate_bags({[str(b) for b in bags]!r}, {list(topics)!r}, "
+            f"{[str(m) for m in models]!r}, out={str(out)!r})")
+    report: dict = {}
+
+    def start_report(estimate):  # the pictures of the estimate drawn while the solve computes its uncertainty
+        from .outputs.report import start_estimate_figures
+
+        with StageClock(timings)("report"):  # (inside the solve's clock, which counts it too)
+            report["inputs"] = gather_report_inputs(estimate, cfg, bags=bags, models=models, call=call,
+                                                    material=material)
+            report["figures"] = start_estimate_figures(estimate, report["inputs"])
+
+    try:
+        result = calibrate(problem, cfg, timings=timings, on_estimate=start_report if out is not None else None)
+        result = dataclasses.replace(result, stats={**result.stats, "stage_time_s": timings})
+        if out is not None:
+            with StageClock(timings)("report"):
+                inputs = report.get("inputs") or gather_report_inputs(result, cfg, bags=bags, models=models, call=call,
+                                                                      material=material)
+                write_outputs(result, out, cfg, force=force, report_inputs=inputs, figures=report.get("figures"))
+    finally:  # the solve failed or the report is written: the drawing process is not needed any more
+        if report.get("figures") is not None:
+            report["figures"].close(wait=False)
     return result
 
 

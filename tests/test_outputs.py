@@ -131,6 +131,22 @@ def test_calibration_yaml_schema(written):
     assert d["clcgraph_version"]
 
 
+
+def test_calibration_yaml_is_the_python_emitters_text(written):
+    # calibration.yaml is written by libyaml's emitter (config.CSafeDumperNoAliases): the same bytes as
+    # PyYAML's own, a unicode topic and a note wider than the line included
+    from clcgraph.config import CSafeDumperNoAliases, SafeDumperNoAliases
+    from clcgraph.outputs.results import calibration_dict
+
+    result, out, _, _ = written
+    cal = calibration_dict(result)
+    cal["extra"] = {"topic": "/caméra/ü", "note": "x " * 150, "same": cal["sensors"][0]["stdev_rt"], "nan": float("nan")}
+    cal["again"] = cal["extra"]["same"]  # used twice: written out twice, no alias
+    kw = dict(sort_keys=False, default_flow_style=None, width=200)
+    c = yaml.dump(cal, Dumper=CSafeDumperNoAliases, **kw)
+    assert c == yaml.dump(cal, Dumper=SafeDumperNoAliases, **kw) and "&" not in c
+    assert (out / "calibration.yaml").read_text().endswith(yaml.dump(calibration_dict(result), Dumper=SafeDumperNoAliases, **kw))
+
 def test_load_result_roundtrip_and_validation(written, tmp_path):
     result, out, _, _ = written
     cal = load_result(out)

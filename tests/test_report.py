@@ -7,6 +7,7 @@ import html
 import io
 import re
 import shutil
+import time
 
 import matplotlib.image as mpimg
 import numpy as np
@@ -197,3 +198,49 @@ def test_poses_table_in_roll_pitch_yaw(report):
             sd_rot, sd_pos = pose_stdevs(rt, result.covariance_block(i))
             np.testing.assert_allclose(np.array(cells[2].split(), float), 1e3 * sd_pos, atol=0.006)
             np.testing.assert_allclose(np.array(cells[3].split(), float), np.degrees(sd_rot), atol=6e-4)
+
+
+def test_the_pictures_of_the_estimate_are_the_results(tmp_path):
+    # `clcgraph solve` draws most pictures from the solve's estimate while it computes the covariance
+    # (report.start_estimate_figures): the report is the one the final result alone gives, byte for byte
+    from clcgraph.api import calibrate, write_outputs
+    from clcgraph.outputs.report import ESTIMATE_FIGURES, start_estimate_figures
+    from clcgraph.sim.observations import make_rig, simulate_problem
+
+    problem, _ = simulate_problem(rig=make_rig(n_lidars=2, n_cameras=1), n_snapshots=10, seed=1, planned_tilts=True)
+    inputs, early = ev.ReportInputs(command="test"), []
+    result = calibrate(problem, on_estimate=lambda e: early.append(start_estimate_figures(e, inputs)))
+    assert len(early) == 1 and early[0].names == list(ESTIMATE_FIGURES)
+    write_outputs(result, tmp_path / "a", report_inputs=inputs, figures=early[0])
+    write_outputs(result, tmp_path / "b", report_inputs=inputs)
+    a, b = ((tmp_path / d / "report.html").read_text() for d in "ab")
+    assert a == b
+    assert len(re.findall("<img ", a)) >= len(ESTIMATE_FIGURES) + 1  # theirs and the sectors'
+
+
+def test_a_solve_failing_after_its_estimate_stops_the_drawing(tmp_path, monkeypatch):
+    # calibrate_bags starts the pictures at the estimate; a solve refused after it leaves no drawing process
+    import multiprocessing
+
+    from clcgraph import api
+    from clcgraph.backend import solve
+    from clcgraph.errors import SolveError
+    from clcgraph.outputs import report
+    from clcgraph.sim.observations import make_rig, simulate_problem
+
+    problem, _ = simulate_problem(rig=make_rig(n_lidars=2, n_cameras=1), n_snapshots=10, seed=1, planned_tilts=True)
+    monkeypatch.setattr(api, "read_problem", lambda *a, **k: problem)
+    drawings = []
+    real = report.start_estimate_figures
+    monkeypatch.setattr(report, "start_estimate_figures", lambda *a: drawings.append(real(*a)) or drawings[-1])
+
+    def refused(*a, **k):
+        time.sleep(0.3)  # the drawing process is busy
+        raise SolveError("refused after the estimate")
+
+    monkeypatch.setattr(solve, "_covariance", refused)
+    (tmp_path / "a.bag").write_bytes(b"")
+    with pytest.raises(SolveError, match="refused after the estimate"):
+        api.calibrate_bags([str(tmp_path / "a.bag")], [s.topic for s in problem.sensors], out=tmp_path / "out")
+    assert len(drawings) == 1 and drawings[0].child is None
+    assert not multiprocessing.active_children() and not (tmp_path / "out").exists()

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import time
+from typing import Callable
 
 import numpy as np
 
@@ -354,8 +355,14 @@ def _covariance(problem: Problem, g, values, rt_sensor, options) -> np.ndarray:
     return 0.5 * (C + C.T)
 
 
-def calibrate(problem: Problem, options) -> Result:
-    """Solve ``problem`` with config.SolveOptions ``options`` -> types.Result (module docstring)."""
+def calibrate(problem: Problem, options, *, on_estimate: Callable[[Result], None] | None = None) -> Result:
+    """Solve ``problem`` with config.SolveOptions ``options`` -> types.Result (module docstring).
+
+    ``on_estimate(estimate)``: called once the poses, board poses, noise sigmas, residuals and
+    rejections are final, before the covariance, jackknife and consistency checks (the last
+    second of a solve): ``estimate`` is a Result with those fields as the returned one will have
+    them (rejections' reasons aside: api.explain_not_found) and an empty ``covariance_rt``, no
+    sectors, stats or jackknife. The solve may still fail after it."""
     t0 = time.perf_counter()
     times, iters = {}, {}
     s = make_seed(problem, options)
@@ -426,6 +433,46 @@ def calibrate(problem: Problem, options) -> Result:
         iters["effects"] = [r["iterations"] for r in recs]
         times["noise_components"] = time.perf_counter() - t
 
+    # the poses, the noise and the masks are final from here on: the residuals and the estimate
+    lid, cam = G.residuals(problem, rt_sensor, rt_board)
+    rl, rc = _active_residuals(lid, cam, active)
+    for j, (o, m) in enumerate(zip(problem.lidar_observations, active.lidar)):
+        if m is not None and not m.all():
+            rejected.append(Rejected(f"{int((~m).sum())} of {len(m)} LIDAR points beyond "
+                                     f"{options.outlier_sigma:g} sigma", "outlier", o.sensor, o.snapshot))
+    for j, (o, m) in enumerate(zip(problem.camera_observations, active.camera)):
+        ok = np.all(np.isfinite(o.corners_px), axis=1)
+        if m is not None and not m[ok].all():
+            rejected.append(Rejected(f"{int((~m[ok]).sum())} of {int(ok.sum())} corners beyond "
+                                     f"{options.outlier_sigma:g} sigma", "outlier", o.sensor, o.snapshot))
+    total = g.error(values)
+    prior = sum(g.at(f).error(values) for f in range(g.size()) if "PriorFactor" in type(g.at(f)).__name__)
+    per = _per_sensor_residuals(problem, lid, cam, active)
+    if effects is None:
+        z2 = np.concatenate([per[i] / sig[i] for i in sorted(per)]) ** 2 if per else np.zeros(0)
+        normalized = float(np.sqrt(np.mean(z2))) if len(z2) else float("nan")
+    else:  # white residuals: at each observation's own board pose (its D applied)
+        white = [(t[5], t[6]) for t in lin.terms if t[2] is not None and t[2][0] == "white"]
+        normalized = float(np.sqrt(sum(q for q, _ in white) / max(sum(n for _, n in white), 1)))
+    rms = {"normalized": normalized,
+           "lidar_m": float(np.sqrt(np.mean(rl**2))) if len(rl) else float("nan"),
+           "camera_px": float(np.sqrt(np.mean(rc**2))) if len(rc) else float("nan")}
+    def pooled(ids):  # the sigma of all of one kind's residuals together
+        n = np.array([len(per.get(i, ())) for i in ids], float)
+        return float(np.sqrt(np.sum(n * sig[ids] ** 2) / n.sum())) if len(ids) and n.sum() else float("nan")
+
+    cams = [i for i in range(len(sig)) if i not in lidars]
+    noise = {"lidar_m": pooled(lidars), "camera_px": pooled(cams),
+             "per_sensor": {i: float(sig[i]) for i in sorted(per)},
+             # per sensor, the sigmas of each observation's own board-pose error (noise.py)
+             "observation_effects": {} if effects is None else {i: dict(effects[i]) for i in sorted(per)}}
+    if not np.all(np.isfinite(rt_sensor)):
+        raise SolveError("the solve produced non-finite sensor poses")
+    if on_estimate is not None:  # e.g. the report's pictures of the estimate start drawing (api.calibrate_bags)
+        on_estimate(Result(problem=problem, rt_lidar0_sensor=rt_sensor.copy(), covariance_rt=np.zeros((0, 0)),
+                           rt_lidar0_board=rt_board.copy(), noise=noise, rms=rms, rejected=tuple(rejected),
+                           residuals=_residual_arrays(problem, lid, cam, active)))
+
     t = time.perf_counter()
     cov = _covariance(problem, g, values, rt_sensor, options)
     times["covariance"] = time.perf_counter() - t
@@ -478,45 +525,11 @@ def calibrate(problem: Problem, options) -> Result:
     unit_errors = _unit_errors(problem, rebuild, values, S, rt_sensor, options)
     times["unit_error_sensitivities"] = time.perf_counter() - t
 
-    lid, cam = G.residuals(problem, rt_sensor, rt_board)
-    rl, rc = _active_residuals(lid, cam, active)
-    for j, (o, m) in enumerate(zip(problem.lidar_observations, active.lidar)):
-        if m is not None and not m.all():
-            rejected.append(Rejected(f"{int((~m).sum())} of {len(m)} LIDAR points beyond "
-                                     f"{options.outlier_sigma:g} sigma", "outlier", o.sensor, o.snapshot))
-    for j, (o, m) in enumerate(zip(problem.camera_observations, active.camera)):
-        ok = np.all(np.isfinite(o.corners_px), axis=1)
-        if m is not None and not m[ok].all():
-            rejected.append(Rejected(f"{int((~m[ok]).sum())} of {int(ok.sum())} corners beyond "
-                                     f"{options.outlier_sigma:g} sigma", "outlier", o.sensor, o.snapshot))
-    total = g.error(values)
-    prior = sum(g.at(f).error(values) for f in range(g.size()) if "PriorFactor" in type(g.at(f)).__name__)
-    per = _per_sensor_residuals(problem, lid, cam, active)
-    if effects is None:
-        z2 = np.concatenate([per[i] / sig[i] for i in sorted(per)]) ** 2 if per else np.zeros(0)
-        normalized = float(np.sqrt(np.mean(z2))) if len(z2) else float("nan")
-    else:  # white residuals: at each observation's own board pose (its D applied)
-        white = [(t[5], t[6]) for t in lin.terms if t[2] is not None and t[2][0] == "white"]
-        normalized = float(np.sqrt(sum(q for q, _ in white) / max(sum(n for _, n in white), 1)))
-    rms = {"normalized": normalized,
-           "lidar_m": float(np.sqrt(np.mean(rl**2))) if len(rl) else float("nan"),
-           "camera_px": float(np.sqrt(np.mean(rc**2))) if len(rc) else float("nan")}
-    def pooled(ids):  # the sigma of all of one kind's residuals together
-        n = np.array([len(per.get(i, ())) for i in ids], float)
-        return float(np.sqrt(np.sum(n * sig[ids] ** 2) / n.sum())) if len(ids) and n.sum() else float("nan")
-
-    cams = [i for i in range(len(sig)) if i not in lidars]
-    noise = {"lidar_m": pooled(lidars), "camera_px": pooled(cams),
-             "per_sensor": {i: float(sig[i]) for i in sorted(per)},
-             # per sensor, the sigmas of each observation's own board-pose error (noise.py)
-             "observation_effects": {} if effects is None else {i: dict(effects[i]) for i in sorted(per)}}
     times["total"] = time.perf_counter() - t0
     stats = {"stage": "solve", "iterations": iters, "convergence": convergence, "time_s": times, "regularization_share": float(prior / max(total, 1e-300)),
              "n_outlier_points": int(sum(int((~m).sum()) for m in active.lidar if m is not None)),
              "n_rejected_observations": sum(1 for r in rejected if r.stage in ("outlier", "seed")),
              "consistency": verdict, "uncertainty_terms": uncertainty_terms, "unit_errors": unit_errors}
-    if not np.all(np.isfinite(rt_sensor)):
-        raise SolveError("the solve produced non-finite sensor poses")
     log.info("solve: %d rounds, sigma LIDAR %.4f m, camera %.3f px, %.2f s", iters["rounds"], noise["lidar_m"],
              noise["camera_px"], times["total"])
     return Result(problem=problem, rt_lidar0_sensor=rt_sensor, covariance_rt=cov, rt_lidar0_board=rt_board,

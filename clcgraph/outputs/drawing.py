@@ -13,7 +13,8 @@ from a shared counter, so the split follows what each job costs on the machine a
 child is forked (no imports, no copy of the data: it already has matplotlib and the result) and
 sends its pictures back as bytes when the list is done; whatever it did not deliver (it died,
 was killed, or sent nothing long after this process finished its share) is drawn here. Nothing is forked where fork is unavailable, in a daemonic
-process (a pool's worker may not have children), or with one CPU: then every job runs here.
+process (a pool's worker may not have children), or with one CPU: then every job runs here. A single
+job is forked too: this process has other work meanwhile (the report: the other files).
 """
 
 from __future__ import annotations
@@ -95,7 +96,7 @@ class Drawing:
         if sorted(self.order) != list(range(len(self.jobs))):
             raise ValueError(f"order {self.order} is not a permutation of the {len(self.jobs)} jobs")
         self.child = None
-        if len(self.jobs) > 1 and _cpus() > 1 and "fork" in multiprocessing.get_all_start_methods() \
+        if self.jobs and _cpus() > 1 and "fork" in multiprocessing.get_all_start_methods() \
                 and not multiprocessing.current_process().daemon:
             ctx = multiprocessing.get_context("fork")
             self.counter = ctx.Value("i", 0)

@@ -72,6 +72,13 @@ def _save(fig, path, *, dpi: int = _DPI):
     return path
 
 
+def _title(ax, text, **kwargs):
+    """``ax.set_title`` at the height matplotlib would choose for axes whose ticks are below them
+    (polar axes pass their own ``y``): told nothing, it measures every tick label of the axes once
+    more to place the title, a fifth of the figure's drawing."""
+    return ax.set_title(text, **{"y": 1.0, **kwargs})
+
+
 def _labels(result: Result) -> list[str]:
     return [f"{i}: {s.topic}" for i, s in enumerate(result.problem.sensors)]
 
@@ -124,7 +131,7 @@ def plot_residual_histograms(result: Result, path) -> Path:
         ax.plot(g, dens, "r-", label=what)
         ax.set_xlabel(f"{kind} residual ({unit})")
         ax.set_ylabel("density")
-        ax.set_title(f"{kind} residuals: RMS {np.sqrt(np.mean(x**2)):.3g} {unit}")
+        _title(ax, f"{kind} residuals: RMS {np.sqrt(np.mean(x**2)):.3g} {unit}")
         ax.legend(fontsize=8)
     margins(fig, left=0.75, bottom=0.55, top=0.4, wspace=0.85)
     return _save(fig, path)
@@ -198,7 +205,7 @@ def plot_residuals_per_snapshot(result: Result, path) -> Path:
     if result.problem.snapshot_bags and result.problem.n_snapshots <= 60:  # the bags by name, while they fit
         axes[1].set_xticks(list(ks), [f"{k} {result.problem.snapshot_bag(k)}" for k in ks], rotation=90, fontsize=6)
     axes[1].set_xlabel("snapshot (index, bag)")
-    axes[0].set_title("residual RMS per snapshot and sensor")
+    _title(axes[0], "residual RMS per snapshot and sensor")
     named = result.problem.snapshot_bags and result.problem.n_snapshots <= 60
     margins(fig, left=0.95, right=2.9, bottom=1.25 if named else 0.55, top=0.35, hspace=0.2)
     return _save(fig, path)
@@ -251,7 +258,7 @@ def plot_geometry(result: Result, path, *, with_boards: bool = True, axis_len_m:
     ax.plot([], [], "g-", label="y axis")
     ax.plot([], [], "b-", label="z axis")
     ax.legend(fontsize=8, loc="upper left")
-    ax.set_title("solved geometry in the lidar0 frame\n(LIDAR axes front-left-up; camera axes right-down-forward)")
+    _title(ax, "solved geometry in the lidar0 frame\n(LIDAR axes front-left-up; camera axes right-down-forward)")
     margins(fig, left=0.1, right=0.1, bottom=0.1, top=0.2)
     return _save(fig, path)
 
@@ -289,7 +296,7 @@ def plot_sectors(result: Result, path) -> Path:
             ax.legend(fontsize=8, loc="lower left", bbox_to_anchor=(-0.15, -0.15))
         ax.set_theta_zero_location("N")  # vehicle forward (+x) up, counter-clockwise = toward +y (left)
         ax.set_rlabel_position(112.5)
-        ax.set_title(f"{title} ({unit})\nforward = up, left = left", fontsize=10)
+        _title(ax, f"{title} ({unit})\nforward = up, left = left", fontsize=10, y=1.08)  # above the 0° label
         sm = ScalarMappable(norm=norm, cmap=cm)
         fig.colorbar(sm, ax=ax, shrink=0.7, pad=0.1, label=unit)
     margins(fig, left=0.6, right=0.3, bottom=0.75, top=0.75, wspace=1.2)
@@ -324,7 +331,7 @@ def plot_coverage(result: Result, path) -> Path:
         ax.grid(alpha=0.3)
         ax.set_xlabel("x forward (m)")
         ax.set_ylabel("y left (m)")
-        ax.set_title(f"{i}: {s.topic}\nboard centres, top view ({int(used.sum())} seen)", fontsize=9)
+        _title(ax, f"{i}: {s.topic}\nboard centres, top view ({int(used.sum())} seen)", fontsize=9)
         ax.legend(fontsize=7)
     margins(fig, left=0.75, bottom=0.55, top=0.55, wspace=0.85)
     return _save(fig, path)
@@ -349,7 +356,7 @@ def plot_uncertainty_grid(stdev_m: np.ndarray, xs: np.ndarray, ys: np.ndarray, p
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    ax.set_title(title or "point-transform uncertainty", fontsize=10)
+    _title(ax, title or "point-transform uncertainty", fontsize=10)
     margins(fig, left=0.75, right=0.3, bottom=0.55, top=0.4)
     return _save(fig, path)
 
@@ -415,7 +422,7 @@ def render_aligned_clouds(clouds: dict, rt_lidar0_sensor: dict, path_png, *, vie
         ax.set_xlabel(la)
         ax.set_ylabel(lb)
         ax.grid(alpha=0.3)
-        ax.set_title(f"{v} view, lidar0 frame, {span[a]:.1f} x {span[b]:.1f} m (1-99 % of the points)", fontsize=10)
+        _title(ax, f"{v} view, lidar0 frame, {span[a]:.1f} x {span[b]:.1f} m (1-99 % of the points)", fontsize=10)
         ax.legend(markerscale=8, fontsize=8, loc="upper right")
     return _save(fig, path_png)
 
@@ -450,7 +457,7 @@ def plot_scan_preview(scan, path, *, title: str = "") -> Path:
     a.set_aspect("equal")
     a.set_xlabel("x [m]")
     a.set_ylabel("y [m]")
-    a.set_title("top view")
+    _title(a, "top view")
     if len(pts):
         rng = np.linalg.norm(pts, axis=1)
         az = np.degrees(np.arctan2(pts[:, 1], pts[:, 0]))
@@ -460,7 +467,7 @@ def plot_scan_preview(scan, path, *, title: str = "") -> Path:
         fig.colorbar(s, ax=b, label="range [m]")
     b.set_xlabel("azimuth [deg]")
     b.set_ylabel("ring" if scan.ring is not None else "elevation [deg]")
-    b.set_title("range image")
+    _title(b, "range image")
     fig.suptitle(title or f"{scan.topic}: {len(pts)} valid points")
     margins(fig, left=0.75, bottom=0.55, top=0.75, wspace=0.9)
     return _save(fig, path)
@@ -476,7 +483,7 @@ def plot_image_preview(image, path, *, title: str = "") -> Path:
     else:
         ax.imshow(px, cmap="gray")
     ax.set_axis_off()
-    ax.set_title(title or f"{image.topic}: {w}x{h} {image.encoding}")
+    _title(ax, title or f"{image.topic}: {w}x{h} {image.encoding}")
     margins(fig, left=0.1, right=0.1, bottom=0.1, top=0.4)
     return _save(fig, path)
 
@@ -503,7 +510,7 @@ def plot_segmentation(scan, debug, result, path) -> Path:
     a.set_aspect("equal")
     a.set_xlabel("x [m]")
     a.set_ylabel("y [m]")
-    a.set_title("segments (blue), rejected planes (red), board (green)")
+    _title(a, "segments (blue), rejected planes (red), board (green)")
     if focus is not None and len(focus):
         c = pts[focus].mean(axis=0)
         near = ok & (np.linalg.norm(pts - c, axis=1) < 2.0)
@@ -514,7 +521,7 @@ def plot_segmentation(scan, debug, result, path) -> Path:
         b.invert_xaxis()
         b.set_xlabel("azimuth [deg]")
         b.set_ylabel("elevation [deg]")
-        b.set_title("around the board, from the sensor")
+        _title(b, "around the board, from the sensor")
     reason = getattr(result, "reason", None)
     fig.suptitle(reason if reason else f"board: {len(result.indices)} points, RMS {result.rms_m * 1e3:.1f} mm",
                  fontsize=9)
@@ -639,7 +646,7 @@ def plot_cloud_overlap(states: dict, path, *, box=None, board: dict | None = Non
             ax.set_ylabel(lb, fontsize=8)
             ax.tick_params(labelsize=7)
             ax.grid(alpha=0.3)
-            ax.set_title(f"{st}: {view}, {span[a]:.1f} x {span[b]:.1f} m", fontsize=9)
+            _title(ax, f"{st}: {view}, {span[a]:.1f} x {span[b]:.1f} m", fontsize=9)
         if board is not None:
             ax = axes[r, 2]
             for lab, (x_m, off_mm) in edge_on[st].items():
@@ -650,7 +657,7 @@ def plot_cloud_overlap(states: dict, path, *, box=None, board: dict | None = Non
             ax.set_ylabel("from the solved board plane (mm)", fontsize=8)
             ax.tick_params(labelsize=7)
             ax.grid(alpha=0.3)
-            ax.set_title(f"{st}: the board edge-on", fontsize=9)
+            _title(ax, f"{st}: the board edge-on", fontsize=9)
         axes[r, 0].legend(markerscale=8, fontsize=7, loc="upper left")
     margins(fig, left=0.6, right=0.15, bottom=0.5, top=0.3, wspace=0.7, hspace=0.6)
     return _save(fig, path, dpi=80)
@@ -707,7 +714,7 @@ def plot_camera_residuals_and_coverage(cams: list, path):
                 sp.set_color("r")
                 sp.set_linewidth(2.5)
             head += "\nTOO LITTLE OF THE IMAGE COVERED"
-        ax.set_title(head, fontsize=9, color="r" if cov.get("warning") else "k")
+        _title(ax, head, fontsize=9, color="r" if cov.get("warning") else "k")
         ax.set_xlim(0, w)
         ax.set_ylim(h, 0)
         ax.set_aspect("equal")
@@ -761,7 +768,7 @@ def plot_lidar_residuals(lidars: list, path, *, max_points: int = 5000):
             ax.set_ylabel("residual (mm)", fontsize=8)
             ax.tick_params(labelsize=7)
             ax.grid(alpha=0.3)
-            ax.set_title(f"{L['title']}: residual against {lab.split(' (')[0]}", fontsize=9)
+            _title(ax, f"{L['title']}: residual against {lab.split(' (')[0]}", fontsize=9)
         row[0].legend(fontsize=7, loc="upper right")
     if not lidars:
         axes[0, 0].text(0.5, 0.5, "no LIDAR residuals", ha="center", va="center")
@@ -794,7 +801,7 @@ def plot_map_trajectory(points: np.ndarray, trajectory: np.ndarray, path, *, key
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    ax.set_title("map (top view, 1-99 % of the points) and trajectory")
+    _title(ax, "map (top view, 1-99 % of the points) and trajectory")
     ax.legend(fontsize=8, loc="upper left")
     margins(fig, left=0.7, right=0.2, bottom=0.55, top=0.35)
     return _save(fig, path, dpi=80)
@@ -810,7 +817,7 @@ def plot_frame_scores(before: np.ndarray, after: np.ndarray, path, *, title: str
     ax.bar(x + 0.2, a, 0.4, label="final")
     ax.set_xlabel("calibration frame")
     ax.set_ylabel(ylabel, fontsize=8)
-    ax.set_title(title or "per-frame scores", fontsize=9)
+    _title(ax, title or "per-frame scores", fontsize=9)
     ax.legend(fontsize=8)
     margins(fig, left=0.7, right=0.15, bottom=0.5, top=0.3)
     return _save(fig, path, dpi=80)
@@ -825,7 +832,26 @@ def plot_distance_histograms(distances: dict, path, *, max_m: float, title: str 
         ax.hist(np.minimum(d, bins[-1]), bins, histtype="step", color=col, label=f"{lab}: median {1e3 * np.median(d):.1f} mm")
     ax.set_xlabel("distance of each point to the nearest map point (m) (last bin: farther)", fontsize=8)
     ax.set_ylabel("points")
-    ax.set_title(title, fontsize=9)
+    _title(ax, title, fontsize=9)
     ax.legend(fontsize=8)
     margins(fig, left=0.7, right=0.15, bottom=0.5, top=0.3)
     return _save(fig, path, dpi=80)
+
+
+def warm_up() -> None:
+    """Load what a process's first figures would otherwise load as they draw (the 3-D axes, scipy's
+    convex hull, the fonts, the PNG and JPEG writers): `clcgraph solve` calls it in a background
+    thread while it reads the bags (api._import_in_background)."""
+    import io
+
+    import mpl_toolkits.mplot3d  # noqa: F401 - plot_geometry's projection="3d"
+    from PIL import Image
+    from scipy.spatial import ConvexHull  # noqa: F401 - plot_camera_residuals_and_coverage
+
+    fig, ax = subplots(1, 1, figsize=(2, 2))
+    _title(ax, "0.5 mm", fontsize=9)
+    ax.plot([0, 1], [0, 1], "o", label="x")
+    ax.legend(fontsize=7)
+    ax.set_xlabel("x (m)", fontsize=8)
+    _save(fig, io.BytesIO(), dpi=20)
+    Image.new("RGB", (16, 16)).save(io.BytesIO(), format="jpeg", quality=90)

@@ -364,8 +364,9 @@ def _scan_clouds(result, inputs, k, *, max_points: int = 15000) -> dict:
     return out
 
 
-def _lidar_on_camera_figures(result, inputs, checks: dict) -> list[tuple[str, str, bytes]]:
-    """Per camera: (name, caption, png) of the LIDAR points on its image, solved beside nominal."""
+def _lidar_on_camera_pictures(result, inputs) -> list[tuple[str, dict, bytes]]:
+    """Per camera: (name, view, jpeg) of the LIDAR points on its image, solved beside nominal; ``view``
+    holds what its caption says but what the checks found (``_lidar_on_camera_caption``)."""
     from . import plots  # matplotlib only when drawing
 
     p = result.problem
@@ -384,22 +385,31 @@ def _lidar_on_camera_figures(result, inputs, checks: dict) -> list[tuple[str, st
         image = inputs.snapshots[k].images[cam.topic].pixels if k in with_image else None
         outline = ev.board_outline_px(ev.board_homography(obs[k].corners_px, p.board, cam), p.board, cam)
         clouds = _scan_clouds(result, inputs, k)
-        panels, says = [], []
-        for side, (label, rt) in zip(("left", "right"), rts.items()):
+        panels = []
+        for label, rt in rts.items():
             q, r = _into_camera(result, i_cam, rt, clouds)
-            rows = [x for x in checks.get(label, ()) if x["camera"] == i_cam and x["snapshot"] == k]
-            spill = "" if not rows else (f": board points spill {max(x['spill_px'] for x in rows):.1f} px past the outline"
-                                         + (f" ({max(x['spill_sigma'] for x in rows):.1f} sigma)" if label == "solved" else ""))
             panels.append({"q": q, "range": r, "outline": outline})
-            says.append(f"{side if len(rts) > 1 else 'the'} picture: {label} extrinsics{spill}")
         v = np.concatenate([x["range"] for x in panels])
         norm = (float(np.percentile(v, 1)), float(np.percentile(v, 99))) if len(v) else (0.0, 1.0)
-        what = "whole scans" if image is not None else "board points only (the report has no image of it)"
-        caption = (f"{i_cam}: {cam.topic}, {_snapshot_name(k, inputs)}, {what}. " + "; ".join(says)
-                   + f". Colour: LIDAR range, {norm[0]:.1f} m (blue) to {norm[1]:.1f} m (red), the bar at the bottom.")
-        out.append((f"lidar-on-camera-{i_cam}.jpg", caption,
+        view = {"camera": i_cam, "snapshot": k, "labels": list(rts), "whole_scans": image is not None, "norm": norm}
+        out.append((f"lidar-on-camera-{i_cam}.jpg", view,
                     _png(plots.plot_lidar_on_image, panels, cam.imagersize, image=image, norm=norm)))
     return out
+
+
+def _lidar_on_camera_caption(result, inputs, view: dict, checks: dict) -> str:
+    """The caption of a ``_lidar_on_camera_pictures`` picture: the camera, the snapshot, and how far the
+    LIDAR board points spill past the board's outline with each set of extrinsics (``checks``)."""
+    i_cam, k, labels, norm = view["camera"], view["snapshot"], view["labels"], view["norm"]
+    says = []
+    for side, label in zip(("left", "right"), labels):
+        rows = [x for x in checks.get(label, ()) if x["camera"] == i_cam and x["snapshot"] == k]
+        spill = "" if not rows else (f": board points spill {max(x['spill_px'] for x in rows):.1f} px past the outline"
+                                     + (f" ({max(x['spill_sigma'] for x in rows):.1f} sigma)" if label == "solved" else ""))
+        says.append(f"{side if len(labels) > 1 else 'the'} picture: {label} extrinsics{spill}")
+    what = "whole scans" if view["whole_scans"] else "board points only (the report has no image of it)"
+    return (f"{i_cam}: {result.problem.sensors[i_cam].topic}, {_snapshot_name(k, inputs)}, {what}. " + "; ".join(says)
+            + f". Colour: LIDAR range, {norm[0]:.1f} m (blue) to {norm[1]:.1f} m (red), the bar at the bottom.")
 
 
 def _clouds_figure(result, inputs) -> tuple[str, bytes] | None:
@@ -435,12 +445,13 @@ def _clouds_figure(result, inputs) -> tuple[str, bytes] | None:
 # Rough CPU cost of each picture relative to the others (the 24-pose bench capture): the drawing
 # processes take the costly ones first, so they finish together. Only the schedule depends on it.
 _COST = {"sectors.png": 9, "clouds-before-after.png": 6, "camera-residuals-and-coverage.png": 5,
-         "lidar-residuals.png": 4, "residuals-per-snapshot.png": 3}
+         "lidar-residuals.png": 4, "lidar-on-camera": 4, "residuals-per-snapshot.png": 3}
 
 
 def _figure_jobs(result: Result, inputs) -> list[tuple[str, object]]:
-    """[(name, job)] of every figure but the LIDAR points on the camera images, in report order; a
-    job returns [(name, caption, png)] (none when there is nothing to draw)."""
+    """[(name, job)] of every figure, in report order; a job returns [(name, caption, png)] (none when
+    there is nothing to draw), the LIDAR points on the camera images' a view for the caption (their
+    checks are made beside the drawing: ``_lidar_on_camera_caption``)."""
     from . import plots
 
     p = result.problem
@@ -460,37 +471,67 @@ def _figure_jobs(result: Result, inputs) -> list[tuple[str, object]]:
         return [("lidar-residuals.png", "", _png(plots.plot_lidar_residuals, [
             {"title": f"{i}: {p.sensors[i].topic}", **v} for i, v in sorted(geo.items())]))] if geo else []
 
-    jobs = [("clouds-before-after.png", clouds), ("camera-residuals-and-coverage.png", camera_residuals),
+    jobs = [("lidar-on-camera", lambda: _lidar_on_camera_pictures(result, inputs)),
+            ("clouds-before-after.png", clouds), ("camera-residuals-and-coverage.png", camera_residuals),
             ("lidar-residuals.png", lidar_residuals)]
     jobs += [(name, lambda name=name, fn=fn: [(name, "", _png(fn, result))]) for name, fn in plots.PLOTS.items()]
     return jobs
 
 
-def start_figures(result: Result, inputs):
-    """An ``outputs.drawing.Drawing`` of the report's figures (all but the LIDAR points on the camera
-    images, drawn by ``_figures``), its second process drawing from now on."""
+# The figures drawn from the estimate alone (poses, board poses, noise sigmas, residuals, rejections):
+# `clcgraph solve` starts them while the solve still computes the covariance (start_estimate_figures).
+# The sectors need the covariance (and the captions of the LIDAR points on the images the checks made with it).
+ESTIMATE_FIGURES = ("lidar-on-camera", "clouds-before-after.png", "camera-residuals-and-coverage.png",
+                    "lidar-residuals.png", "residuals-histogram.png", "residuals-per-snapshot.png", "geometry.png",
+                    "coverage.png")
+
+
+def start_figures(result: Result, inputs, *, names=None):
+    """An ``outputs.drawing.Drawing`` of the report's figures (``names``: only these), its second
+    process drawing from now on."""
     from .drawing import Drawing
 
-    jobs = _figure_jobs(result, inputs)
+    jobs = [(n, job) for n, job in _figure_jobs(result, inputs) if names is None or n in names]
     order = sorted(range(len(jobs)), key=lambda k: -_COST.get(jobs[k][0], 1))
     return Drawing([job for _, job in jobs], names=[name for name, _ in jobs], order=order)
 
 
-def _figures(result: Result, inputs, checks: dict, first=None, drawing=None) -> list[tuple[str, str, bytes]]:
+def start_estimate_figures(estimate: Result, inputs):
+    """``start_figures`` of the ESTIMATE_FIGURES, from the solve's estimate (``backend.solve.calibrate``'s
+    ``on_estimate``): they are the same pictures as the final result's. Give it to ``report_writer``
+    (``early``); close it if the solve fails."""
+    return start_figures(estimate, inputs, names=ESTIMATE_FIGURES)
+
+
+def _figures(result: Result, inputs, checks: dict, first=None, drawing=None, early=None) -> list[tuple[str, str, bytes]]:
     """[(name, caption, png)] of every figure, in report order; a failing one is logged and left out.
-    The figures are drawn by two processes (``drawing``: ``start_figures``, started earlier; else here).
-    ``first``: work of this process that the pictures do not need, done while the other process
-    already draws; ``checks`` (what the LIDAR points on the camera images show) may be filled by it:
-    those pictures are drawn after it, here."""
-    with drawing if drawing is not None else start_figures(result, inputs) as d:
+    The figures are drawn by two processes (``drawing``: ``start_figures``, started earlier; else here),
+    ``early`` (``start_estimate_figures``) the ones it drew from the estimate. ``first``: work of this
+    process that the pictures do not need, done while the other process already draws; ``checks``
+    (what the LIDAR points on the camera images show) may be filled by it: their captions are
+    written after it."""
+    order = [name for name, _ in _figure_jobs(result, inputs)]
+    with contextlib.ExitStack() as stack:
+        if early is not None:
+            stack.enter_context(early)
+        d = stack.enter_context(drawing if drawing is not None else start_figures(
+            result, inputs, names=None if early is None else [n for n in order if n not in early.names]))
         if first is not None:
             first()
-        try:
-            on_camera = _lidar_on_camera_figures(result, inputs, checks)
-        except Exception:  # a diagnostic figure must never lose the calibration
-            log.exception("could not draw the LIDAR points on the camera images")
-            on_camera = []
-        return on_camera + [f for figs in d.results() for f in figs]
+        drawn = {}
+        for x in (early, d):  # the estimate's first: this process takes what is left of them
+            if x is not None:
+                drawn.update(zip(x.names, x.results()))
+    out = []
+    for name, caption, png in (f for n in order for f in drawn.get(n, [])):
+        if isinstance(caption, dict):  # a LIDAR-on-camera picture's view
+            try:
+                caption = _lidar_on_camera_caption(result, inputs, caption, checks)
+            except Exception:  # a diagnostic figure must never lose the calibration
+                log.exception("could not write the caption of %s", name)
+                caption = ""
+        out.append((name, caption, png))
+    return out
 
 
 def _coverage(result) -> list[dict]:
@@ -600,9 +641,10 @@ def jk_n(result: Result) -> int:
 
 
 def report_html(result: Result, *, title: str = "clcgraph calibration", inputs: "ev.ReportInputs | None" = None,
-                drawing=None) -> str:
+                drawing=None, early=None) -> str:
     """The whole self-contained HTML text (figures embedded); ``drawing``: ``start_figures(result, inputs)``
-    started earlier (the pictures drawn while the caller did other work)."""
+    started earlier (the pictures drawn while the caller did other work), without the ``early`` ones
+    (``start_estimate_figures``, started during the solve) when given."""
     rms, noise = result.rms, result.noise
     used = int(np.sum(np.all(np.isfinite(np.asarray(result.rt_lidar0_board, float).reshape(-1, 6)), axis=1)))
     checks: dict = {}
@@ -614,7 +656,7 @@ def report_html(result: Result, *, title: str = "clcgraph calibration", inputs: 
             nom = np.array([rts["nominal /tf_static"].get(i, rt) for i, rt in enumerate(result.rt_lidar0_sensor)])
             checks["nominal /tf_static"] = ev.lidar_board_in_images(result, rt_lidar0_sensor=nom)
 
-    figures = _figures(result, inputs, checks, first=board_checks, drawing=drawing)
+    figures = _figures(result, inputs, checks, first=board_checks, drawing=drawing, early=early)
     coverage = _coverage(result)
     for c in coverage:
         if c["coverage"].get("warning"):
@@ -667,11 +709,13 @@ def write_report(result: Result, out_dir, *, title: str = "clcgraph calibration"
 
 
 @contextlib.contextmanager
-def report_writer(result: Result, *, title: str = "clcgraph calibration", inputs: "ev.ReportInputs | None" = None):
+def report_writer(result: Result, *, title: str = "clcgraph calibration", inputs: "ev.ReportInputs | None" = None,
+                  early=None):
     """``write_report`` in two steps: on entry the figures start drawing in a second process
     (target-based); the call it yields, ``write(out_dir) -> path``, writes the report. Work the
     caller does in between (the other result files) overlaps the drawing; leaving the block
-    without writing stops it.
+    without writing stops it. ``early``: the figures of the estimate, started during the solve
+    (``start_estimate_figures``): only the others start here.
 
     SYNOPSIS
         with report_writer(result, inputs=inputs) as write:
@@ -689,8 +733,14 @@ def report_writer(result: Result, *, title: str = "clcgraph calibration", inputs
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         path = out_dir / "report.html"
-        path.write_text(report_html(result, title=title, inputs=inputs, drawing=drawing))
+        path.write_text(report_html(result, title=title, inputs=inputs, drawing=drawing, early=early))
         return path
 
-    with start_figures(result, inputs) as drawing:
+    from ..determinism import single_threaded_blas
+
+    names = None if early is None else [n for n, _ in _figure_jobs(result, inputs) if n not in early.names]
+    # BLAS on one thread (the drawing process too): the checks' small products gain nothing from a second
+    # one, whose waiting costs up to 3x their CPU time on a loaded machine (and the same bytes, always)
+    with single_threaded_blas(), early if early is not None else contextlib.nullcontext(), \
+            start_figures(result, inputs, names=names) as drawing:
         yield write

@@ -25,7 +25,7 @@ import yaml
 from .. import __version__
 from ..errors import DataError, InputError
 from ..geometry import T_from_rt, invert_rt, pose_stdevs, rt_from_T
-from ..config import SafeDumperNoAliases, read_yaml
+from ..config import CSafeDumperNoAliases, read_yaml
 from ..types import Result, Sensor
 from .atomic import atomic_dir
 
@@ -329,7 +329,7 @@ def write_results(
             "# clcgraph calibration: rt_a_b maps points in frame b into frame a: x_a = R x_b + t, as mrcal's rt\n"
             "# (Rodrigues rotation vector r = axis * angle [rad], then translation t [m]); for people, the summary\n"
             "# table and the report give roll, pitch, yaw [deg] about fixed x-y-z (R = Rz(yaw) Ry(pitch) Rx(roll))\n"
-            + yaml.dump(cal, Dumper=SafeDumperNoAliases, sort_keys=False, default_flow_style=None, width=200)
+            + yaml.dump(cal, Dumper=CSafeDumperNoAliases, sort_keys=False, default_flow_style=None, width=200)
         )
         names[CALIBRATION_FILE] = out_dir / CALIBRATION_FILE
         (tmp / TIMINGS_FILE).write_text(yaml.safe_dump(timings_dict(result), sort_keys=False))

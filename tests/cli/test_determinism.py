@@ -71,6 +71,10 @@ def test_solve_is_byte_identical_across_processes_threads_and_hash_seeds(tmp_pat
     meta_b = json.loads(str(np.load(b / "problem.npz")["meta"]))
     assert meta_a["config"]["detection"].pop("jobs") == 1 and meta_b["config"]["detection"].pop("jobs") == 2
     assert meta_a == meta_b
+    # the report too (most of its pictures drawn from the solve's estimate, in another process), but for
+    # the call and the settings it records (<pre> blocks: the out directory and detection.jobs differ)
+    ra, rb = (re.sub(r"<pre>.*?</pre>", "", (d / "report.html").read_text(), flags=re.S) for d in (a, b))
+    assert ra == rb and ra.count("<img ") >= 8
 
 
 # Fewer, coarser points and iterations than the defaults: the test is about bytes, not accuracy,
