@@ -141,3 +141,17 @@ def test_noise_is_estimated_per_sensor():
     assert abs(per[2] / 0.3 - 1) < 0.1, per
     rot, tr, z = _errors(r, truth)
     assert np.all(z < 3.5), z
+
+
+def test_the_estimate_when_the_last_noise_round_moved_the_poses(monkeypatch):
+    """The noise components' last round may move the poses (then it hands back no linearization at
+    them): the estimate's normalized RMS is taken from a fresh one, as when it did not."""
+    from clcgraph.backend import solve as S
+
+    problem, truth = simulate_problem(n_snapshots=12, seed=3)
+    settled = calibrate(problem, SolveOptions())
+    real = S._solve_with_effects
+    monkeypatch.setattr(S, "_solve_with_effects", lambda *a, **k: (*real(*a, **k)[:-1], None))
+    moved = calibrate(problem, SolveOptions())
+    assert moved.rms["normalized"] == pytest.approx(settled.rms["normalized"], rel=1e-6)
+    np.testing.assert_allclose(moved.covariance_rt, settled.covariance_rt, rtol=1e-6, atol=1e-14)

@@ -434,6 +434,8 @@ def calibrate(problem: Problem, options, *, on_estimate: Callable[[Result], None
         times["noise_components"] = time.perf_counter() - t
 
     # the poses, the noise and the masks are final from here on: the residuals and the estimate
+    if effects is not None:  # the white residuals' linearization (the noise components' own when at these values)
+        lin = lin or N.Linearization(problem, g, values)
     lid, cam = G.residuals(problem, rt_sensor, rt_board)
     rl, rc = _active_residuals(lid, cam, active)
     for j, (o, m) in enumerate(zip(problem.lidar_observations, active.lidar)):
