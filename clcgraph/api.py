@@ -810,8 +810,7 @@ def lidar_scans(bags, topic: str, *, every: bool = False, limit: int | None = No
     else:
         n = snapshot_options.max_scans_averaged if snapshot_options is not None else 1
         lead = [leading_messages(b, [topic], {topic: n}).get(topic) for b in paths]
-        scans = [None if ms is None else still_average(ms, snapshot_options) if n > 1 else ms[0] for ms in lead]
-        where = paths
+        scans, where = [None if ms is None else still_average(ms, snapshot_options) for ms in lead], paths
     if names is not None:
         names[:] = [_bag_name(b) for b in where]
     bad = next((i for i, x in enumerate(scans) if not isinstance(x, LidarScan)), None)

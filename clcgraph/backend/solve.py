@@ -434,8 +434,8 @@ def calibrate(problem: Problem, options, *, on_estimate: Callable[[Result], None
         times["noise_components"] = time.perf_counter() - t
 
     # the poses, the noise and the masks are final from here on: the residuals and the estimate
-    if effects is not None:  # the white residuals' linearization (the noise components' own when at these values)
-        lin = lin or N.Linearization(problem, g, values)
+    # the final linearization (the noise components' own when it is at these values): the white residuals, the checks
+    lin = lin or N.Linearization(problem, g, values)
     lid, cam = G.residuals(problem, rt_sensor, rt_board)
     rl, rc = _active_residuals(lid, cam, active)
     for j, (o, m) in enumerate(zip(problem.lidar_observations, active.lidar)):
@@ -479,7 +479,6 @@ def calibrate(problem: Problem, options, *, on_estimate: Callable[[Result], None
     cov = _covariance(problem, g, values, rt_sensor, options)
     times["covariance"] = time.perf_counter() - t
     t = time.perf_counter()
-    lin = lin or N.Linearization(problem, g, values)  # the noise components' own, when it is at the final values
     effect_sig = None if effects is None else N.effect_sigmas(problem, effects)
 
     # made once, for the moves that leave the edge rays alone (all but the ring elevations')

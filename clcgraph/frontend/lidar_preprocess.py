@@ -144,9 +144,9 @@ def average_scans(scans: list[LidarScan]) -> tuple[LidarScan, np.ndarray]:
 
     The other scans' ranges are interpolated along their ring to each ray's azimuth (a rotation's
     azimuths jitter from one to the next; interpolation keeps a tilted surface's points on it) from
-    two neighbouring returns of one surface (an organised cloud of fixed columns: the same row's), and count only where they agree with the ray's range
-    within 4 robust sigmas of the scan-to-scan differences (not across a depth edge, a mixed pixel,
-    a stray return). Returns (the scan, (N,) how many scans each row's range averages; 0 where the
+    two neighbouring returns of one surface (an organised cloud of fixed columns: the same row's),
+    and count only where they agree with the ray's range within 4 robust sigmas of the
+    scan-to-scan differences (not across a depth edge, a mixed pixel, a stray return). Returns (the scan, (N,) how many scans each row's range averages; 0 where the
     first scan has no valid return)."""
     ref = scans[0]
     R = prepare(ref)
@@ -157,8 +157,9 @@ def average_scans(scans: list[LidarScan]) -> tuple[LidarScan, np.ndarray]:
     total = np.zeros(len(ref.points))
     total[R.index] = R.range
     key_r = R.ring * 8.0 + R.azimuth  # ring, then azimuth in [-pi, pi): one sortable key
+    step_r = typical_step(neighbour_steps(R))
     for scan in scans[1:]:
-        found = _same_rays(ref, scan, R) or _along_rings(scan, R, key_r)
+        found = _same_rays(ref, scan, R, step_r) or _along_rings(scan, R, key_r)
         if found is None:
             continue
         r_q, near, dq, step = found
@@ -174,11 +175,11 @@ def average_scans(scans: list[LidarScan]) -> tuple[LidarScan, np.ndarray]:
     return dataclasses.replace(ref, points=p.astype(np.asarray(ref.points).dtype, copy=False)), n
 
 
-def _same_rays(ref: LidarScan, scan: LidarScan, R: Rings):
+def _same_rays(ref: LidarScan, scan: LidarScan, R: Rings, step: float | None):
     """An organised cloud of fixed columns (an Ouster's: every rotation fires at the same azimuths):
-    ``scan``'s range on each of R's rows, directly ((M,) ranges, (M,) usable, (M,) 0, the azimuth step);
-    None if the clouds' layouts or azimuths differ."""
-    if ref.shape is None or scan.shape != ref.shape or len(scan.points) != len(ref.points):
+    ``scan``'s range on each of R's rows (``ref``'s, azimuth step ``step``), directly ((M,) ranges,
+    (M,) usable, (M,) 0, the step); None if the clouds' layouts or azimuths differ."""
+    if not step or ref.shape is None or scan.shape != ref.shape or len(scan.points) != len(ref.points):
         return None
     p = np.asarray(scan.points, float)[R.index]
     with np.errstate(invalid="ignore", over="ignore"):
@@ -189,8 +190,7 @@ def _same_rays(ref: LidarScan, scan: LidarScan, R: Rings):
     if near.sum() < 2:
         return None
     daz = (np.arctan2(p[near, 1], p[near, 0]) - R.azimuth[near] + np.pi) % (2 * np.pi) - np.pi
-    step = typical_step(neighbour_steps(R))
-    if not step or np.median(np.abs(daz)) > 0.02 * step:
+    if np.median(np.abs(daz)) > 0.02 * step:
         return None
     return np.where(near, r, 0.0), near, np.zeros(len(r)), step
 

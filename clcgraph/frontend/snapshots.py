@@ -7,9 +7,10 @@ SYNOPSIS
 Two capture schemes (the clc seed's):
 - one bag per board pose (``decimation_period_s`` None): the first message of every
   topic in each bag, a LIDAR's first scan averaged with the next ones of the still scene (up to
-  ``max_scans_averaged``: less range noise, one observation). A bag in which the scene moves and stops more than once is a continuous
-  one, cut at the motion (``still_intervals``): one snapshot per still interval, from the
-  messages nearest its centre (as many LIDAR scans, averaged); so a single continuous bag needs no setting;
+  ``max_scans_averaged``: less range noise, one observation). A bag in which the scene moves
+  and stops more than once is a continuous one, cut at the motion (``still_intervals``): one
+  snapshot per still interval, from the messages nearest its centre (as many LIDAR scans,
+  averaged); so a single continuous bag needs no setting;
 - one continuous bag: periods of ``decimation_period_s`` from the first kept message
   (messages in header-stamp order, never log order: see ``frontend.bag``); per period and
   topic the message nearest the period's centre. Whether a period is usable rests on
@@ -373,8 +374,8 @@ def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
     Rejected carrying its index (see parse_exclude_bag).
 
     options: ``config.SnapshotOptions``. Without ``decimation_period_s``, one snapshot
-    per bag from the first message of each topic (LIDAR scans averaged: ``still_average``); with it, one per period of the
-    (continuous) bags, streamed. Snapshot indices count the kept snapshots from 0.
+    per bag from the first message of each topic (LIDAR scans averaged: ``still_average``); with
+    it, one per period of the (continuous) bags, streamed. Snapshot indices count the kept snapshots from 0.
     ``progress``: optional wrapper of the iteration over bags (the API's progress bar).
     """
     from clcgraph.frontend.bag import leading_messages, read_messages
@@ -513,8 +514,7 @@ def _still_snapshots(bag: Path, still, moving_s: float, lidar_topics, camera_top
     def close(k):
         a, b, _ = still[k]
         where = f"{bag} still {a * 1e-9:.3f}-{b * 1e-9:.3f}s"
-        chosen = {t: _Msg(t, ms[0][1].stamp_ns, still_average([m.data for _, m in ms], options))
-                  for t, ms in picks.items()}
+        chosen = {t: _Msg(t, ms[0][1].stamp_ns, still_average([m.data for _, m in ms])) for t, ms in picks.items()}
         spread = _spread_rejection(chosen.values(), options)
         if spread:
             rejected.append(Rejected(f"{where}: {spread}", "snapshot"))
@@ -542,19 +542,22 @@ def _still_snapshots(bag: Path, still, moving_s: float, lidar_topics, camera_top
     return snaps, rejected
 
 
-def still_average(messages: list, options) -> LidarScan | Image:
+def still_average(messages: list, options=None) -> LidarScan | Image:
     """The first of one topic's messages of a still scene; for a LIDAR, its rays at their mean range
-    over it and those of the others in which nothing moved since (``average_scans``; the scene
-    judged as for periods: ``max_board_motion_m``, ``min_moving_cells``)."""
+    over it and those of the others in which nothing moved since (``average_scans``). ``options``:
+    each later scan judged against the first as for periods (``max_board_motion_m``,
+    ``min_moving_cells``); None: they are known still (a still interval's, judged by motion)."""
     first = messages[0]
     if len(messages) == 1 or not isinstance(first, LidarScan):
         return first
     from clcgraph.frontend.lidar_preprocess import average_scans
 
-    image = range_image(first)
-    still = [first] + [m for m in messages[1:]
-                       if not motion_between(image, range_image(m), threshold_m=options.max_board_motion_m,
-                                             min_cells=options.min_moving_cells)[0]]
+    still = messages
+    if options is not None:
+        image = range_image(first)
+        still = [first] + [m for m in messages[1:]
+                           if not motion_between(image, range_image(m), threshold_m=options.max_board_motion_m,
+                                                 min_cells=options.min_moving_cells)[0]]
     return average_scans(still)[0]
 
 
