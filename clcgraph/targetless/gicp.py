@@ -33,7 +33,8 @@ def preprocess(points: np.ndarray, leaf: float, *, threads: int):
 
 
 def prepared(points, *, threads: int, tree=None):
-    """(cloud, tree) of points already downsampled ((N,3) array or a PointCloud), with covariances; ``tree``: a KD-tree already built on the same points in the same order."""
+    """(cloud, tree) of points already downsampled ((N,3) array or a PointCloud), with covariances;
+    ``tree``: a KD-tree already built on the same points in the same order."""
     import small_gicp
 
     cloud = points if isinstance(points, small_gicp.PointCloud) else small_gicp.PointCloud(
