@@ -10,6 +10,7 @@ a result off by more than 5 sigma or 5 cm is a *silent wrong answer*, the worst 
     python -m bench.stress                 # every capture, table on stdout
     python -m bench.stress lidar-only-3    # the named ones
     python -m bench.stress --set solve.refuse_inconsistent=true   # extra settings for every solve
+    python -m bench.stress --seed 2        # the same recipes drawn again (build/stress-seed2/)
     python -m bench stress                 # the same, as one of the benchmarks
 
 Captures are simulated once into build/stress/<name>/ (kept while the recipe is unchanged).
@@ -195,8 +196,8 @@ def _write_lenses(d: Path, rig: dict) -> None:
         mrcal.cameramodel(intrinsics=(model, np.asarray(intrinsics, float)), imagersize=size).write(str(d / cam["model"]))
 
 
-def _prepare(c: Capture, build: Path = BUILD) -> Path:
-    """The capture's bags (simulated once per recipe) in ``build``/name."""
+def _prepare(c: Capture, build: Path = BUILD, seed: int = 1) -> Path:
+    """The capture's bags (simulated once per recipe and seed) in ``build``/name."""
     d = Path(build) / c.name
     key = _recipe_key(c)
     if (d / "recipe").exists() and (d / "recipe").read_text() == key and (d / "data" / "truth.yaml").exists():
@@ -205,6 +206,7 @@ def _prepare(c: Capture, build: Path = BUILD) -> Path:
     d.mkdir(parents=True)
     if c.drive is not None:
         r = _clcgraph("simulate-drive", "--out", d / "data", "--small", "--duration", c.drive["duration"],
+                      *(["--seed", seed] if seed != 1 else []),
                       *(["--layout", c.drive["layout"]] if "layout" in c.drive else []))
     else:
         rig = {**c.rig}
@@ -214,7 +216,7 @@ def _prepare(c: Capture, build: Path = BUILD) -> Path:
         (d / "rig.yaml").write_text(yaml.safe_dump(rig, sort_keys=False))
         from clcgraph.sim.capture import simulate
 
-        simulate(d / "rig.yaml", d / "data", seed=1, **c.simulate)
+        simulate(d / "rig.yaml", d / "data", seed=seed, **c.simulate)
         r = None
     if r is not None and r.returncode != 0:
         raise RuntimeError(f"{c.name}: simulating failed: {r.stderr.strip()[-500:]}")
@@ -272,12 +274,12 @@ def _judge(c: Capture, out: Path, truth: dict, bar_deg: float, bar_mm: float) ->
     return worst
 
 
-def run_capture(c: Capture, settings: tuple[str, ...] = (), build: Path = BUILD) -> Outcome:
+def run_capture(c: Capture, settings: tuple[str, ...] = (), build: Path = BUILD, seed: int = 1) -> Outcome:
     """``settings``: extra ``section.key=value`` settings passed to the command as ``--set``;
-    ``build``: where the capture is simulated and solved."""
+    ``build``: where the capture is simulated (with ``seed``) and solved."""
     t0 = time.perf_counter()
     try:
-        d = _prepare(c, build)
+        d = _prepare(c, build, seed)
     except Exception as e:  # noqa: BLE001 - a broken recipe is reported, the others run
         return Outcome(c.name, "FAILED", f"simulation: {e}")
     data = d / "data"
@@ -339,7 +341,10 @@ def main(argv: list[str] | None = None) -> str:
     ap.add_argument("names", nargs="*", help="captures to run (default: all)")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="an extra setting for every solve (targetless: all but solve.*)")
+    ap.add_argument("--seed", type=int, default=1, help="draw the captures with this seed (default 1: the "
+                    "set's own); another seed simulates into build/stress-seed<N>/")
     args = ap.parse_args(sys.argv[1:] if argv is None else argv)
+    build = BUILD if args.seed == 1 else BUILD.with_name(f"stress-seed{args.seed}")
     every = CAPTURES + CI_CAPTURES
     unknown = sorted(set(args.names) - {c.name for c in every})
     if unknown:
@@ -348,7 +353,7 @@ def main(argv: list[str] | None = None) -> str:
     chosen = [by_name[n] for n in dict.fromkeys(args.names)] if args.names else CAPTURES  # in the order given
     outcomes = []
     for c in chosen:
-        o = run_capture(c, tuple(args.set))
+        o = run_capture(c, tuple(args.set), build, args.seed)
         print(f"  {o.name}: {o.verdict} ({o.seconds:.0f} s) {o.detail}", file=sys.stderr, flush=True)
         outcomes.append(o)
     return table(outcomes)

@@ -232,6 +232,7 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
 
     lidar_obs: list[LidarBoardObservation] = []
     visibility: dict[int, np.ndarray] = {}
+    ring_offsets: dict[int, np.ndarray] = {}
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="clcgraph-detect") as pool:
         # the first detection pass (one mrgingham process for every image) runs while the LIDARs
         # are segmented; its misses are retried below, where the LIDARs say a board can be
@@ -245,9 +246,13 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
                                 "is this LIDAR's driver writing its points?")
         for i, t in enumerate(lidar_topics):
             scans = [(s.index, s.scans[t]) for s in snaps if t in s.scans]
+            measured: dict = {}
             for k, r in zip([k for k, _ in scans], segment([sc for _, sc in scans], config=cfg, sensor=i,
-                                                          snapshots=[k for k, _ in scans], board=board)):
+                                                          snapshots=[k for k, _ in scans], board=board,
+                                                          ring_offsets=measured)):
                 (lidar_obs if isinstance(r, LidarBoardObservation) else rejected).append(r)
+            if measured:
+                ring_offsets[i] = np.array(sorted(measured.items()), float)
             if scans:
                 pts = scans[0][1].points[scans[0][1].valid]
                 step = max(1, len(pts) // _VISIBILITY_POINTS)
@@ -307,6 +312,7 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
         priors=priors,
         lidar_visibility_points=visibility,
         snapshot_bags=tuple(s.bag for s in snaps),
+        lidar_ring_offsets=ring_offsets,
     )
 
 
@@ -401,15 +407,17 @@ def _why_missed(sensors, lidar_obs, camera_obs, rejected) -> str:
 
 
 def segment(scans, *, config=None, sensor: int = 0, snapshots: Sequence[int] | None = None,
-            board: BoardGeometry | None = None) -> list:
-    """LIDAR board segmentation of many scans: LidarBoardObservation or Rejected per scan."""
+            board: BoardGeometry | None = None, ring_offsets: dict | None = None) -> list:
+    """LIDAR board segmentation of many scans: LidarBoardObservation or Rejected per scan.
+    ``ring_offsets``: filled with {ring: range offset (m)} measured on the boards and taken out."""
     from .frontend.lidar_board import segment_many
 
     cfg = _config(config)
     board = board_geometry(cfg) if board is None else board
     snapshots = list(range(len(scans))) if snapshots is None else list(snapshots)
     bar = lambda it, n: progress(it, desc=f"segmenting LIDAR {sensor}", total=n, unit="scan")  # noqa: E731
-    return segment_many(scans, cfg.segmentation, cfg.lidar, board, sensor=sensor, snapshots=snapshots, progress=bar)
+    return segment_many(scans, cfg.segmentation, cfg.lidar, board, sensor=sensor, snapshots=snapshots, progress=bar,
+                        ring_offsets=ring_offsets)
 
 
 def detect(images, *, config=None, board: BoardGeometry | None = None) -> list:

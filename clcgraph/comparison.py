@@ -53,7 +53,8 @@ class PoseSet:
     poses: dict
     source: str = ""
     # the units' named errors and each sensor's sensitivity to them (calibration.yaml's unit_errors), or None:
-    # {"errors": [(sensor, error, at)], "J": {topic: (6, K) d rt / d error}, "sigma_in_covariance": {kind: sigma}}
+    # {"errors": [(sensor, error, at)], "J": {topic: (6, K) d rt / d error},
+    #  "sigma_in_covariance": {kind: sigma, or {sensor topic: sigma}}}
     unit_errors: dict | None = None
 
     @property
@@ -145,7 +146,9 @@ def _unit_errors(block, where: str) -> dict | None:
     try:
         errors = [(str(e[0]), str(e[1]), float(e[2])) for e in block["errors"]]
         J = {str(t): np.asarray(rows, float).reshape(len(errors), 6).T for t, rows in block["sensitivity_rt"].items()}
-        sigma = {str(k): float(v) for k, v in block["sigma_in_covariance"].items()}
+        # a kind's sigma, or per sensor topic (a LIDAR's ring range bias measured on its boards)
+        sigma = {str(k): {str(t): float(x) for t, x in v.items()} if isinstance(v, dict) else float(v)
+                 for k, v in block["sigma_in_covariance"].items()}
     except (KeyError, IndexError, TypeError, ValueError, AttributeError):
         raise DataError(f"{where}: unit_errors needs 'errors' ([sensor, error, at] each), 'sensitivity_rt' "
                         "(per sensor one row of 6 per error) and 'sigma_in_covariance'") from None
@@ -349,14 +352,20 @@ def unit_error_term(topic: str, rt_a, rt_b, ua: dict, ub: dict, sigma: dict, *, 
     union, Ja, Jb = paired_sensitivities(topic, rt_a, rt_b, ua, ub)
     kinds = [_kind(e[1]) for e in union]
     s2 = np.array([sigma.get(k, 0.0) for k in kinds]) ** 2
-    sa2 = np.array([ua["sigma_in_covariance"].get(k, 0.0) for k in kinds]) ** 2
-    sb2 = np.array([ub["sigma_in_covariance"].get(k, 0.0) for k in kinds]) ** 2
+    sa2 = np.array([_in_covariance(ua, e) for e in union]) ** 2
+    sb2 = np.array([_in_covariance(ub, e) for e in union]) ** 2
     if same_units:
         D = Ja - Jb
         term = (D * s2) @ D.T - (Ja * sa2) @ Ja.T - (Jb * sb2) @ Jb.T
     else:
         term = (Ja * (s2 - sa2)) @ Ja.T + (Jb * (s2 - sb2)) @ Jb.T
     return 0.5 * (term + term.T)
+
+
+def _in_covariance(u: dict, error) -> float:
+    """The 1-sigma of named ``error`` (sensor, error, at) that calibration ``u`` holds in its covariance."""
+    v = u["sigma_in_covariance"].get(_kind(error[1]), 0.0)
+    return float(v.get(error[0], 0.0)) if isinstance(v, dict) else float(v)
 
 
 def _unit_errors_words(pa: PoseSet, pb: PoseSet, sigma: dict, same_units: bool) -> str:

@@ -264,10 +264,11 @@ class SolveOptions:
     # per ring. The frontend measures and removes the rings' relative range offsets; what no
     # board can show stays (a common offset and one linear in elevation, which tilt every board
     # alike) and is a consider term, as is the same part of the elevation errors.
-    # 0 by default, like the lens field below: these describe the user's units, which no capture
-    # shows, and as defaults (1 cm, 0.1 deg, 0.1 px) they doubled the median sigma of exact
-    # sensors (up to 16x; issue 12 forbids blanket inflation). State your units' figures:
-    # docs/uncertainty.md, "When to set a term to 0" (real 16-ring / Ouster units: ~1 cm, 0.1 deg).
+    # 0 by default, like the lens field below: as defaults (1 cm, 0.1 deg, 0.1 px) they doubled
+    # the median sigma of exact sensors (up to 16x; issue 12 forbids blanket inflation). The
+    # range term takes, per LIDAR, the spread of the ring offsets the frontend measured on its
+    # boards where that is larger (what the capture shows of the unit: none for an exact one).
+    # State your units' figures: docs/uncertainty.md, "When to set a term to 0".
     lidar_ring_range_bias_m: float = 0.0
     lidar_ring_elevation_deg: float = 0.0
     # A camera's lens-model error: a smooth pixel-error field fixed in the image, the same for

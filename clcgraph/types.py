@@ -229,6 +229,10 @@ class Problem:
     lidar_visibility_points: Mapping[int, np.ndarray] = field(default_factory=dict)
     # (Nsnapshots,) the bag each snapshot came from (path as given); () when unknown (old dumps)
     snapshot_bags: tuple[str, ...] = ()
+    # LIDAR sensor index -> (R,2) ring number and the range offset (m) the frontend measured on the
+    # boards and took out of that ring's ranges (frontend/lidar_board.ring_range_offsets); a LIDAR
+    # whose rings showed none is absent. Their spread is the unit's ring bias (backend/consider.py).
+    lidar_ring_offsets: Mapping[int, np.ndarray] = field(default_factory=dict)
 
     @property
     def reference(self) -> int:

@@ -376,3 +376,25 @@ def test_a_ring_elevation_error_moves_the_outline_with_the_rays(solved):
         np.testing.assert_allclose(np.linalg.norm(b[:, :2], axis=2), 1.0, atol=1e-12)
         np.testing.assert_array_equal(b[:, 2], a[:, 2])  # the sides' normals as seen
     assert n >= 5
+
+
+def test_the_ring_range_term_takes_the_spread_of_the_measured_ring_offsets():
+    """A unit whose rings range 2 cm apart (sd): the frontend's correction measures their relative
+    offsets on the boards and takes them out; what it cannot see (a + b e over the rings'
+    elevations, in every board) is drawn from the same spread, so the ring range term gets
+    that sigma with nothing stated. An exact unit's rings show none: no term, no inflation."""
+    from clcgraph.sim.observations import CorrelatedErrors
+
+    kw = dict(rig=make_rig(1, 1), n_snapshots=12, seed=4, sigma_lidar_m=0.01)
+    options = dataclasses.replace(Config().solve, **NO_RING_TERMS)
+    biased, _ = simulate_problem(errors=CorrelatedErrors(ring_range_bias_m=0.02), **kw)
+    x = biased.lidar_ring_offsets[0]
+    assert len(x) >= 8 and np.all(np.diff(x[:, 0]) > 0)  # (ring, offset) per ring the boards met
+    assert 0.012 < consider.ring_range_bias_sigma(biased, 0, options) < 0.035
+    wanted, _ = consider._wanted(biased, None, options)
+    assert "ring range bias /lidar0" in wanted
+    stated = dataclasses.replace(options, lidar_ring_range_bias_m=0.05)  # a larger stated sigma stands
+    assert consider.ring_range_bias_sigma(biased, 0, stated) == 0.05
+    exact, _ = simulate_problem(**kw)
+    assert not exact.lidar_ring_offsets and consider.ring_range_bias_sigma(exact, 0, options) == 0.0
+    assert not [n for n in consider._wanted(exact, None, options)[0] if n.startswith("ring")]

@@ -33,6 +33,7 @@ def _problem():
         priors=(PosePrior(1, rng.normal(size=6), np.full(6, 0.1)),),
         lidar_visibility_points={0: rng.normal(size=(100, 3)), 1: np.zeros((0, 3))},
         snapshot_bags=("/cap/a.bag", "/cap/b.bag", "/cap/ros2bag/"),
+        lidar_ring_offsets={1: np.c_[np.arange(5), rng.normal(0, 0.02, 5)]},
     )
 
 
@@ -73,6 +74,8 @@ def test_round_trip_exact(tmp_path):
     for k in (0, 1):
         _same(p.lidar_visibility_points[k], q.lidar_visibility_points[k])
     assert q.snapshot_bags == p.snapshot_bags and q.snapshot_bag(2) == "ros2bag"
+    assert sorted(q.lidar_ring_offsets) == [1]  # the ring range term's sigma replays with it
+    _same(p.lidar_ring_offsets[1], q.lidar_ring_offsets[1])
 
 
 def test_no_pickle_and_versioning(tmp_path):

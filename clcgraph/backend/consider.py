@@ -366,14 +366,15 @@ def _wanted(problem: Problem, values, options):
             if s.is_lidar:
                 wanted[f"range offset {s.topic}"] = [
                     lambda sign, i=i: _range_moves(problem, i, sign * options.lidar_range_offset_m)]
-    ring_terms = (("ring range bias", options.lidar_ring_range_bias_m, _ring_range_moves),
-                  ("ring elevation", np.radians(options.lidar_ring_elevation_deg),
+    ring_terms = (("ring range bias", lambda i: ring_range_bias_sigma(problem, i, options), _ring_range_moves),
+                  ("ring elevation", lambda i: np.radians(options.lidar_ring_elevation_deg),
                    lambda p, i, e0, ab: _ring_elevation_moves(p, values, i, e0, ab)))
     for i, s in enumerate(problem.sensors):
         if not s.is_lidar or not any(o.sensor == i for o in problem.lidar_observations):
             continue
         rings = lidar_rings(problem, i)
-        for name, sigma, move in ring_terms:
+        for name, sigma_of, move in ring_terms:
+            sigma = sigma_of(i)
             if sigma > 0:
                 dirs, e0 = ring_trend_directions(*rings, sigma)
                 wanted[f"{name} {s.topic}"] = [lambda sign, i=i, e0=e0, d=d, move=move: move(problem, i, e0, sign * d)
@@ -388,6 +389,22 @@ def _wanted(problem: Problem, values, options):
             wanted[f"intrinsics {s.topic}"] = [lambda sign, i=i, d=d: _intrinsics_moved(problem, i, sign * d)
                                               for d in intrinsics_directions(s.intrinsics_covariance)]
     return wanted, lens
+
+
+def ring_range_bias_sigma(problem: Problem, sensor: int, options) -> float:
+    """The 1-sigma of LIDAR ``sensor``'s rings' own range offsets in its covariance (m): the
+    one stated (``lidar_ring_range_bias_m``), or, where larger, the spread of the offsets the
+    frontend measured on its boards and took out (Problem.lidar_ring_offsets). Those are the
+    offsets' part no set of planes confuses with the board poses (their fit a + b e over the
+    rings' elevations e removed): the unit's rings are that far apart, so its a + b e, which
+    stays in every board, is drawn from the same spread. A unit whose rings showed no offsets
+    (an exact one, a simulation without them) adds nothing."""
+    stated = float(options.lidar_ring_range_bias_m)
+    x = problem.lidar_ring_offsets.get(sensor)
+    if x is None or len(x) < 4:
+        return stated
+    offsets = np.asarray(x, float)[:, 1]
+    return max(stated, float(np.sqrt(np.sum(offsets**2) / (len(offsets) - 2))))
 
 
 def _lens_field_dr(problem: Problem, lin, g, lens: dict) -> dict:

@@ -13,6 +13,8 @@ SYNOPSIS
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from clcgraph.config import SolveOptions
@@ -69,8 +71,7 @@ def renoise_problem(
         q = q + rng.normal(0.0, sigma_camera_px, size=q.shape)
         q[~np.all(np.isfinite(o.corners_px), axis=1)] = np.nan  # keep the same missing corners
         camera.append(CameraBoardObservation(o.sensor, o.snapshot, q))
-    return Problem(problem.sensors, problem.board, tuple(lidar), tuple(camera), problem.snapshot_stamps_ns,
-                   problem.rejected, problem.priors, problem.lidar_visibility_points, problem.snapshot_bags)
+    return dataclasses.replace(problem, lidar_observations=tuple(lidar), camera_observations=tuple(camera))
 
 
 def snapshot_indices(problem: Problem, items, *, flag: str = "--exclude") -> list[int]:
@@ -102,13 +103,11 @@ def exclude_snapshots(problem: Problem, exclude) -> Problem:
     the excluded snapshots get NaN board poses.
     """
     ex = set(snapshot_indices(problem, exclude))
-    return Problem(
-        problem.sensors, problem.board,
-        tuple(o for o in problem.lidar_observations if o.snapshot not in ex),
-        tuple(o for o in problem.camera_observations if o.snapshot not in ex),
-        problem.snapshot_stamps_ns,
-        problem.rejected + tuple(Rejected("excluded by the user", "snapshot", None, k) for k in sorted(ex)),
-        problem.priors, problem.lidar_visibility_points, problem.snapshot_bags,
+    return dataclasses.replace(
+        problem,
+        lidar_observations=tuple(o for o in problem.lidar_observations if o.snapshot not in ex),
+        camera_observations=tuple(o for o in problem.camera_observations if o.snapshot not in ex),
+        rejected=problem.rejected + tuple(Rejected("excluded by the user", "snapshot", None, k) for k in sorted(ex)),
     )
 
 

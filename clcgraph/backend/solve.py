@@ -253,7 +253,8 @@ def _unit_errors(problem, rebuild, values, S, rt_sensor, options) -> dict:
     for a, i in enumerate(idx):
         J[6 * a:6 * a + 6] = drt_dxi(rt_sensor[i]) @ J[6 * a:6 * a + 6]
     return {"errors": errors, "sensitivity_rt": J,
-            "sigma_in_covariance": {"ring range bias": options.lidar_ring_range_bias_m,
+            "sigma_in_covariance": {"ring range bias": {s.topic: consider.ring_range_bias_sigma(problem, i, options)
+                                                        for i, s in enumerate(problem.sensors) if s.is_lidar},
                                     "ring elevation": float(np.radians(options.lidar_ring_elevation_deg)),
                                     "lens field": options.camera_lens_field_px}}
 

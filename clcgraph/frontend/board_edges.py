@@ -117,8 +117,20 @@ def edge_rays(rays: ScanRays, rows: np.ndarray, n: np.ndarray, d: float, outline
         beyond = np.where(lone, (after if way > 0 else before)[m], -1)
         ok &= ~lone | (~on[np.maximum(beyond, 0)] & _behind_or_missed(R, beyond, n, d, plane_tol_m))
         second = np.clip(m + way, 0, max(len(dirs) - 1, 0))
+        # A return behind the plane: the next ray along the ring tells what it was. On the plane:
+        # the board went on past a stray return (a heavy tail). Farther behind, or a miss: it lay
+        # between the board and what is behind it, a mixed pixel whose beam may have been partly on
+        # the board, so the edge lies before that next ray (two steps). At its depth: the edge.
+        hit = (miss < 0) & (neighbour >= 0)
+        n1 = np.maximum(neighbour, 0)
+        miss2 = miss_of[n1]
+        n2 = np.where(miss2 >= 0, -1, step_to[n1])
+        ok &= ~hit | _behind_or_missed(R, n2, n, d, plane_tol_m)
+        mixed = hit & ((n2 < 0) | (R.range[np.maximum(n2, 0)] > R.range[n1] + plane_tol_m))
+        past = np.where((n2 < 0)[:, None], dirs[np.clip(miss2, 0, len(dirs) - 1)] if len(dirs) else u[n1],
+                        u[np.maximum(n2, 0)])
         ray_out = np.where((miss >= 0)[:, None], np.where(lone[:, None], u[np.maximum(beyond, 0)], dirs[second]),
-                           u[np.maximum(neighbour, 0)])
+                           np.where(mixed[:, None], past, u[n1]))
         out.append(np.stack([u[end], ray_out], axis=1)[ok])
 
     # across the rings: above the highest ring on the board, below the lowest, at the middle of

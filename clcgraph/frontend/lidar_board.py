@@ -654,10 +654,12 @@ def _merge(pieces: list, points: np.ndarray, tol: float, reach: float) -> list:
 
 
 def segment_many(scans, options, lidar_options, board: BoardGeometry, *, sensor: int = 0,
-                 snapshots=None, jobs: int | None = None, progress=None, debug: list | None = None) -> list:
+                 snapshots=None, jobs: int | None = None, progress=None, debug: list | None = None,
+                 ring_offsets: dict | None = None) -> list:
     """segment_board over a session of one LIDAR (static scene removed when suppress_static),
     in ``jobs`` threads. ``progress``: optional wrapper of the result iteration (a progress bar);
-    ``debug``: one Debug per scan to fill."""
+    ``debug``: one Debug per scan to fill; ``ring_offsets``: filled with {ring: range offset (m)}
+    taken out of the scans (``ring_range_offsets``), if any was."""
     scans = list(scans)
     snapshots = list(range(len(scans))) if snapshots is None else list(snapshots)
     if not scans:
@@ -694,17 +696,23 @@ def segment_many(scans, options, lidar_options, board: BoardGeometry, *, sensor:
     if debug is not None:
         debug[:] = [Debug() for _ in debug]
     found = all_scans(None)
-    return correct_ring_offsets(found, scans)
+    if ring_offsets is not None:
+        ring_offsets.update({int(r): float(x) for r, x in zip(*offsets)})
+    return correct_ring_offsets(found, scans, measured=ring_offsets)
 
 
-def correct_ring_offsets(found: list, scans: list) -> list:
+def correct_ring_offsets(found: list, scans: list, *, measured: dict | None = None) -> list:
     """``found`` (segment_board results per scan of one LIDAR) with each ring's own range offset,
     measured on all the boards (``ring_range_offsets``), taken out of the board points and
-    planes; ``found`` unchanged when the offsets do not stand out of their standard errors."""
+    planes; ``found`` unchanged when the offsets do not stand out of their standard errors.
+    ``measured``: {ring: offset (m)} to add the offsets taken out to."""
     offsets = ring_range_offsets(found, scans)
     if offsets is None:
         return found
     rings, offset = offsets
+    if measured is not None:
+        for r, x in zip(rings, offset):
+            measured[int(r)] = measured.get(int(r), 0.0) + float(x)
     out = list(found)
     for k, o in enumerate(found):
         if not isinstance(o, LidarBoardObservation) or o.indices is None or scans[k].ring is None:

@@ -96,6 +96,9 @@ def save_problem(path: str | Path, problem: Problem, config: Config | None = Non
     vis_keys = sorted(int(k) for k in problem.lidar_visibility_points)
     for k in vis_keys:
         arrays[f"visibility_{k}"] = np.asarray(problem.lidar_visibility_points[k], float)
+    ring_keys = sorted(int(k) for k in problem.lidar_ring_offsets)
+    for k in ring_keys:
+        arrays[f"ring_offsets_{k}"] = np.asarray(problem.lidar_ring_offsets[k], float).reshape(-1, 2)
     b = problem.board
     meta = dict(
         format=FORMAT_NAME,
@@ -109,6 +112,7 @@ def save_problem(path: str | Path, problem: Problem, config: Config | None = Non
         lidar_has_rings=has_ring,
         lidar_has_edges=has_edges,
         visibility_sensors=vis_keys,
+        ring_offset_sensors=ring_keys,
         snapshot_bags=[str(b) for b in problem.snapshot_bags],
     )
     arrays["meta"] = np.array(json.dumps(meta))
@@ -128,8 +132,8 @@ _MAX_MEMBERS = 10_000
 _INFLATE_ALLOWANCE = 64 << 20
 _MAX_INFLATE_RATIO = 200
 
-# member name -> (dtype kind, trailing shape) of the fixed arrays; intrinsics_i, intrinsics_covariance_i and
-# visibility_k below
+# member name -> (dtype kind, trailing shape) of the fixed arrays; intrinsics_i, intrinsics_covariance_i,
+# visibility_k and ring_offsets_k below
 _LAYOUT = {
     "meta": ("U", None),
     "lidar_points": ("f", (3,)), "lidar_counts": ("i", ()), "lidar_planes": ("f", (4,)),
@@ -290,6 +294,13 @@ def _check_layout(a: dict, meta: dict, path: Path) -> None:
         x = a.get(f"visibility_{k}")
         if x is None or x.dtype.kind != "f" or x.ndim != 2 or x.shape[1] != 3 or not np.all(np.isfinite(x)):
             bad(f"visibility points of sensor {k}")
+    rings = meta.get("ring_offset_sensors", [])  # older dumps have none
+    if not isinstance(rings, list) or not all(isinstance(k, int) and 0 <= k < nsens for k in rings):
+        bad(f"ring_offset_sensors {rings!r}")
+    for k in rings:
+        x = a.get(f"ring_offsets_{k}")
+        if x is None or x.dtype.kind != "f" or x.ndim != 2 or x.shape[1] != 2 or not np.all(np.isfinite(x)):
+            bad(f"ring offsets of sensor {k}")
     board = meta.get("board")
     if meta.get("version") == 1:  # corners_x, corners_y, spacing_m, margin_m
         ok = isinstance(board, dict) and all(isinstance(v, (int, float)) and not isinstance(v, bool)
@@ -367,6 +378,7 @@ def load_problem(path: str | Path) -> tuple[Problem, Config]:
             rejected=tuple(Rejected(**r) for r in meta["rejected"]),
             priors=priors,
             lidar_visibility_points={k: a[f"visibility_{k}"] for k in meta["visibility_sensors"]},
+            lidar_ring_offsets={k: a[f"ring_offsets_{k}"] for k in meta.get("ring_offset_sensors", [])},
             snapshot_bags=tuple(str(b) for b in meta.get("snapshot_bags", ())),  # older dumps have none
         )
         config = Config.from_dict(meta["config"])

@@ -208,8 +208,8 @@ UNIT_ERRORS_ABOUT = (
     "bias [m] or elevation error [rad], a camera's lens-field mode [px, RMS of a 1 px field]): per sensor one "
     "row d rt / d error (r, then t) per entry of 'errors'; what `clcgraph compare` pairs between two "
     "calibrations of the same units (docs/fleet.md). sigma_in_covariance: the 1-sigma of each kind already in "
-    "covariance_rt_lidar0_sensor (solve.lidar_ring_range_bias_m [m], .lidar_ring_elevation_deg [as rad], "
-    ".camera_lens_field_px [px]; 0 = not in it)")
+    "covariance_rt_lidar0_sensor (solve.lidar_ring_range_bias_m [m] per LIDAR, or the spread of the ring offsets "
+    "measured on its boards where larger, .lidar_ring_elevation_deg [as rad], .camera_lens_field_px [px]; 0 = not in it)")
 
 
 def unit_errors_dict(result: Result) -> dict:
@@ -227,7 +227,8 @@ def unit_errors_dict(result: Result) -> dict:
     topics = [s.topic for i, s in enumerate(p.sensors) if i != p.reference]
     return {"unit_errors": {
         "about": UNIT_ERRORS_ABOUT,
-        "sigma_in_covariance": {k: float(v) for k, v in u["sigma_in_covariance"].items()},
+        "sigma_in_covariance": {k: {t: float(x) for t, x in v.items()} if isinstance(v, dict) else float(v)
+                                for k, v in u["sigma_in_covariance"].items()},
         "errors": errors,
         "sensitivity_rt": {t: _plain(J[6 * a:6 * a + 6].T, digits=6) for a, t in enumerate(topics)}}}
 

@@ -358,8 +358,9 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
         camera_obs += co
         boards.append(rt_b)
         k += 1
+    ring_offsets = {}
     if errors.frontend_ring_correction and (errors.ring_range_bias_m or errors.ring_elevation_deg):
-        lidar_obs = _ring_corrected(lidar_obs, rings_of, sensors)
+        lidar_obs, ring_offsets = _ring_corrected(lidar_obs, rings_of, sensors)
     corrupted = []
     if corrupt_fraction > 0:
         lidar_obs, camera_obs, corrupted = _corrupt(lidar_obs, camera_obs, corrupt_fraction, rng)
@@ -368,28 +369,32 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
         sensors=tuple(sensors), board=board, lidar_observations=tuple(lidar_obs),
         camera_observations=tuple(camera_obs),
         snapshot_stamps_ns=T0_NS + np.arange(n_snapshots, dtype=np.int64) * 1_000_000_000,
-        lidar_visibility_points=vis,
+        lidar_visibility_points=vis, lidar_ring_offsets=ring_offsets,
     )
     return problem, Truth(rts, np.array(boards), tuple(corrupted))
 
 
-def _ring_corrected(lidar_obs: list, rings_of: dict, sensors) -> list:
+def _ring_corrected(lidar_obs: list, rings_of: dict, sensors) -> tuple[list, dict]:
     """``lidar_obs`` with each LIDAR's per-ring range offsets measured on its boards and taken out
-    by the frontend's own correction (what `clcgraph solve` does after segmenting a capture)."""
+    by the frontend's own correction (what `clcgraph solve` does after segmenting a capture), and
+    {sensor: (R,2) ring, offset taken out} (Problem.lidar_ring_offsets)."""
     import dataclasses
 
     from ..frontend.lidar_board import correct_ring_offsets
     from ..types import LidarScan
 
-    out = list(lidar_obs)
+    out, offsets = list(lidar_obs), {}
     for i in sorted({o.sensor for o in lidar_obs}):
         mine = [j for j, o in enumerate(lidar_obs) if o.sensor == i]
         found = [dataclasses.replace(lidar_obs[j], indices=np.arange(len(lidar_obs[j].points))) for j in mine]
         scans = [LidarScan(topic=sensors[i].topic, stamp_ns=0, points=o.points, valid=np.ones(len(o.points), bool),
                            ring=rings_of[(i, o.snapshot)]) for o in found]
-        for j, o in zip(mine, correct_ring_offsets(found, scans)):
+        measured: dict = {}
+        for j, o in zip(mine, correct_ring_offsets(found, scans, measured=measured)):
             out[j] = dataclasses.replace(o, indices=None)
-    return out
+        if measured:
+            offsets[i] = np.array(sorted(measured.items()), float)
+    return out, offsets
 
 
 def _corrupt(lidar_obs, camera_obs, fraction, rng):

@@ -341,6 +341,64 @@ def test_a_dropout_at_the_boards_edge_does_not_move_the_edge_inward():
     assert np.sum(width > 1.5 * 3.0 * step) == 4 and np.all(width < 2.5 * 3.0 * step / np.cos(0.15) ** 2)
 
 
+def _right_intervals(scan, rows, n, d):
+    step = 2 * np.pi / 2048
+    every = scan_rays(scan, step)
+    outline = fit_outline(scan.points[rows], every.points[every.away_from(rows)], n, d, size_m=(0.85, 0.61),
+                          step_rad=step, plane_tol_m=0.05)
+    rays = edge_rays(every, rows, n, d, outline, plane_tol_m=0.05)
+    q_in = rays[:, 0] * (3.0 / rays[:, 0, 0])[:, None]
+    q_out = rays[:, 1] * (3.0 / rays[:, 1, 0])[:, None]
+    right = (q_out[:, 1] < q_in[:, 1] - 1e-6) & (np.abs(q_out[:, 2] - q_in[:, 2]) < 1e-3)
+    return q_in[right], q_out[right]
+
+
+def _ranged(scan, rows, extra: dict):
+    """``scan`` with the returns at rows ``extra`` (row -> metres) that much farther along their rays."""
+    r = np.linalg.norm(np.nan_to_num(scan.points), axis=1)
+    add = np.zeros(len(r))
+    add[list(extra)] = list(extra.values())
+    return dataclasses.replace(scan, points=scan.points * ((r + add) / np.where(r > 0, r, 1))[:, None])
+
+
+def _right_most(scan, rows, ring_ids, which=0):
+    """Per ring, the board row ``which`` steps in from its right (lowest y) end."""
+    ring = scan.ring[rows]
+    out = []
+    for r in ring_ids:
+        k = rows[ring == r]
+        out.append(k[np.argsort(scan.points[k, 1])[which]])
+    return out
+
+
+def test_a_mixed_pixel_at_the_boards_edge_does_not_move_the_edge_inward():
+    """The board's last return on four rings ranges 8 cm long (a mixed pixel: its beam partly on the
+    board, partly on the wall 3 m behind; beyond the plane tolerance): it lies between the board and
+    what the next ray sees, so the edge may lie past it; the interval runs to that next ray (two
+    steps) and still straddles the edge."""
+    scan, rows, n, d, _ = _scan_with_arm(False)
+    mixed = _right_most(scan, rows, np.unique(scan.ring[rows])[3:7])
+    scan = _ranged(scan, rows, {k: 0.08 for k in mixed})
+    q_in, q_out = _right_intervals(scan, np.setdiff1d(rows, mixed), n, d)
+    assert len(q_in) >= 8
+    assert np.all((q_in[:, 1] >= -0.425) & (q_out[:, 1] < -0.425))  # every one straddles the edge
+    step = 2 * np.pi / 2048
+    assert np.sum(q_in[:, 1] - q_out[:, 1] > 1.5 * 3.0 * step) == 4
+
+
+def test_a_stray_long_return_on_the_board_does_not_end_it():
+    """A heavy-tailed return 30 cm long one step inside the board's right edge cuts four rings'
+    pieces short of the edge; the ray after it is on the board again: the board went on, no
+    interval ends at the stray return (inside the board)."""
+    scan, rows, n, d, _ = _scan_with_arm(False)
+    ids = np.unique(scan.ring[rows])[3:7]
+    stray, last = _right_most(scan, rows, ids, 1), _right_most(scan, rows, ids, 0)
+    scan = _ranged(scan, rows, {k: 0.3 for k in stray})
+    q_in, q_out = _right_intervals(scan, np.setdiff1d(rows, stray + last), n, d)
+    assert len(q_in) >= 6
+    assert np.all(q_out[:, 1] < -0.425), q_out  # none ends inside the board
+
+
 def test_a_noisy_lidars_long_board_return_does_not_end_the_board():
     """2 cm range noise (clipped at 2 sigma: the scan's own estimate is 1.4 cm): the board's last return
     on a ring ranges 5.3 cm long, beyond the plane tolerance (5 cm) but within 4 sigmas of the noise. It is no board return (too far off the

@@ -115,6 +115,15 @@ def test_replaced_units_and_the_solves_own_terms(captures):
     included = {**ua, "sigma_in_covariance": {**ua["sigma_in_covariance"], "ring range bias": 0.01}}
     np.testing.assert_allclose(unit_error_term(topic, rta, rtb, included, ub, s, same_units=False),
                                1e-4 * Jb[:, m] @ Jb[:, m].T, rtol=1e-9, atol=1e-18)
+    # per LIDAR (a ring range bias measured on its boards): each error by its own LIDAR's sigma
+    lidars = sorted({sensor for sensor, err, _ in union if err == "ring range bias"})
+    per = {**ua, "sigma_in_covariance": {**ua["sigma_in_covariance"], "ring range bias": {t: 0.01 for t in lidars}}}
+    np.testing.assert_allclose(unit_error_term(topic, rta, rtb, per, ub, s, same_units=False),
+                               1e-4 * Jb[:, m] @ Jb[:, m].T, rtol=1e-9, atol=1e-18)
+    one = {**ua, "sigma_in_covariance": {**ua["sigma_in_covariance"], "ring range bias": {lidars[0]: 0.01}}}
+    if len(lidars) > 1:  # the other LIDAR's rings are not in A's covariance: still counted
+        assert not np.allclose(unit_error_term(topic, rta, rtb, one, ub, s, same_units=False),
+                               1e-4 * Jb[:, m] @ Jb[:, m].T, rtol=1e-6, atol=1e-18)
 
 
 def test_unit_errors_round_trip_through_calibration_yaml_read_once(captures, tmp_path, monkeypatch):
