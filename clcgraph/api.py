@@ -532,6 +532,8 @@ def calibrate_bags(bags, topics: Sequence[str], models: Sequence[str | Path] = (
     def start_report(estimate):  # the pictures of the estimate drawn while the solve computes its uncertainty
         from .outputs.report import start_estimate_figures
 
+        if report.get("figures") is not None:  # an estimate of before a snapshot was left out (solve.calibrate)
+            report["figures"].close(wait=False)
         with StageClock(timings)("report"):  # (inside the solve's clock, which counts it too)
             report["inputs"] = gather_report_inputs(estimate, cfg, bags=bags, models=models, call=call,
                                                     material=material)

@@ -229,8 +229,9 @@ class SolveOptions:
     consistency_alpha: float = 1e-3
     # A result that fails them is refused (exit 2, one line naming the snapshot, sensor and
     # direction), including a direction one board alone determines (an error there would pass
-    # every check). False: written with its verdict in calibration.yaml, the report and a line
-    # under the summary table.
+    # every check); a snapshot that alone disagrees with the others is first left out (up to
+    # one in ten, each named: docs/uncertainty.md). False: written with its verdict in
+    # calibration.yaml, the report and a line under the summary table.
     refuse_inconsistent: bool = True
     # Each observation's own board-pose error (a LIDAR's plane tilt and offset, a camera's
     # board-pose jitter), its sigmas estimated from the data: real errors are correlated

@@ -198,6 +198,25 @@ def test_range_bias_in_some_rear_boards_is_refused():
         assert all(z < 3 for _, _, z in _errors(r, truth).values()), _errors(r, truth)
 
 
+def test_a_disagreeing_snapshot_is_left_out_and_the_rest_answered():
+    """One rear board 4 cm long, white noise only (nothing in the model absorbs it): its snapshot
+    fails its leave-one-out test; it is left out, named in the rejections and the verdict, and
+    the rest answers within 3 sigma. Three such boards of 24: one in ten may go, then the
+    calibration is refused as before, saying which were left out."""
+    p, truth = _three_lidar_problem(2, n_front=12)
+    rear = sorted({o.snapshot for o in p.lidar_observations if o.sensor == 2})
+    white = dataclasses.replace(REFUSING, observation_effects=False)
+    r = calibrate(_range_bias(p, 2, rear[1:2], 0.04), white)
+    assert [x["snapshot"] for x in r.stats["consistency"]["left_out"]] == [rear[1]]
+    why = [x for x in r.rejected if x.stage == "consistency"]
+    assert len(why) == 1 and why[0].snapshot == rear[1] and why[0].reason.startswith("left out: it disagrees")
+    assert not np.all(np.isfinite(r.rt_lidar0_board[rear[1]])) and r.stats["consistency"]["passed"]
+    assert all(z < 3 for _, _, z in _errors(r, truth).values()), _errors(r, truth)
+    with pytest.raises(SolveError, match=r"not self-consistent.*\(after leaving out snapshot \d+, snapshot \d+ that "
+                                         r"disagreed with the others\)$"):
+        calibrate(_range_bias(p, 2, rear[:3], 0.04), white)
+
+
 def test_link_resting_on_one_board_is_refused():
     """4 front boards, one of them 4 cm long: the solve moves /roof ~60 mm (10 sigma) and, with
     planes alone, no leave-one-out test can see it (that board alone fixes the direction):

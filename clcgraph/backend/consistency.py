@@ -58,6 +58,15 @@ _MATERIAL_M = 0.05
 _LEVER_M = 10.0
 
 
+class Inconsistent(SolveError):
+    """A refused calibration whose worst failure is ``snapshot``'s (None: a pair of sensors'):
+    ``why`` that failure in words."""
+
+    def __init__(self, message: str, snapshot: int | None, why: str):
+        super().__init__(message)
+        self.snapshot, self.why = snapshot, why
+
+
 @dataclass
 class _Obs:
     """One observation's normal-equation blocks: sensor (None for lidar0 or a board prior)."""
@@ -517,14 +526,14 @@ def check(problem: Problem, lin: Linearized, *, alpha: float = FAMILY_ALPHA, ref
         if c.p < limit:
             who = sorted({names[o.sensor].topic for o in lin.by_snapshot[k] if o.sensor is not None})
             failures.append((c.p, f"snapshot {k} ({', '.join(who)}) disagrees with the other snapshots by "
-                                  f"{c.sigma:.1f} sigma ({c.direction}, {c.size})"))
+                                  f"{c.sigma:.1f} sigma ({c.direction}, {c.size})", int(k)))
     for key, (c, nshared) in pair_tests.items():
         if c.p < limit:
             failures.append((c.p, f"the {nshared} boards {key.replace(' - ', ' and ')} saw together disagree with "
-                                  f"the rest of the data by {c.sigma:.1f} sigma ({c.direction}, {c.size})"))
+                                  f"the rest of the data by {c.sigma:.1f} sigma ({c.direction}, {c.size})", None))
     log.info("consistency: %d checks, worst snapshot %s", m, verdict["snapshots"].get("worst_sigma"))
-    failures.sort()
-    verdict["failures"] = [why for _, why in failures]
+    failures.sort(key=lambda f: f[0])
+    verdict["failures"] = [why for _, why, _ in failures]
     verdict["unverifiable"] = [why for _, _, _, why, _ in unverified]
     verdict["passed"] = not failures and not unverified
     if verdict["passed"]:
@@ -536,8 +545,9 @@ def check(problem: Problem, lin: Linearized, *, alpha: float = FAMILY_ALPHA, ref
     more = len(failures) + len(unverified) - 1
     more = f" (and {more} more)" if more else ""
     if failures:
-        raise SolveError(f"not self-consistent, no result written: {first}{more}; a wrong board association or a "
-                         "moved sensor? check the boards with `clcgraph segment`/`detect`, or leave the snapshot "
-                         "out (replay --exclude); --set solve.refuse_inconsistent=false writes it with this verdict")
+        raise Inconsistent(f"not self-consistent, no result written: {first}{more}; a wrong board association or a "
+                           "moved sensor? check the boards with `clcgraph segment`/`detect`, or leave the snapshot "
+                           "out (replay --exclude); --set solve.refuse_inconsistent=false writes it with this verdict",
+                           failures[0][2], failures[0][1])
     raise DegenerateError(f"not verifiable, no result written: {first}{more}; {unverified[0][4]} "
                           "(--set solve.refuse_inconsistent=false writes it with this verdict)")

@@ -25,6 +25,7 @@ SYNOPSIS
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from typing import Callable
@@ -358,6 +359,44 @@ def _covariance(problem: Problem, g, values, rt_sensor, options) -> np.ndarray:
 
 def calibrate(problem: Problem, options, *, on_estimate: Callable[[Result], None] | None = None) -> Result:
     """Solve ``problem`` with config.SolveOptions ``options`` -> types.Result (module docstring).
+
+    A snapshot that disagrees with the others beyond the consistency check's limit (a wrong
+    plane taken for the board, a board that moved during its bag) is left out and the rest solved
+    and checked again, up to one snapshot in ten of those used (at least one): each left out is
+    tested at the check's family-wise level, so a consistent capture loses one with probability
+    ``consistency_alpha``. Each is named in ``rejected`` and the verdict (``left_out``); beyond
+    that many, or where a pair of sensors disagrees, the calibration is refused as before.
+    """
+    left_out: list[tuple[int, str]] = []
+    used = len(G.Active.all(problem).boards(problem)[0])
+    while True:
+        try:
+            result = _calibrate_once(problem, options, on_estimate=on_estimate)
+        except consistency.Inconsistent as e:
+            if e.snapshot is None or len(left_out) >= max(1, used // 10):
+                if left_out:
+                    raise SolveError(f"{e} (after leaving out {_left_out_words(left_out)})") from None
+                raise
+            log.warning("solve: left out snapshot %d: %s", e.snapshot, e.why)
+            left_out.append((e.snapshot, e.why))
+            problem = dataclasses.replace(
+                problem,
+                lidar_observations=tuple(o for o in problem.lidar_observations if o.snapshot != e.snapshot),
+                camera_observations=tuple(o for o in problem.camera_observations if o.snapshot != e.snapshot),
+                rejected=problem.rejected + (Rejected("left out: it " + e.why.split(") ", 1)[-1], "consistency", None,
+                                                      e.snapshot),))
+            continue
+        if left_out:
+            result.stats["consistency"]["left_out"] = [{"snapshot": k, "why": why} for k, why in left_out]
+        return result
+
+
+def _left_out_words(left_out) -> str:
+    return ", ".join(f"snapshot {k}" for k, _ in left_out) + " that disagreed with the others"
+
+
+def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result], None] | None = None) -> Result:
+    """One solve of ``problem`` (calibrate's, which leaves out disagreeing snapshots around it).
 
     ``on_estimate(estimate)``: called once the poses, board poses, noise sigmas, residuals and
     rejections are final, before the covariance, jackknife and consistency checks (the last
