@@ -287,20 +287,16 @@ def _check_layout(a: dict, meta: dict, path: Path) -> None:
         bad("infinite camera corners")
     if len(a["lidar_indices"]) and a["lidar_indices"].min() < 0:
         bad("negative point indices")
-    vis = meta.get("visibility_sensors")
-    if not isinstance(vis, list) or not all(isinstance(k, int) and 0 <= k < nsens for k in vis):
-        bad(f"visibility_sensors {vis!r}")
-    for k in vis:
-        x = a.get(f"visibility_{k}")
-        if x is None or x.dtype.kind != "f" or x.ndim != 2 or x.shape[1] != 3 or not np.all(np.isfinite(x)):
-            bad(f"visibility points of sensor {k}")
-    rings = meta.get("ring_offset_sensors", [])  # older dumps have none
-    if not isinstance(rings, list) or not all(isinstance(k, int) and 0 <= k < nsens for k in rings):
-        bad(f"ring_offset_sensors {rings!r}")
-    for k in rings:
-        x = a.get(f"ring_offsets_{k}")
-        if x is None or x.dtype.kind != "f" or x.ndim != 2 or x.shape[1] != 2 or not np.all(np.isfinite(x)):
-            bad(f"ring offsets of sensor {k}")
+    # per-sensor arrays: (meta key listing the sensors, member prefix, columns, what; older dumps have no ring offsets)
+    for key, prefix, cols, what in (("visibility_sensors", "visibility", 3, "visibility points"),
+                                    ("ring_offset_sensors", "ring_offsets", 2, "ring offsets")):
+        ks = meta.get(key, [] if prefix == "ring_offsets" else None)
+        if not isinstance(ks, list) or not all(isinstance(k, int) and 0 <= k < nsens for k in ks):
+            bad(f"{key} {ks!r}")
+        for k in ks:
+            x = a.get(f"{prefix}_{k}")
+            if x is None or x.dtype.kind != "f" or x.ndim != 2 or x.shape[1] != cols or not np.all(np.isfinite(x)):
+                bad(f"{what} of sensor {k}")
     board = meta.get("board")
     if meta.get("version") == 1:  # corners_x, corners_y, spacing_m, margin_m
         ok = isinstance(board, dict) and all(isinstance(v, (int, float)) and not isinstance(v, bool)

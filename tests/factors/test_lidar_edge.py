@@ -311,6 +311,18 @@ def test_a_side_crossed_at_the_same_columns_is_known_to_one_quantisation(stagger
     np.testing.assert_allclose(1 / np.sum(1 / both[:2] ** 2), 0.02**2 / 12)
 
 
+def _right_intervals(scan, rows, n, d):
+    step = 2 * np.pi / 2048
+    every = scan_rays(scan, step)
+    outline = fit_outline(scan.points[rows], every.points[every.away_from(rows)], n, d, size_m=(0.85, 0.61),
+                          step_rad=step, plane_tol_m=0.05)
+    rays = edge_rays(every, rows, n, d, outline, plane_tol_m=0.05)
+    q_in = rays[:, 0] * (3.0 / rays[:, 0, 0])[:, None]
+    q_out = rays[:, 1] * (3.0 / rays[:, 1, 0])[:, None]
+    right = (q_out[:, 1] < q_in[:, 1] - 1e-6) & (np.abs(q_out[:, 2] - q_in[:, 2]) < 1e-3)
+    return q_in[right], q_out[right]
+
+
 def test_a_dropout_at_the_boards_edge_does_not_move_the_edge_inward():
     """The board's last return on some rings dropped (no return: dark squares drop often): the
     missed ray may be on the board, so the interval runs to the ray after it (the wall behind),
@@ -326,31 +338,12 @@ def test_a_dropout_at_the_boards_edge_does_not_move_the_edge_inward():
     valid = scan.valid.copy()
     valid[dropped] = False
     scan = dataclasses.replace(scan, valid=valid, points=np.where(valid[:, None], scan.points, np.nan))
-    rows = np.setdiff1d(rows, dropped)
-    every = scan_rays(scan, step)
-    outline = fit_outline(scan.points[rows], every.points[every.away_from(rows)], n, d, size_m=(0.85, 0.61),
-                          step_rad=step, plane_tol_m=0.05)
-    rays = edge_rays(every, rows, n, d, outline, plane_tol_m=0.05)
-    q_in = rays[:, 0] * (3.0 / rays[:, 0, 0])[:, None]
-    q_out = rays[:, 1] * (3.0 / rays[:, 1, 0])[:, None]
-    right = (q_out[:, 1] < q_in[:, 1] - 1e-6) & (np.abs(q_out[:, 2] - q_in[:, 2]) < 1e-3)
-    assert right.sum() >= 8
-    assert np.all((q_in[right, 1] >= -0.425) & (q_out[right, 1] < -0.425))  # every one straddles the edge
+    q_in, q_out = _right_intervals(scan, np.setdiff1d(rows, dropped), n, d)
+    assert len(q_in) >= 8
+    assert np.all((q_in[:, 1] >= -0.425) & (q_out[:, 1] < -0.425))  # every one straddles the edge
     # those of the rings with a dropout are two steps long
-    width = q_in[right, 1] - q_out[right, 1]
+    width = q_in[:, 1] - q_out[:, 1]
     assert np.sum(width > 1.5 * 3.0 * step) == 4 and np.all(width < 2.5 * 3.0 * step / np.cos(0.15) ** 2)
-
-
-def _right_intervals(scan, rows, n, d):
-    step = 2 * np.pi / 2048
-    every = scan_rays(scan, step)
-    outline = fit_outline(scan.points[rows], every.points[every.away_from(rows)], n, d, size_m=(0.85, 0.61),
-                          step_rad=step, plane_tol_m=0.05)
-    rays = edge_rays(every, rows, n, d, outline, plane_tol_m=0.05)
-    q_in = rays[:, 0] * (3.0 / rays[:, 0, 0])[:, None]
-    q_out = rays[:, 1] * (3.0 / rays[:, 1, 0])[:, None]
-    right = (q_out[:, 1] < q_in[:, 1] - 1e-6) & (np.abs(q_out[:, 2] - q_in[:, 2]) < 1e-3)
-    return q_in[right], q_out[right]
 
 
 def _ranged(scan, rows, extra: dict):
