@@ -44,6 +44,7 @@ from typing import Iterable, Iterator, Sequence
 import numpy as np
 
 from clcgraph.errors import InputError
+from clcgraph.frontend.lidar_preprocess import finite_rows, row_norms, small_unique
 from clcgraph.types import Image, LidarScan, Rejected, Snapshot, names_bag
 
 log = logging.getLogger(__name__)
@@ -162,9 +163,9 @@ def range_image(scan: LidarScan, *, azimuth_bins: int = AZIMUTH_BINS,
     separated by gaps > ``ring_gap_rad`` (numbered from the lowest).
     """
     p = np.asarray(scan.points, float)
-    ok = np.asarray(scan.valid, bool) & np.all(np.isfinite(p), axis=1)
+    ok = np.asarray(scan.valid, bool) & finite_rows(p)
     p = p[ok]
-    r = np.linalg.norm(p, axis=1)
+    r = row_norms(p)
     if scan.ring is not None:
         ring = np.asarray(scan.ring)[ok].astype(np.int64)
     else:
@@ -174,11 +175,18 @@ def range_image(scan: LidarScan, *, azimuth_bins: int = AZIMUTH_BINS,
         ring = np.searchsorted(0.5 * (e[gaps] + e[gaps + 1]), el)
     az = np.arctan2(p[:, 1], p[:, 0])
     a = np.floor((az + np.pi) / (2 * np.pi) * azimuth_bins).astype(np.int64) % azimuth_bins
-    rings, ri = np.unique(ring, return_inverse=True)
-    img = np.full((len(rings), azimuth_bins), np.inf)
-    np.minimum.at(img, (ri, a), r)
+    rings, ri = small_unique(ring)
+    img = np.full(len(rings) * azimuth_bins, np.inf)
+    cell = ri * azimuth_bins + a
+    # the nearest return per cell (np.minimum.at, a tenth of its cost): write every return, then
+    # again those nearer than what their cell holds until none is (exact whichever write won)
+    img[cell] = r
+    k = np.flatnonzero(r < img[cell])
+    while len(k):
+        img[cell[k]] = r[k]
+        k = k[r[k] < img[cell[k]]]
     img[np.isinf(img)] = np.nan
-    return rings, img
+    return rings, img.reshape(len(rings), azimuth_bins)
 
 
 def scene_motion(a: LidarScan, b: LidarScan, *, threshold_m: float, min_cells: int,
