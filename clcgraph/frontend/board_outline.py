@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..types import LidarScan
-from .lidar_preprocess import Rings, missed_rays, prepare, ring_neighbours
+from .lidar_preprocess import Rings, missed_rays, prepare, ring_neighbours, row_norms
 
 # The fine search grid: cells of half the point spacing, within these bounds (m).
 _CELL_M = (0.01, 0.03)
@@ -94,7 +94,7 @@ class ScanRays:
         every = np.arange(len(self.points))
         if self.azimuth is None or not len(points):
             return every
-        r = np.linalg.norm(points, axis=1)
+        r = row_norms(points)
         u = points / np.where(r > 0, r, 1.0)[:, None]
         with np.errstate(divide="ignore", invalid="ignore"):
             t = d / (u @ n)
@@ -131,7 +131,7 @@ def scan_rays(scan: LidarScan, step_rad: float, far_m: float = 1e4, *, rings: Ri
     dirs, before, after = missed_rays(R, step_rad)
     rows = np.r_[R.index, -1]  # position -1 -> row -1
     pts = np.r_[R.points[ok], far_m * dirs]
-    u = pts / np.linalg.norm(pts, axis=1)[:, None]
+    u = pts / row_norms(pts)[:, None]
     az = np.arctan2(u[:, 1], u[:, 0])
     order = np.argsort(az, kind="stable")
     return ScanRays(pts, np.r_[rows[prv[ok]], rows[before]], np.r_[rows[nxt[ok]], rows[after]], len(scan.points),
@@ -153,7 +153,7 @@ def ray_plane(points: np.ndarray, n: np.ndarray, d: float, origin: np.ndarray, b
     """(xy (N,2) where each return's ray crosses the plane, in the plane's basis; depth (N,) m:
     the return's range beyond that crossing, negative in front; ahead (N,): the ray meets the
     plane ahead of the sensor)."""
-    r = np.linalg.norm(points, axis=1)
+    r = row_norms(points)
     u = points / np.where(r > 0, r, 1.0)[:, None]
     un = u @ n
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -167,7 +167,7 @@ def ray_plane(points: np.ndarray, n: np.ndarray, d: float, origin: np.ndarray, b
 def along_ring_step(points: np.ndarray, n: np.ndarray, d: float, step_rad: float) -> np.ndarray:
     """(N,3) m: where on the plane the next ray of each return's ring lands, relative to its own
     crossing (the derivative of the ray-plane crossing with azimuth, times the step)."""
-    r = np.linalg.norm(points, axis=1)
+    r = row_norms(points)
     u = points / np.where(r > 0, r, 1.0)[:, None]
     du = np.c_[-u[:, 1], u[:, 0], np.zeros(len(u))]  # d u / d azimuth (|du| = cos elevation)
     un = u @ n

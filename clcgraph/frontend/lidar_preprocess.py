@@ -47,6 +47,16 @@ def small_unique(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return (np.flatnonzero(seen) + lo).astype(values.dtype, copy=False), (np.cumsum(seen) - 1)[values - lo]
 
 
+def _unique_counts(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(keys, return_counts=True)`` of (N,) non-negative integers: by counting when they
+    span at most 8 x N (no sort of N keys), else by np.unique."""
+    if not len(keys) or keys.max() > 8 * len(keys):
+        return np.unique(keys, return_counts=True)
+    c = np.bincount(keys)
+    k = np.flatnonzero(c)
+    return k.astype(keys.dtype, copy=False), c[k]
+
+
 def ring_of(scan: LidarScan) -> np.ndarray:
     """(N,) ring index per point: the ring field, or clusters of the elevation angle."""
     if scan.ring is not None:
@@ -212,7 +222,7 @@ def _same_rays(ref: LidarScan, scan: LidarScan, R: Rings, step: float | None):
         return None
     p = np.asarray(scan.points, float)[R.index]
     with np.errstate(invalid="ignore", over="ignore"):
-        r = np.linalg.norm(p, axis=1)
+        r = row_norms(p)
     near = np.asarray(scan.valid, bool)[R.index] & np.isfinite(r) & (r > 0)
     if scan.ring is not None:
         near &= np.asarray(scan.ring)[R.index] == R.ring
@@ -322,7 +332,7 @@ def static_masks(scans, *, npoints_per_rotation: int, quantum_m: float = 0.2, mi
         p = np.asarray(s.points, float)
         ring = ring_of(s)
         with np.errstate(invalid="ignore", over="ignore"):  # garbage points are masked out below
-            r = np.linalg.norm(p, axis=1)
+            r = row_norms(p)
             az = np.arctan2(p[:, 1], p[:, 0])
         # only returns in segmentation range take part: one scan of garbage (a false is_bigendian)
         # must not overflow the keys and spoil every other scan's modes
@@ -340,7 +350,7 @@ def static_masks(scans, *, npoints_per_rotation: int, quantum_m: float = 0.2, mi
     # one int64 per (cell, range bin): a 1-D unique is much faster than a row-wise one. The cells (<
     # the r_static array's size below) times the range bins (max_range_m / quantum_m <= 1e7 by the
     # config's bounds) are far from int64 overflow: no dense numbering of the cells first (2x the cost)
-    kq, counts = np.unique(K[good] * span + Qg, return_counts=True)
+    kq, counts = _unique_counts(K[good] * span + Qg)
     kc, qb = kq // span, kq % span
     # the most common range bin of each cell
     order = np.lexsort((-counts, kc))
