@@ -208,11 +208,12 @@ def _box_counts(tables, blocks: np.ndarray, cells: np.ndarray, k: np.ndarray, ti
         how = "table" if cheaper else "grid"
     if how == "table":
         for b, loc, ox, sign in picked:
-            S = np.bincount(b * (P0 * P1) + loc, minlength=B * P0 * P1).reshape(B, P0, P1).cumsum(axis=1).cumsum(axis=2)
+            S = np.bincount(b * (P0 * P1) + loc, minlength=B * P0 * P1).reshape(B, P0, P1)
+            np.cumsum(S, axis=1, out=S)  # in place: no temporaries of the table's size
+            np.cumsum(S, axis=2, out=S)
             i0, i1, j0, j1 = ox, k[0] - ox, ox, k[1] - ox
-            box = S[:, i1:i1 + tile[0], j1:j1 + tile[1]] - S[:, i0:i0 + tile[0], j1:j1 + tile[1]] \
-                - S[:, i1:i1 + tile[0], j0:j0 + tile[1]] + S[:, i0:i0 + tile[0], j0:j0 + tile[1]]
-            (np.add if sign > 0 else np.subtract)(out, box, out=out)
+            for i, j, s in ((i1, j1, sign), (i0, j1, -sign), (i1, j0, -sign), (i0, j0, sign)):
+                (np.add if s > 0 else np.subtract)(out, S[:, i:i + tile[0], j:j + tile[1]], out=out)
         return out
     T0, T1 = tile[0] + 1, tile[1] + 1
     D = np.zeros(B * T0 * T1, np.int64)
@@ -228,7 +229,10 @@ def _box_counts(tables, blocks: np.ndarray, cells: np.ndarray, k: np.ndarray, ti
         del cj
         for at, s in ((i0 + j0, sign), (i1 + j1, sign), (i1 + j0, -sign), (i0 + j1, -sign)):
             (np.add if s > 0 else np.subtract)(D, np.bincount(at, minlength=D.size), out=D)
-    out += D.reshape(B, T0, T1).cumsum(axis=1).cumsum(axis=2)[:, :tile[0], :tile[1]]
+    D = D.reshape(B, T0, T1)
+    np.cumsum(D, axis=1, out=D)
+    np.cumsum(D, axis=2, out=D)
+    out += D[:, :tile[0], :tile[1]]
     return out
 
 
