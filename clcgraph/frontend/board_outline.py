@@ -257,16 +257,18 @@ def _search(xy_on, xy_behind, angles, size, cell, margin, c0, hint=None, reach=0
         th = angles[a:a + 16]
         A = len(th)
         c, s = np.cos(th), np.sin(th)
-        rot = np.stack([np.c_[c, s], np.c_[-s, c]], axis=1)  # (A,2,2): rows along the sides
+        # (np.stack, not np.c_ / np.r_: those cost more than the arithmetic at these sizes)
+        rot = np.stack([np.stack([c, s], axis=1), np.stack([-s, c], axis=1)], axis=1)  # (A,2,2): rows along the sides
+        to_sides = np.stack([np.concatenate([c, -s]), np.concatenate([s, c])])  # (2,2A)
 
         def rotated(xy):  # (A,N) coordinates along each angle's two sides
-            q = xy @ np.r_[np.c_[c, -s].T, np.c_[s, c].T].reshape(2, 2 * A)
+            q = xy @ to_sides
             return q[:, :A].T, q[:, A:].T
 
         qx, qy = rotated(xy_on)
         if hint is None:  # any rectangle touching the plane returns
-            lo = np.c_[qx.min(axis=1), qy.min(axis=1)] - size - cell
-            hi = np.c_[qx.max(axis=1), qy.max(axis=1)] + size + cell
+            lo = np.stack([qx.min(axis=1), qy.min(axis=1)], axis=1) - size - cell
+            hi = np.stack([qx.max(axis=1), qy.max(axis=1)], axis=1) + size + cell
         else:
             h = rot @ hint
             lo, hi = h - size / 2 - reach - cell, h + size / 2 + reach + cell
