@@ -219,6 +219,8 @@ def _stage3(R: Rings, rank: np.ndarray, rank_el: np.ndarray, members: np.ndarray
     az0 = np.arctan2(*np.mean(np.c_[np.sin(R.azimuth[members]), np.cos(R.azimuth[members])], axis=0))
     rel = lambda az: (az - az0 + np.pi) % (2 * np.pi) - np.pi  # noqa: E731  azimuth around the cluster
     out, pending = [], []
+    is_member = np.zeros(len(R.index), bool)  # a run holds one of its ring's members (no np.isin per run)
+    is_member[members] = True
     for a, b in zip(R.starts[:-1], R.starts[1:]):
         rk = rank[a]
         if not lo_r <= rk <= hi_r:
@@ -232,10 +234,10 @@ def _stage3(R: Rings, rank: np.ndarray, rank_el: np.ndarray, members: np.ndarray
         jump = row_norms(np.diff(R.points[rows], axis=0))
         max_jump = _max_jump(R.range[rows[:-1]], step * np.clip(np.diff(pos), 1, 2), o)
         brk = np.flatnonzero((np.diff(pos) > o.max_gap_points_stage3) | (jump > max_jump))
-        mine = members[mrank == rk]
+        has_members = bool((mrank == rk).any())
         for run in np.split(rows, brk + 1):
-            if len(mine):
-                if np.isin(run, mine).any():
+            if has_members:
+                if is_member[run].any():  # a run lies in one ring: only that ring's members can be in it
                     out.append(run)
             elif len(run) >= 2:
                 pending.append((rk, run))
