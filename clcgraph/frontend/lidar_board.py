@@ -43,7 +43,8 @@ from ..planes import fit_plane, ransac_plane
 from ..types import BoardGeometry, LidarBoardObservation, LidarScan, Rejected
 from .board_edges import edge_rays
 from .board_outline import fit_outline, scan_rays
-from .lidar_preprocess import Rings, finite_rows, neighbour_steps, prepare, ring_of, row_norms, session_masks, typical_step
+from .lidar_preprocess import (Rings, finite_rows, neighbour_steps, prepare, ring_of, row_norms, session_masks,
+                               typical_step)
 
 STAGE = "segmentation"
 log = logging.getLogger(__name__)
