@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..types import LidarScan
-from .lidar_preprocess import Rings, missed_rays, prepare, ring_neighbours
+from .lidar_preprocess import Rings, missed_rays, prepare, ring_neighbours, row_norms
 
 # The fine search grid: cells of half the point spacing, within these bounds (m).
 _CELL_M = (0.01, 0.03)
@@ -94,7 +94,7 @@ class ScanRays:
         every = np.arange(len(self.points))
         if self.azimuth is None or not len(points):
             return every
-        r = np.linalg.norm(points, axis=1)
+        r = row_norms(points)
         u = points / np.where(r > 0, r, 1.0)[:, None]
         with np.errstate(divide="ignore", invalid="ignore"):
             t = d / (u @ n)
@@ -131,7 +131,7 @@ def scan_rays(scan: LidarScan, step_rad: float, far_m: float = 1e4, *, rings: Ri
     dirs, before, after = missed_rays(R, step_rad)
     rows = np.r_[R.index, -1]  # position -1 -> row -1
     pts = np.r_[R.points[ok], far_m * dirs]
-    u = pts / np.linalg.norm(pts, axis=1)[:, None]
+    u = pts / row_norms(pts)[:, None]
     az = np.arctan2(u[:, 1], u[:, 0])
     order = np.argsort(az, kind="stable")
     return ScanRays(pts, np.r_[rows[prv[ok]], rows[before]], np.r_[rows[nxt[ok]], rows[after]], len(scan.points),
@@ -153,7 +153,7 @@ def ray_plane(points: np.ndarray, n: np.ndarray, d: float, origin: np.ndarray, b
     """(xy (N,2) where each return's ray crosses the plane, in the plane's basis; depth (N,) m:
     the return's range beyond that crossing, negative in front; ahead (N,): the ray meets the
     plane ahead of the sensor)."""
-    r = np.linalg.norm(points, axis=1)
+    r = row_norms(points)
     u = points / np.where(r > 0, r, 1.0)[:, None]
     un = u @ n
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -167,7 +167,7 @@ def ray_plane(points: np.ndarray, n: np.ndarray, d: float, origin: np.ndarray, b
 def along_ring_step(points: np.ndarray, n: np.ndarray, d: float, step_rad: float) -> np.ndarray:
     """(N,3) m: where on the plane the next ray of each return's ring lands, relative to its own
     crossing (the derivative of the ray-plane crossing with azimuth, times the step)."""
-    r = np.linalg.norm(points, axis=1)
+    r = row_norms(points)
     u = points / np.where(r > 0, r, 1.0)[:, None]
     du = np.c_[-u[:, 1], u[:, 0], np.zeros(len(u))]  # d u / d azimuth (|du| = cos elevation)
     un = u @ n
@@ -208,11 +208,12 @@ def _box_counts(tables, blocks: np.ndarray, cells: np.ndarray, k: np.ndarray, ti
         how = "table" if cheaper else "grid"
     if how == "table":
         for b, loc, ox, sign in picked:
-            S = np.bincount(b * (P0 * P1) + loc, minlength=B * P0 * P1).reshape(B, P0, P1).cumsum(axis=1).cumsum(axis=2)
+            S = np.bincount(b * (P0 * P1) + loc, minlength=B * P0 * P1).reshape(B, P0, P1)
+            np.cumsum(S, axis=1, out=S)  # in place: no temporaries of the table's size
+            np.cumsum(S, axis=2, out=S)
             i0, i1, j0, j1 = ox, k[0] - ox, ox, k[1] - ox
-            box = S[:, i1:i1 + tile[0], j1:j1 + tile[1]] - S[:, i0:i0 + tile[0], j1:j1 + tile[1]] \
-                - S[:, i1:i1 + tile[0], j0:j0 + tile[1]] + S[:, i0:i0 + tile[0], j0:j0 + tile[1]]
-            (np.add if sign > 0 else np.subtract)(out, box, out=out)
+            for i, j, s in ((i1, j1, sign), (i0, j1, -sign), (i1, j0, -sign), (i0, j0, sign)):
+                (np.add if s > 0 else np.subtract)(out, S[:, i:i + tile[0], j:j + tile[1]], out=out)
         return out
     T0, T1 = tile[0] + 1, tile[1] + 1
     D = np.zeros(B * T0 * T1, np.int64)
@@ -228,7 +229,10 @@ def _box_counts(tables, blocks: np.ndarray, cells: np.ndarray, k: np.ndarray, ti
         del cj
         for at, s in ((i0 + j0, sign), (i1 + j1, sign), (i1 + j0, -sign), (i0 + j1, -sign)):
             (np.add if s > 0 else np.subtract)(D, np.bincount(at, minlength=D.size), out=D)
-    out += D.reshape(B, T0, T1).cumsum(axis=1).cumsum(axis=2)[:, :tile[0], :tile[1]]
+    D = D.reshape(B, T0, T1)
+    np.cumsum(D, axis=1, out=D)
+    np.cumsum(D, axis=2, out=D)
+    out += D[:, :tile[0], :tile[1]]
     return out
 
 
@@ -253,16 +257,18 @@ def _search(xy_on, xy_behind, angles, size, cell, margin, c0, hint=None, reach=0
         th = angles[a:a + 16]
         A = len(th)
         c, s = np.cos(th), np.sin(th)
-        rot = np.stack([np.c_[c, s], np.c_[-s, c]], axis=1)  # (A,2,2): rows along the sides
+        # (np.stack, not np.c_ / np.r_: those cost more than the arithmetic at these sizes)
+        rot = np.stack([np.stack([c, s], axis=1), np.stack([-s, c], axis=1)], axis=1)  # (A,2,2): rows along the sides
+        to_sides = np.stack([np.concatenate([c, -s]), np.concatenate([s, c])])  # (2,2A)
 
         def rotated(xy):  # (A,N) coordinates along each angle's two sides
-            q = xy @ np.r_[np.c_[c, -s].T, np.c_[s, c].T].reshape(2, 2 * A)
+            q = xy @ to_sides
             return q[:, :A].T, q[:, A:].T
 
         qx, qy = rotated(xy_on)
         if hint is None:  # any rectangle touching the plane returns
-            lo = np.c_[qx.min(axis=1), qy.min(axis=1)] - size - cell
-            hi = np.c_[qx.max(axis=1), qy.max(axis=1)] + size + cell
+            lo = np.stack([qx.min(axis=1), qy.min(axis=1)], axis=1) - size - cell
+            hi = np.stack([qx.max(axis=1), qy.max(axis=1)], axis=1) + size + cell
         else:
             h = rot @ hint
             lo, hi = h - size / 2 - reach - cell, h + size / 2 + reach + cell

@@ -43,7 +43,8 @@ from ..planes import fit_plane, ransac_plane
 from ..types import BoardGeometry, LidarBoardObservation, LidarScan, Rejected
 from .board_edges import edge_rays
 from .board_outline import fit_outline, scan_rays
-from .lidar_preprocess import Rings, neighbour_steps, prepare, ring_of, session_masks, typical_step
+from .lidar_preprocess import (Rings, finite_rows, neighbour_steps, prepare, ring_of, row_norms, session_masks,
+                               typical_step)
 
 STAGE = "segmentation"
 log = logging.getLogger(__name__)
@@ -107,7 +108,7 @@ def _stage1(R: Rings, rank: np.ndarray, step: float, o) -> tuple[_Segments, np.n
     p = R.points
     same_ring = R.ring[1:] == R.ring[:-1]
     daz = np.diff(R.azimuth)
-    jump = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    jump = row_norms(np.diff(p, axis=0))
     max_jump = _max_jump(R.range[:-1], np.maximum(daz, step), o)
     linked = same_ring & (daz <= (o.max_gap_points_stage1 + 1.5) * step) & (jump <= max_jump)
     run = np.r_[0, np.cumsum(~linked)]
@@ -169,13 +170,13 @@ def _links(seg: _Segments, rank_elevation: np.ndarray, o) -> np.ndarray:
     cross = seg.rank[P[:, 0]] != seg.rank[P[:, 1]]
     d = cb - ca
     d_perp = d - np.einsum("ij,ij->i", d, va)[:, None] * va
-    dist_perp = np.linalg.norm(d_perp, axis=1)
-    r = np.linalg.norm(ca, axis=1)
+    dist_perp = row_norms(d_perp)
+    r = row_norms(ca)
     del_el = np.abs(rank_elevation[seg.rank[P[:, 0]]] - rank_elevation[seg.rank[P[:, 1]]])
     max_perp = _across_rings(r, del_el, o)
     parallel = np.abs(np.einsum("ij,ij->i", va, vb)) >= np.cos(np.radians(o.max_angle_cross_ring_deg))
     n = np.cross(va, d_perp)
-    n /= np.maximum(np.linalg.norm(n, axis=1), 1e-12)[:, None]
+    n /= np.maximum(row_norms(n), 1e-12)[:, None]
     facing = np.abs(np.einsum("ij,ij->i", n, ca / r[:, None])) >= np.cos(np.radians(o.max_tilt_deg))
     keep = ~cross | (parallel & (dist_perp <= max_perp) & (dist_perp > 1e-3) & facing)
     return P[keep]
@@ -219,6 +220,8 @@ def _stage3(R: Rings, rank: np.ndarray, rank_el: np.ndarray, members: np.ndarray
     az0 = np.arctan2(*np.mean(np.c_[np.sin(R.azimuth[members]), np.cos(R.azimuth[members])], axis=0))
     rel = lambda az: (az - az0 + np.pi) % (2 * np.pi) - np.pi  # noqa: E731  azimuth around the cluster
     out, pending = [], []
+    is_member = np.zeros(len(R.index), bool)  # a run holds one of its ring's members (no np.isin per run)
+    is_member[members] = True
     for a, b in zip(R.starts[:-1], R.starts[1:]):
         rk = rank[a]
         if not lo_r <= rk <= hi_r:
@@ -229,13 +232,13 @@ def _stage3(R: Rings, rank: np.ndarray, rank_el: np.ndarray, members: np.ndarray
         if not len(rows):
             continue
         pos = np.searchsorted(az[order], rel(R.azimuth[rows]))  # position along the ring
-        jump = np.linalg.norm(np.diff(R.points[rows], axis=0), axis=1)
+        jump = row_norms(np.diff(R.points[rows], axis=0))
         max_jump = _max_jump(R.range[rows[:-1]], step * np.clip(np.diff(pos), 1, 2), o)
         brk = np.flatnonzero((np.diff(pos) > o.max_gap_points_stage3) | (jump > max_jump))
-        mine = members[mrank == rk]
+        has_members = bool((mrank == rk).any())
         for run in np.split(rows, brk + 1):
-            if len(mine):
-                if np.isin(run, mine).any():
+            if has_members:
+                if is_member[run].any():  # a run lies in one ring: only that ring's members can be in it
                     out.append(run)
             elif len(run) >= 2:
                 pending.append((rk, run))
@@ -293,8 +296,8 @@ def _ring_pieces(pts: np.ndarray, ring: np.ndarray, step: float, o) -> np.ndarra
     az = (az - az0 + np.pi) % (2 * np.pi) - np.pi
     order = np.lexsort((az, ring))
     p, r = pts[order], ring[order]
-    jump = np.linalg.norm(np.diff(p, axis=0), axis=1)
-    limit = _max_jump(np.linalg.norm(p[:-1], axis=1), step, o)
+    jump = row_norms(np.diff(p, axis=0))
+    limit = _max_jump(row_norms(p[:-1]), step, o)
     piece = np.empty(len(pts), np.int64)
     piece[order] = np.r_[0, np.cumsum((jump > limit) | (r[1:] != r[:-1]))]
     return piece
@@ -388,7 +391,7 @@ def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: floa
     at = f"plane at {np.linalg.norm(c):.1f} m"
     sx, sy = board.size_m  # the physical board (width, height), border included
     # edges bloom by about one point spacing and the range noise
-    spacing_m = float(np.linalg.norm(pts, axis=1).mean() * step)
+    spacing_m = float(row_norms(pts).mean() * step)
     slack = 0.05 + 2.0 * spacing_m
     max_size = o.max_plane_size_m if o.max_plane_size_m is not None else float(np.hypot(sx + slack, sy + slack))
     others = np.zeros((0, 3)) if others is None else others
@@ -617,7 +620,7 @@ def dark_square_correction(pts: np.ndarray, intensity: np.ndarray) -> tuple[np.n
     if not (0.1 <= share <= 0.9) or intensity[~weak].mean() - intensity[weak].mean() <= 4 * spread:
         return pts, 0.0
     n, d, _ = fit_plane(pts[~weak])
-    r = np.linalg.norm(pts, axis=1)
+    r = row_norms(pts)
     u = pts / r[:, None]
     along = d / (u @ n)  # where each ray meets the bright returns' plane
     delta = r - along
@@ -730,7 +733,7 @@ def with_ring_offsets(scan: LidarScan, rings: np.ndarray, offset: np.ndarray) ->
     if scan.ring is None:
         return scan
     pts = np.asarray(scan.points, float)
-    ok = np.all(np.isfinite(pts), axis=1)
+    ok = finite_rows(pts)
     pts = pts.copy()
     pts[ok] = _offset_points(pts[ok], np.asarray(scan.ring)[ok], rings, offset)
     return dataclasses.replace(scan, points=pts)
@@ -741,7 +744,7 @@ def _offset_points(pts: np.ndarray, ring: np.ndarray, rings: np.ndarray, offset:
     out of their ranges."""
     j = np.clip(np.searchsorted(rings, ring), 0, len(rings) - 1)
     off = np.where(rings[j] == ring, offset[j], 0.0)
-    r = np.linalg.norm(pts, axis=1)
+    r = row_norms(pts)
     return pts * np.where(r > 0, (r - off) / np.where(r > 0, r, 1.0), 1.0)[:, None]
 
 
@@ -768,7 +771,7 @@ def ring_range_offsets(found: list, scans: list) -> tuple[np.ndarray, np.ndarray
     R = len(all_rings)
     if R < 4:
         return None
-    rng_m = [np.linalg.norm(p, axis=1) for p in pts]
+    rng_m = [row_norms(p) for p in pts]
     u = [p / r[:, None] for p, r in zip(pts, rng_m)]
     elev = np.zeros(R)
     np.add.at(elev, np.concatenate(rid), np.concatenate([x[:, 2] for x in u]))

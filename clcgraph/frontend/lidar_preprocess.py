@@ -23,6 +23,40 @@ from ..types import LidarScan
 COMMON_NPOINTS = (360, 440, 512, 900, 1024, 1800, 2000, 2048, 3600, 4096)
 
 
+def finite_rows(p: np.ndarray) -> np.ndarray:
+    """(N,) whether each row of ``p`` (N,3) is finite: ``np.all(np.isfinite(p), axis=1)`` without
+    numpy's slow reduction over a short axis."""
+    f = np.isfinite(p)
+    return f[:, 0] & f[:, 1] & f[:, 2]
+
+
+def row_norms(p: np.ndarray) -> np.ndarray:
+    """(N,) ``np.linalg.norm(p, axis=1)`` of ``p`` (N,3), bit for bit (numpy sums the squares in
+    this order too), without the reduction over a short axis."""
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    return np.sqrt(x * x + y * y + z * z)
+
+
+def small_unique(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(values, return_inverse=True)`` of (N,) integers such as ring numbers: by counting
+    when they span less than 2**16 (no sort), else by np.unique."""
+    if not len(values) or int(values.max()) - int(values.min()) >= 1 << 16:
+        return np.unique(values, return_inverse=True)
+    lo = values.min()
+    seen = np.bincount(values - lo) > 0
+    return (np.flatnonzero(seen) + lo).astype(values.dtype, copy=False), (np.cumsum(seen) - 1)[values - lo]
+
+
+def _unique_counts(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(keys, return_counts=True)`` of (N,) non-negative integers: by counting when they
+    span at most 8 x N (no sort of N keys), else by np.unique."""
+    if not len(keys) or keys.max() > 8 * len(keys):
+        return np.unique(keys, return_counts=True)
+    c = np.bincount(keys)
+    k = np.flatnonzero(c)
+    return k.astype(keys.dtype, copy=False), c[k]
+
+
 def ring_of(scan: LidarScan) -> np.ndarray:
     """(N,) ring index per point: the ring field, or clusters of the elevation angle."""
     if scan.ring is not None:
@@ -74,16 +108,21 @@ def prepare(scan: LidarScan, *, min_range_m: float = 0.0, max_range_m: float = n
     """Valid, finite points within [min, max] range (minus ``exclude``), sorted by ring then azimuth.
     The default range keeps every valid return (``Rings.within`` then cuts it without sorting again)."""
     p = np.asarray(scan.points, float)
-    with np.errstate(invalid="ignore", over="ignore"):  # inf / huge garbage points fail the range test
-        rng = np.linalg.norm(p, axis=1)
     ring = ring_of(scan)
-    idx = np.flatnonzero(np.asarray(scan.valid, bool) & np.all(np.isfinite(p), axis=1) & (ring >= 0))
-    az = np.arctan2(p[idx, 1], p[idx, 0])
-    order = np.lexsort((az, ring[idx]))
+    idx = np.flatnonzero(np.asarray(scan.valid, bool) & finite_rows(p) & (ring >= 0))
+    pts = p[idx]
+    with np.errstate(invalid="ignore", over="ignore"):  # huge garbage points fail the range test
+        rng = row_norms(pts)
+    az = np.arctan2(pts[:, 1], pts[:, 0])
+    # np.lexsort((az, ring)) in two stable passes: by azimuth (returns come in azimuth order, which
+    # the stable sort exploits), then by ring as 16-bit keys where they fit (a radix sort)
+    by_az = np.argsort(az, kind="stable")
+    r = ring[idx][by_az]
+    order = by_az[np.argsort(r.astype(np.uint16) if r.max(initial=0) < 1 << 16 else r, kind="stable")]
     idx = idx[order]
     r = ring[idx]
-    ring_ids, starts = np.unique(r, return_index=True)
-    every = Rings(idx, r, az[order], rng[idx], p[idx], np.r_[starts, len(idx)], ring_ids)
+    starts = np.flatnonzero(np.r_[True, r[1:] != r[:-1]]) if len(r) else np.zeros(0, np.int64)
+    every = Rings(idx, r, az[order], rng[order], pts[order], np.r_[starts, len(idx)], r[starts])
     if min_range_m <= 0 and max_range_m == np.inf and exclude is None:
         return every
     return every.within(min_range_m=min_range_m, max_range_m=max_range_m, exclude=exclude)
@@ -183,7 +222,7 @@ def _same_rays(ref: LidarScan, scan: LidarScan, R: Rings, step: float | None):
         return None
     p = np.asarray(scan.points, float)[R.index]
     with np.errstate(invalid="ignore", over="ignore"):
-        r = np.linalg.norm(p, axis=1)
+        r = row_norms(p)
     near = np.asarray(scan.valid, bool)[R.index] & np.isfinite(r) & (r > 0)
     if scan.ring is not None:
         near &= np.asarray(scan.ring)[R.index] == R.ring
@@ -293,7 +332,7 @@ def static_masks(scans, *, npoints_per_rotation: int, quantum_m: float = 0.2, mi
         p = np.asarray(s.points, float)
         ring = ring_of(s)
         with np.errstate(invalid="ignore", over="ignore"):  # garbage points are masked out below
-            r = np.linalg.norm(p, axis=1)
+            r = row_norms(p)
             az = np.arctan2(p[:, 1], p[:, 0])
         # only returns in segmentation range take part: one scan of garbage (a false is_bigendian)
         # must not overflow the keys and spoil every other scan's modes
@@ -311,7 +350,7 @@ def static_masks(scans, *, npoints_per_rotation: int, quantum_m: float = 0.2, mi
     # one int64 per (cell, range bin): a 1-D unique is much faster than a row-wise one. The cells (<
     # the r_static array's size below) times the range bins (max_range_m / quantum_m <= 1e7 by the
     # config's bounds) are far from int64 overflow: no dense numbering of the cells first (2x the cost)
-    kq, counts = np.unique(K[good] * span + Qg, return_counts=True)
+    kq, counts = _unique_counts(K[good] * span + Qg)
     kc, qb = kq // span, kq % span
     # the most common range bin of each cell
     order = np.lexsort((-counts, kc))

@@ -35,7 +35,9 @@ from __future__ import annotations
 
 import datetime as _dt
 import logging
+import os
 import re
+from concurrent.futures import ThreadPoolExecutor
 from decimal import Decimal, InvalidOperation
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,6 +46,7 @@ from typing import Iterable, Iterator, Sequence
 import numpy as np
 
 from clcgraph.errors import InputError
+from clcgraph.frontend.lidar_preprocess import finite_rows, row_norms, small_unique
 from clcgraph.types import Image, LidarScan, Rejected, Snapshot, names_bag
 
 log = logging.getLogger(__name__)
@@ -162,9 +165,9 @@ def range_image(scan: LidarScan, *, azimuth_bins: int = AZIMUTH_BINS,
     separated by gaps > ``ring_gap_rad`` (numbered from the lowest).
     """
     p = np.asarray(scan.points, float)
-    ok = np.asarray(scan.valid, bool) & np.all(np.isfinite(p), axis=1)
+    ok = np.asarray(scan.valid, bool) & finite_rows(p)
     p = p[ok]
-    r = np.linalg.norm(p, axis=1)
+    r = row_norms(p)
     if scan.ring is not None:
         ring = np.asarray(scan.ring)[ok].astype(np.int64)
     else:
@@ -174,11 +177,18 @@ def range_image(scan: LidarScan, *, azimuth_bins: int = AZIMUTH_BINS,
         ring = np.searchsorted(0.5 * (e[gaps] + e[gaps + 1]), el)
     az = np.arctan2(p[:, 1], p[:, 0])
     a = np.floor((az + np.pi) / (2 * np.pi) * azimuth_bins).astype(np.int64) % azimuth_bins
-    rings, ri = np.unique(ring, return_inverse=True)
-    img = np.full((len(rings), azimuth_bins), np.inf)
-    np.minimum.at(img, (ri, a), r)
+    rings, ri = small_unique(ring)
+    img = np.full(len(rings) * azimuth_bins, np.inf)
+    cell = ri * azimuth_bins + a
+    # the nearest return per cell (np.minimum.at, a tenth of its cost): write every return, then
+    # again those nearer than what their cell holds until none is (exact whichever write won)
+    img[cell] = r
+    k = np.flatnonzero(r < img[cell])
+    while len(k):
+        img[cell[k]] = r[k]
+        k = k[r[k] < img[cell[k]]]
     img[np.isinf(img)] = np.nan
-    return rings, img
+    return rings, img.reshape(len(rings), azimuth_bins)
 
 
 def scene_motion(a: LidarScan, b: LidarScan, *, threshold_m: float, min_cells: int,
@@ -394,31 +404,35 @@ def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
     snaps: list[Snapshot] = []
     bag_iter = progress(kept_bags) if progress else kept_bags
     if options.decimation_period_s is None:
-        for b in bag_iter:
-            still, moving_s = (still_intervals(b, lidar_topics, options, tfilter)
-                               if _may_hold_two_still_intervals(b, lidar_topics) else ([], 0.0))
-            # the board stopped more than once: a continuous bag, a snapshot per still interval (a
-            # bag per pose in which something moved, e.g. a passer-by, keeps its first messages)
-            if moving_s > 0 and len(still) >= 2:
-                s_new, r_new = _still_snapshots(b, still, moving_s, lidar_topics, camera_topics, options,
-                                                tfilter, len(snaps))
-                snaps += s_new
-                rejected += r_new
-                continue
-            lead = leading_messages(b, topics, {t: options.max_scans_averaged for t in lidar_topics})
-            chosen = {t: _Msg(t, ms[0].stamp_ns, still_average(ms, options)) for t, ms in lead.items()}
-            if not chosen:
-                rejected.append(Rejected(f"{b}: none of the topics present", "snapshot"))
-                continue
-            why = next((w for w in (tfilter.why_not(m.stamp_ns) for m in chosen.values()) if w), None)
-            if why:
-                rejected.append(Rejected(f"{b}: {why}", "snapshot"))
-                continue
-            spread = _spread_rejection(chosen.values(), options)
-            if spread:
-                rejected.append(Rejected(f"{b}: {spread}", "snapshot"))
-                continue
-            snaps.append(_snapshot(len(snaps), chosen, str(b), lidar_topics, camera_topics))
+        # each bag's LIDAR scans are averaged (still_average) in worker threads while the next bags
+        # are read: numpy releases the GIL there, and reading is mostly Python
+        with ThreadPoolExecutor(max_workers=min(2, os.cpu_count() or 1), thread_name_prefix="clcgraph-average") as pool:
+            for b in bag_iter:
+                still, moving_s = (still_intervals(b, lidar_topics, options, tfilter)
+                                   if _may_hold_two_still_intervals(b, lidar_topics) else ([], 0.0))
+                # the board stopped more than once: a continuous bag, a snapshot per still interval (a
+                # bag per pose in which something moved, e.g. a passer-by, keeps its first messages)
+                if moving_s > 0 and len(still) >= 2:
+                    s_new, r_new = _still_snapshots(b, still, moving_s, lidar_topics, camera_topics, options,
+                                                    tfilter, len(snaps))
+                    snaps += s_new
+                    rejected += r_new
+                    continue
+                lead = leading_messages(b, topics, {t: options.max_scans_averaged for t in lidar_topics})
+                if not lead:
+                    rejected.append(Rejected(f"{b}: none of the topics present", "snapshot"))
+                    continue
+                why = next((w for w in (tfilter.why_not(ms[0].stamp_ns) for ms in lead.values()) if w), None)
+                if why:
+                    rejected.append(Rejected(f"{b}: {why}", "snapshot"))
+                    continue
+                spread = _spread_rejection([ms[0] for ms in lead.values()], options)
+                if spread:
+                    rejected.append(Rejected(f"{b}: {spread}", "snapshot"))
+                    continue
+                snaps.append(_PendingSnapshot(len(snaps), str(b), {t: ms[0].stamp_ns for t, ms in lead.items()},
+                                              {t: pool.submit(still_average, ms, options) for t, ms in lead.items()}))
+            snaps = [s.result(lidar_topics, camera_topics) if isinstance(s, _PendingSnapshot) else s for s in snaps]
     else:
         if options.decimation_period_s <= 0:
             raise InputError(f"decimation_period_s must be > 0, got {options.decimation_period_s}")
@@ -559,6 +573,21 @@ def still_average(messages: list, options=None) -> LidarScan | Image:
                            if not motion_between(image, range_image(m), threshold_m=options.max_board_motion_m,
                                                  min_cells=options.min_moving_cells)[0]]
     return average_scans(still)[0]
+
+
+@dataclass(frozen=True)
+class _PendingSnapshot:
+    """A bag's snapshot whose messages (``still_average``) are still being computed: per topic the
+    first message's stamp and the Future of the message."""
+
+    index: int
+    source: str
+    stamps: dict
+    futures: dict
+
+    def result(self, lidar_topics, camera_topics) -> Snapshot:
+        chosen = {t: _Msg(t, self.stamps[t], f.result()) for t, f in self.futures.items()}
+        return _snapshot(self.index, chosen, self.source, lidar_topics, camera_topics)
 
 
 @dataclass(frozen=True)
