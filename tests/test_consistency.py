@@ -212,6 +212,9 @@ def test_a_disagreeing_snapshot_is_left_out_and_the_rest_answered():
     assert len(why) == 1 and why[0].snapshot == rear[1] and why[0].reason.startswith("left out: it disagrees")
     assert not np.all(np.isfinite(r.rt_lidar0_board[rear[1]])) and r.stats["consistency"]["passed"]
     assert all(z < 3 for _, _, z in _errors(r, truth).values()), _errors(r, truth)
+    from clcgraph.outputs.report import _consistency, consistency_verdict
+
+    assert "<b>Left out</b>" in _consistency(r) and "after leaving out snapshot" in consistency_verdict(r)[3]
     with pytest.raises(SolveError, match=r"not self-consistent.*\(after leaving out snapshot \d+, snapshot \d+ that "
                                          r"disagreed with the others\)$"):
         calibrate(_range_bias(p, 2, rear[:3], 0.04), white)

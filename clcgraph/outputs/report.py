@@ -257,6 +257,8 @@ def _consistency(result: Result) -> str:
              f"information: {_fmt(snaps.get('max_leverage'))}.</p>"]
     for why in [*v.get("failures", []), *v.get("unverifiable", [])]:
         parts.append(f"<p><b>Failed:</b> {html.escape(why)}</p>")
+    for x in v.get("left_out", []):  # the verdict above is of the rest (backend/solve.calibrate)
+        parts.append(f"<p><b>Left out</b> (the verdict is of the other snapshots): {html.escape(x['why'])}</p>")
     if v.get("pairs"):
         rows = "".join(f"<tr><td>{html.escape(k)}</td><td>{x['shared_snapshots']}</td><td>{_fmt(x['sigma'])}</td>"
                        f"<td>{x['dof']}</td><td>{html.escape(x['direction'])}</td></tr>" for k, x in v["pairs"].items())
@@ -554,8 +556,11 @@ def consistency_verdict(result: Result) -> tuple:
     if not v:
         return (False, "Self-consistency", "not checked", "")
     if v.get("passed"):
+        left = v.get("left_out", [])
         return (True, "Self-consistency", "passed", f"{v.get('n_checks', 0)} checks: every snapshot and every sensor "
-                "pair agrees with the rest within its uncertainty")
+                "pair agrees with the rest within its uncertainty"
+                + (f" (after leaving out {', '.join(_snapshot(result, x['snapshot']) for x in left)}, which disagreed)"
+                   if left else ""))
     return (False, "Self-consistency", "FAILED", html.escape((v.get("failures") or v.get("unverifiable") or ["?"])[0]))
 
 
