@@ -102,12 +102,18 @@ def exclude_snapshots(problem: Problem, exclude) -> Problem:
     Snapshot indices are kept (not renumbered), so results stay comparable with the full solve;
     the excluded snapshots get NaN board poses.
     """
-    ex = set(snapshot_indices(problem, exclude))
+    return without_snapshots(problem, snapshot_indices(problem, exclude), "excluded by the user", "snapshot")
+
+
+def without_snapshots(problem: Problem, snapshots, reason: str, stage: str) -> Problem:
+    """``problem`` without the observations of ``snapshots`` (indices kept), each named in its
+    rejections with ``reason`` at ``stage``."""
+    ex = set(snapshots)
     return dataclasses.replace(
         problem,
         lidar_observations=tuple(o for o in problem.lidar_observations if o.snapshot not in ex),
         camera_observations=tuple(o for o in problem.camera_observations if o.snapshot not in ex),
-        rejected=problem.rejected + tuple(Rejected("excluded by the user", "snapshot", None, k) for k in sorted(ex)),
+        rejected=problem.rejected + tuple(Rejected(reason, stage, None, k) for k in sorted(ex)),
     )
 
 

@@ -25,7 +25,6 @@ SYNOPSIS
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from typing import Callable
@@ -40,6 +39,7 @@ from . import graph as G
 from . import noise as N
 from .convergence import MAX_UNCONVERGED_STEP_SIGMA, optimize_lm, public, step_sigma
 from .jackknife import jackknife
+from .replay import without_snapshots
 from .seed import seed as make_seed
 
 log = logging.getLogger(__name__)
@@ -379,12 +379,7 @@ def calibrate(problem: Problem, options, *, on_estimate: Callable[[Result], None
                 raise
             log.warning("solve: left out snapshot %d: %s", e.snapshot, e.why)
             left_out.append((e.snapshot, e.why))
-            problem = dataclasses.replace(
-                problem,
-                lidar_observations=tuple(o for o in problem.lidar_observations if o.snapshot != e.snapshot),
-                camera_observations=tuple(o for o in problem.camera_observations if o.snapshot != e.snapshot),
-                rejected=problem.rejected + (Rejected("left out: it " + e.why.split(") ", 1)[-1], "consistency", None,
-                                                      e.snapshot),))
+            problem = without_snapshots(problem, [e.snapshot], "left out: it " + e.why.split(") ", 1)[-1], "consistency")
             continue
         if left_out:
             result.stats["consistency"]["left_out"] = [{"snapshot": k, "why": why} for k, why in left_out]
