@@ -88,6 +88,10 @@ def edge_rays(rays: ScanRays, rows: np.ndarray, n: np.ndarray, d: float, outline
     last_miss_before = np.full(len(R.index), -1, np.int64)
     last_miss_before[after[after >= 0]] = np.flatnonzero(after >= 0)
     u = R.points / R.range[:, None]
+
+    def missed_dir(k):  # the direction of missed ray k (rows where k is not a missed ray are not used)
+        return dirs[np.clip(k, 0, len(dirs) - 1)] if len(dirs) else np.zeros((len(k), 3))
+
     on = np.zeros(len(R.index), bool)
     on[pos] = True
 
@@ -116,7 +120,6 @@ def edge_rays(rays: ScanRays, rows: np.ndarray, n: np.ndarray, d: float, outline
         lone = (miss >= 0) & ((after if way > 0 else before)[m] >= 0)
         beyond = np.where(lone, (after if way > 0 else before)[m], -1)
         ok &= ~lone | (~on[np.maximum(beyond, 0)] & _behind_or_missed(R, beyond, n, d, plane_tol_m))
-        second = np.clip(m + way, 0, max(len(dirs) - 1, 0))
         # A return behind the plane: the next ray along the ring tells what it was. On the plane:
         # the board went on past a stray return (a heavy tail). Farther behind, or a miss: it lay
         # between the board and what is behind it, a mixed pixel whose beam may have been partly on
@@ -127,9 +130,8 @@ def edge_rays(rays: ScanRays, rows: np.ndarray, n: np.ndarray, d: float, outline
         n2 = np.where(miss2 >= 0, -1, step_to[n1])
         ok &= ~hit | _behind_or_missed(R, n2, n, d, plane_tol_m)
         mixed = hit & ((n2 < 0) | (R.range[np.maximum(n2, 0)] > R.range[n1] + plane_tol_m))
-        past = np.where((n2 < 0)[:, None], dirs[np.clip(miss2, 0, len(dirs) - 1)] if len(dirs) else u[n1],
-                        u[np.maximum(n2, 0)])
-        ray_out = np.where((miss >= 0)[:, None], np.where(lone[:, None], u[np.maximum(beyond, 0)], dirs[second]),
+        past = np.where((n2 < 0)[:, None], missed_dir(miss2), u[np.maximum(n2, 0)])
+        ray_out = np.where((miss >= 0)[:, None], np.where(lone[:, None], u[np.maximum(beyond, 0)], missed_dir(m + way)),
                            np.where(mixed[:, None], past, u[n1]))
         out.append(np.stack([u[end], ray_out], axis=1)[ok])
 
