@@ -188,6 +188,7 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
     clock = StageClock(timings)
     from . import cameras
     from .frontend.camera_board import choose_detector
+    from .frontend.lidar_board import offsets_table
     from .frontend.snapshots import assemble_snapshots
 
     cfg = _config(config)
@@ -252,7 +253,7 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
                                                           ring_offsets=measured)):
                 (lidar_obs if isinstance(r, LidarBoardObservation) else rejected).append(r)
             if measured:
-                ring_offsets[i] = np.array(sorted(measured.items()), float)
+                ring_offsets[i] = offsets_table(measured)
             if scans:
                 pts = scans[0][1].points[scans[0][1].valid]
                 step = max(1, len(pts) // _VISIBILITY_POINTS)

@@ -700,7 +700,7 @@ def segment_many(scans, options, lidar_options, board: BoardGeometry, *, sensor:
         debug[:] = [Debug() for _ in debug]
     found = all_scans(None)
     if ring_offsets is not None:
-        ring_offsets.update({int(r): float(x) for r, x in zip(*offsets)})
+        _add_offsets(ring_offsets, *offsets)
     return correct_ring_offsets(found, scans, measured=ring_offsets)
 
 
@@ -714,8 +714,7 @@ def correct_ring_offsets(found: list, scans: list, *, measured: dict | None = No
         return found
     rings, offset = offsets
     if measured is not None:
-        for r, x in zip(rings, offset):
-            measured[int(r)] = measured.get(int(r), 0.0) + float(x)
+        _add_offsets(measured, rings, offset)
     out = list(found)
     for k, o in enumerate(found):
         if not isinstance(o, LidarBoardObservation) or o.indices is None or scans[k].ring is None:
@@ -726,6 +725,17 @@ def correct_ring_offsets(found: list, scans: list, *, measured: dict | None = No
             n, d = -n, -d
         out[k] = dataclasses.replace(o, points=q, plane=np.r_[n, d], rms_m=rms)
     return out
+
+
+def _add_offsets(measured: dict, rings: np.ndarray, offset: np.ndarray) -> None:
+    for r, x in zip(rings, offset):
+        measured[int(r)] = measured.get(int(r), 0.0) + float(x)
+
+
+def offsets_table(measured: dict) -> np.ndarray:
+    """(R,2) ring number and range offset of ``measured`` ({ring: offset}), by ring: a
+    Problem.lidar_ring_offsets entry."""
+    return np.array(sorted(measured.items()), float).reshape(-1, 2)
 
 
 def with_ring_offsets(scan: LidarScan, rings: np.ndarray, offset: np.ndarray) -> LidarScan:

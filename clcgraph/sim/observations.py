@@ -380,7 +380,7 @@ def _ring_corrected(lidar_obs: list, rings_of: dict, sensors) -> tuple[list, dic
     {sensor: (R,2) ring, offset taken out} (Problem.lidar_ring_offsets)."""
     import dataclasses
 
-    from ..frontend.lidar_board import correct_ring_offsets
+    from ..frontend.lidar_board import correct_ring_offsets, offsets_table
     from ..types import LidarScan
 
     out, offsets = list(lidar_obs), {}
@@ -393,7 +393,7 @@ def _ring_corrected(lidar_obs: list, rings_of: dict, sensors) -> tuple[list, dic
         for j, o in zip(mine, correct_ring_offsets(found, scans, measured=measured)):
             out[j] = dataclasses.replace(o, indices=None)
         if measured:
-            offsets[i] = np.array(sorted(measured.items()), float)
+            offsets[i] = offsets_table(measured)
     return out, offsets
 
 
