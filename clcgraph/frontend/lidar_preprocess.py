@@ -37,24 +37,17 @@ def row_norms(p: np.ndarray) -> np.ndarray:
     return np.sqrt(x * x + y * y + z * z)
 
 
-def small_unique(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``np.unique(values, return_inverse=True)`` of (N,) integers such as ring numbers: by counting
-    when they span less than 2**16 (no sort), else by np.unique."""
-    if not len(values) or int(values.max()) - int(values.min()) >= 1 << 16:
-        return np.unique(values, return_inverse=True)
+def small_unique(values: np.ndarray, *, counts: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(values, return_inverse=True)`` (``counts``: ``return_counts=True``) of (N,)
+    integers such as ring numbers or dense cell keys: by counting (no sort) when they span less
+    than 2**16 or 8 x N, else by np.unique."""
+    if not len(values) or int(values.max()) - int(values.min()) >= max(1 << 16, 8 * len(values)):
+        return np.unique(values, return_counts=True) if counts else np.unique(values, return_inverse=True)
     lo = values.min()
-    seen = np.bincount(values - lo) > 0
-    return (np.flatnonzero(seen) + lo).astype(values.dtype, copy=False), (np.cumsum(seen) - 1)[values - lo]
-
-
-def _unique_counts(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``np.unique(keys, return_counts=True)`` of (N,) non-negative integers: by counting when they
-    span at most 8 x N (no sort of N keys), else by np.unique."""
-    if not len(keys) or keys.max() > 8 * len(keys):
-        return np.unique(keys, return_counts=True)
-    c = np.bincount(keys)
-    k = np.flatnonzero(c)
-    return k.astype(keys.dtype, copy=False), c[k]
+    c = np.bincount(values - lo)
+    seen = c > 0
+    unique = (np.flatnonzero(seen) + lo).astype(values.dtype, copy=False)
+    return (unique, c[seen]) if counts else (unique, (np.cumsum(seen) - 1)[values - lo])
 
 
 def ring_of(scan: LidarScan) -> np.ndarray:
@@ -185,8 +178,9 @@ def average_scans(scans: list[LidarScan]) -> tuple[LidarScan, np.ndarray]:
     azimuths jitter from one to the next; interpolation keeps a tilted surface's points on it) from
     two neighbouring returns of one surface (an organised cloud of fixed columns: the same row's),
     and count only where they agree with the ray's range within 4 robust sigmas of the
-    scan-to-scan differences (not across a depth edge, a mixed pixel, a stray return). Returns (the scan, (N,) how many scans each row's range averages; 0 where the
-    first scan has no valid return)."""
+    scan-to-scan differences (not across a depth edge, a mixed pixel, a stray return). Returns
+    (the scan, (N,) how many scans each row's range averages; 0 where the first scan has no
+    valid return)."""
     ref = scans[0]
     R = prepare(ref)
     n = np.zeros(len(ref.points), np.int64)
@@ -350,7 +344,7 @@ def static_masks(scans, *, npoints_per_rotation: int, quantum_m: float = 0.2, mi
     # one int64 per (cell, range bin): a 1-D unique is much faster than a row-wise one. The cells (<
     # the r_static array's size below) times the range bins (max_range_m / quantum_m <= 1e7 by the
     # config's bounds) are far from int64 overflow: no dense numbering of the cells first (2x the cost)
-    kq, counts = _unique_counts(K[good] * span + Qg)
+    kq, counts = small_unique(K[good] * span + Qg, counts=True)
     kc, qb = kq // span, kq % span
     # the most common range bin of each cell
     order = np.lexsort((-counts, kc))
