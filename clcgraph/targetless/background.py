@@ -26,6 +26,40 @@ import signal
 import sys
 
 
+def _can_fork() -> bool:
+    return sys.platform.startswith("linux") and hasattr(os, "fork")
+
+
+def _fork(child) -> tuple[int, int]:
+    """Fork: the child resets SIGINT / SIGTERM, runs ``child(f)`` (f: the write end of a pipe to
+    this process, binary) and leaves with ``os._exit`` (1 if it raised: the parent sees a short
+    read). Returns (the child's pid, the read end's fd)."""
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child
+        os.close(r)
+        for s in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(s, signal.SIG_DFL)
+        code = 0
+        try:
+            with os.fdopen(w, "wb") as f:
+                child(f)
+        except BaseException:  # noqa: BLE001 - the parent sees the short read
+            code = 1
+        os._exit(code)
+    os.close(w)
+    return pid, r
+
+
+def _kill(pid: int) -> None:
+    """Kill child ``pid`` if it still runs, and reap it."""
+    try:
+        os.kill(pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    os.waitpid(pid, 0)
+
+
 class Background:
     """``fn(*args)`` computed in a forked child; ``result()`` waits for it."""
 
@@ -33,27 +67,15 @@ class Background:
         self.fn, self.args = fn, args
         self.pid = None
         self.fd = None
-        if sys.platform.startswith("linux") and hasattr(os, "fork"):
-            r, w = os.pipe()
-            pid = os.fork()
-            if pid == 0:  # the child
-                os.close(r)
-                for s in (signal.SIGINT, signal.SIGTERM):
-                    signal.signal(s, signal.SIG_DFL)
-                code = 0
+        if _can_fork():
+            def child(f):
                 try:
-                    try:
-                        out = (True, fn(*args))
-                    except BaseException as e:  # noqa: BLE001 - handed to the parent, raised there
-                        out = (False, e)
-                    data = pickle.dumps(out, protocol=pickle.HIGHEST_PROTOCOL)
-                    with os.fdopen(w, "wb") as f:
-                        f.write(data)
-                except BaseException:  # noqa: BLE001 - the parent sees the short read
-                    code = 1
-                os._exit(code)
-            os.close(w)
-            self.pid, self.fd = pid, r
+                    out = (True, fn(*args))
+                except BaseException as e:  # noqa: BLE001 - handed to the parent, raised there
+                    out = (False, e)
+                f.write(pickle.dumps(out, protocol=pickle.HIGHEST_PROTOCOL))
+
+            self.pid, self.fd = _fork(child)
 
     def result(self):
         """fn's return value (its exception raised here)."""
@@ -76,11 +98,7 @@ class Background:
         """Kill the child if it still runs (nothing to do after ``result``)."""
         if self.pid is None:
             return
-        try:
-            os.kill(self.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-        os.waitpid(self.pid, 0)
+        _kill(self.pid)
         if self.fd is not None:
             os.close(self.fd)
         self.pid = self.fd = None
@@ -116,31 +134,22 @@ class Prefetched:
             self._gen.close()
 
     def _run(self):
-        if not (sys.platform.startswith("linux") and hasattr(os, "fork")):
+        if not _can_fork():
             for item in self.items:
                 yield self.fn(item)
             return
-        r, w = os.pipe()
-        pid = os.fork()
-        if pid == 0:  # the child: prepare and send, one pickle per item; (0, x) item, (1, e) error, (2,) end
-            os.close(r)
-            for s in (signal.SIGINT, signal.SIGTERM):
-                signal.signal(s, signal.SIG_DFL)
-            code = 0
+
+        def child(f):  # prepare and send, one pickle per item; (0, x) item, (1, e) error, (2,) end
             try:
-                with os.fdopen(w, "wb") as f:
-                    try:
-                        for item in self.items:
-                            pickle.dump((0, self.fn(item)), f, protocol=pickle.HIGHEST_PROTOCOL)
-                        pickle.dump((2,), f)
-                    except BaseException as e:  # noqa: BLE001 - raised in the parent, in sequence
-                        if isinstance(e, BrokenPipeError):
-                            raise
-                        pickle.dump((1, e), f, protocol=pickle.HIGHEST_PROTOCOL)
-            except BaseException:  # noqa: BLE001 - the parent stopped reading (or sees a short read)
-                code = 1
-            os._exit(code)
-        os.close(w)
+                for item in self.items:
+                    pickle.dump((0, self.fn(item)), f, protocol=pickle.HIGHEST_PROTOCOL)
+                pickle.dump((2,), f)
+            except BaseException as e:  # noqa: BLE001 - raised in the parent, in sequence
+                if isinstance(e, BrokenPipeError):  # the parent stopped reading
+                    raise
+                pickle.dump((1, e), f, protocol=pickle.HIGHEST_PROTOCOL)
+
+        pid, r = _fork(child)
         f = os.fdopen(r, "rb")
         try:
             while True:
@@ -156,11 +165,7 @@ class Prefetched:
                     return
         finally:
             f.close()  # a child still writing gets a broken pipe
-            try:
-                os.kill(pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-            os.waitpid(pid, 0)
+            _kill(pid)
 
 
 class _SizedPrefetched(Prefetched):
