@@ -82,10 +82,12 @@ CAPTURES = [
     Capture("baseline", "the demo's kind of rig: 2 LIDARs + 2 cameras, bag per pose",
             rig={"lidars": [TOP, BUMPER], "cameras": [CAM_FRONT, CAM_COLOUR]}, simulate={"n_poses": 16}),
     Capture("lidar-only-3", "LIDAR-only rig: VLP-16 front, 64-ring organised Ouster on the roof, VLP-16 rear "
-            "(front and rear never see the board together)",
+            "(front and rear never see the board together; the rear one sees some boards' backs: an 18 mm "
+            "plywood board, its thickness described as the README asks)",
             rig={"lidars": [_lidar("/front/points", "vlp16", (3.6, 0.0, 0.7), (0, 3, 0)),
                             _lidar("/roof/points", "os1-64", (1.2, 0.0, 2.0), (0, 0, 90), layout="ouster"),
                             _lidar("/rear/points", "vlp16", (-1.0, 0.0, 0.7), (0, 3, 180))]},
+            board={"corners": [10, 10], "square_m": 0.1, "size_m": [1.3, 1.3], "thickness_m": 0.018},
             simulate={"n_poses": 24}),
     Capture("upright-boards", "boards never tilted by the person (faced to the sensor, so only the height "
             "difference tilts them): the vertical offset rests on a few degrees of tilt",

@@ -89,16 +89,23 @@ class Snapshot:
     bag: str = ""  # the bag's path alone
 
 
+# A board whose thickness was not measured is taken for this thick (boards are 3-20 mm): where
+# a LIDAR sees its back, solve.board_thickness_sigma_m says how well that is known.
+ASSUMED_THICKNESS_M = 0.01
+
+
 @dataclass(frozen=True)
 class BoardGeometry:
     """A chessboard as people measure it: ``corners_x`` by ``corners_y`` inner corners
     ``square_m`` apart, printed on a ``width_m`` x ``height_m`` board (pattern and white
     border) whose pattern centre sits ``pattern_offset_m`` (along the width, the height)
-    from the board's centre.
+    from the board's centre, ``thickness_m`` thick (a LIDAR behind the board sees its back;
+    None: not measured, taken for ``ASSUMED_THICKNESS_M``).
 
     Board frame: corner (row i, column j) at (j*square_m, i*square_m, 0), row-major like
     mrgingham and mrcal; x runs along the board's width, y along its height; the board is
-    the plane z = 0. The pattern's outer squares reach one square beyond the outer corners.
+    the plane z = 0 (the pattern's face; the back face is z = thickness_m). The pattern's outer
+    squares reach one square beyond the outer corners.
     The default is a 10x10 board of 0.1 m squares with a 0.1 m border: 1.3 m square.
 
     SYNOPSIS
@@ -113,6 +120,7 @@ class BoardGeometry:
     width_m: float = 1.3
     height_m: float = 1.3
     pattern_offset_m: tuple[float, float] = (0.0, 0.0)
+    thickness_m: float | None = None
 
     def __post_init__(self):
         pw, ph = self.pattern_size_m
@@ -125,15 +133,18 @@ class BoardGeometry:
                              f"{self.width_m:g} x {self.height_m:g} m board")
 
     @classmethod
-    def from_spec(cls, *, corners, square_m, size_m, pattern_offset_m=(0.0, 0.0)) -> "BoardGeometry":
-        """From the config's ``board:`` keys (corners [nx, ny], square_m, size_m [w, h], pattern_offset_m)."""
+    def from_spec(cls, *, corners, square_m, size_m, pattern_offset_m=(0.0, 0.0), thickness_m=None) -> "BoardGeometry":
+        """From the config's ``board:`` keys (corners [nx, ny], square_m, size_m [w, h], pattern_offset_m,
+        thickness_m)."""
         return cls(int(corners[0]), int(corners[1]), float(square_m), float(size_m[0]), float(size_m[1]),
-                   (float(pattern_offset_m[0]), float(pattern_offset_m[1])))
+                   (float(pattern_offset_m[0]), float(pattern_offset_m[1])),
+                   None if thickness_m is None else float(thickness_m))
 
     def spec(self) -> dict:
-        """The config's ``board:`` keys (plain lists and floats, for YAML and JSON)."""
-        return {"corners": [self.corners_x, self.corners_y], "square_m": self.square_m,
-                "size_m": [self.width_m, self.height_m], "pattern_offset_m": list(self.pattern_offset_m)}
+        """The config's ``board:`` keys (plain lists and floats, for YAML and JSON; the thickness where stated)."""
+        out = {"corners": [self.corners_x, self.corners_y], "square_m": self.square_m,
+               "size_m": [self.width_m, self.height_m], "pattern_offset_m": list(self.pattern_offset_m)}
+        return out if self.thickness_m is None else {**out, "thickness_m": self.thickness_m}
 
     def corners(self) -> np.ndarray:
         """(corners_y*corners_x, 3) corner positions in the board frame."""
@@ -157,6 +168,11 @@ class BoardGeometry:
         """(xmin, xmax, ymin, ymax) of the physical board in the board frame."""
         cx, cy, _ = self.centre()
         return (cx - self.width_m / 2, cx + self.width_m / 2, cy - self.height_m / 2, cy + self.height_m / 2)
+
+    @property
+    def back_m(self) -> float:
+        """z of the board's back face in the board frame: its thickness, or, not measured, the assumed one."""
+        return ASSUMED_THICKNESS_M if self.thickness_m is None else self.thickness_m
 
     @property
     def size_m(self) -> tuple[float, float]:

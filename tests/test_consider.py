@@ -386,7 +386,8 @@ def test_the_ring_range_term_takes_the_spread_of_the_measured_ring_offsets():
     from clcgraph.sim.observations import CorrelatedErrors
 
     kw = dict(rig=make_rig(1, 1), n_snapshots=12, seed=4, sigma_lidar_m=0.01)
-    options = dataclasses.replace(Config().solve, **NO_RING_TERMS)
+    # no poses (values) here: the board thickness term, which needs them, off
+    options = dataclasses.replace(Config().solve, **NO_RING_TERMS, board_thickness_sigma_m=0.0)
     biased, _ = simulate_problem(errors=CorrelatedErrors(ring_range_bias_m=0.02), **kw)
     x = biased.lidar_ring_offsets[0]
     assert len(x) >= 8 and np.all(np.diff(x[:, 0]) > 0)  # (ring, offset) per ring the boards met
@@ -398,3 +399,19 @@ def test_the_ring_range_term_takes_the_spread_of_the_measured_ring_offsets():
     exact, _ = simulate_problem(**kw)
     assert not exact.lidar_ring_offsets and consider.ring_range_bias_sigma(exact, 0, options) == 0.0
     assert not [n for n in consider._wanted(exact, None, options)[0] if n.startswith("ring")]
+
+
+def test_a_pose_the_terms_leave_imprecise_is_refused_naming_the_term():
+    """A 10 cm common range offset stated for lidar0: the cameras, which see the boards where they
+    are, are known to no better than that along the boards' direction (lidar0's x), beyond
+    solve.max_stdev_m: refused, naming the camera, the direction and the term, not written."""
+    from clcgraph.backend.solve import calibrate
+    from clcgraph.errors import DegenerateError
+
+    problem, _ = simulate_problem(rig=make_rig(1, 1), n_snapshots=10, seed=7, planned_tilts=True)
+    base = dataclasses.replace(Config().solve, **NO_RING_TERMS)
+    assert calibrate(problem, dataclasses.replace(base, lidar_range_offset_m=0.01)).stdev_rt(1)[3] < 0.03
+    with pytest.raises(DegenerateError, match=r"imprecise, no result written: /cam0: translation along lidar0 "
+                                              r"\(.*\) = .*x.*, 1-sigma 0.\d+ m, \d+ % of its variance from range "
+                                              r"offset /lidar0 \(> solve.max_stdev_m 0.03 m"):
+        calibrate(problem, dataclasses.replace(base, lidar_range_offset_m=0.1))

@@ -22,6 +22,10 @@ The sigmas stated by the user (solve options):
 - ``board_flatness_m``: the board's bow, its centre this far off the plane of its edges (the
   lowest bending mode, 0 on the edges: ``(1-u^2)(1-v^2)`` over the board); LIDAR points move
   along their rays, corners off the plane and are reprojected.
+- ``board_thickness_sigma_m``: how well the board's thickness is known (board_thickness_sigma),
+  which places its back face: the points of the observations made from behind the board (graph.lidar_face) move along
+  their rays as the back face moves (none seen from behind: no term). The edge factors' crossings
+  with that face move too, little against their quantisation, and are not included.
 - ``lidar_range_offset_m``: one range offset common to every point of a LIDAR (one term per
   LIDAR).
 - ``lidar_ring_range_bias_m``, ``lidar_ring_elevation_deg``: each laser's (ring's) own range
@@ -107,6 +111,32 @@ def _bow_moves(problem: Problem, values, h: float):
             cameras.project(transform(rt_c_b, corners), s.lensmodel, s.intrinsics)
         camera.append(dataclasses.replace(o, corners_px=o.corners_px + dq))
     return dataclasses.replace(problem, lidar_observations=tuple(lidar), camera_observations=tuple(camera))
+
+
+def _seen_from_behind(problem: Problem, values) -> list:
+    """Per LIDAR observation: its sensor is behind its board at ``values`` (graph.lidar_face)."""
+    out = []
+    for o in problem.lidar_observations:
+        kb = G.board_key(o.snapshot)
+        T_s = None if o.sensor == problem.reference else values.atPose3(G.sensor_key(o.sensor))
+        out.append(values.exists(kb) and G.from_behind(T_s, values.atPose3(kb)))
+    return out
+
+
+def _thickness_moves(problem: Problem, values, behind: list, h: float):
+    """The observations with the board ``h`` (m) thicker: its back face that much nearer to the
+    LIDARs behind it, their ranges shorter by h / cos(the ray against the normal)."""
+    rt_s = _poses(problem, values)
+    lidar = []
+    for o, b in zip(problem.lidar_observations, behind):
+        if not b:
+            lidar.append(o)
+            continue
+        R_bs = R_from_r(compose_rt(invert_rt(_board_rt(values, o.snapshot)), rt_s[o.sensor])[:3])
+        u = o.points / np.linalg.norm(o.points, axis=1, keepdims=True)
+        cos = np.abs(u @ R_bs[2])
+        lidar.append(dataclasses.replace(o, points=o.points - u * (h / np.maximum(cos, 0.05))[:, None]))
+    return dataclasses.replace(problem, lidar_observations=tuple(lidar))
 
 
 def _range_moves(problem: Problem, sensor: int, h: float):
@@ -361,6 +391,10 @@ def _wanted(problem: Problem, values, options):
     wanted = {}  # name -> [problem moved by +1 sigma along a direction, as a function of the sign]
     if options.board_flatness_m > 0:
         wanted["board flatness"] = [lambda sign: _bow_moves(problem, values, sign * options.board_flatness_m)]
+    thickness = board_thickness_sigma(problem.board, options)
+    behind = _seen_from_behind(problem, values) if thickness > 0 else []
+    if any(behind):
+        wanted["board thickness"] = [lambda sign: _thickness_moves(problem, values, behind, sign * thickness)]
     if options.lidar_range_offset_m > 0:
         for i, s in enumerate(problem.sensors):
             if s.is_lidar:
@@ -389,6 +423,14 @@ def _wanted(problem: Problem, values, options):
             wanted[f"intrinsics {s.topic}"] = [lambda sign, i=i, d=d: _intrinsics_moved(problem, i, sign * d)
                                               for d in intrinsics_directions(s.intrinsics_covariance)]
     return wanted, lens
+
+
+def board_thickness_sigma(board, options) -> float:
+    """The 1-sigma of the board's thickness (m): the one stated, else 1 mm for a measured board
+    (``board.thickness_m`` given) and 5 mm for one taken for the assumed thickness."""
+    if options.board_thickness_sigma_m is not None:
+        return float(options.board_thickness_sigma_m)
+    return 0.005 if board.thickness_m is None else 0.001
 
 
 def ring_range_bias_sigma(problem: Problem, sensor: int, options) -> float:

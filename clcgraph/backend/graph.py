@@ -3,7 +3,8 @@
 Variables: ``sensor_key(i)`` = T_lidar0_sensor for every sensor but lidar0 (the reference
 has no variable), ``board_key(k)`` = T_lidar0_board for every snapshot still in use.
 Factors: one per (sensor, snapshot) observation (LIDAR plane or range over its active
-points; camera corners over its active corners), with ``solve.lidar_edges`` one more per LIDAR
+points, on the board face it sees: lidar_face; camera corners over its active corners), with
+``solve.lidar_edges`` one more per LIDAR
 observation on where it saw the board's outline (factors/lidar_edge.py), the in-plane prior on
 boards only LIDARs saw, and the nominal-pose priors of Problem.priors.
 
@@ -78,6 +79,22 @@ class Active:
         return used | cam, cam
 
 
+def from_behind(T_sensor, T_board) -> bool:
+    """A sensor at ``T_sensor`` (None: lidar0) is behind the board at ``T_board`` (board frame z > 0;
+    the pattern faces -z)."""
+    import gtsam
+
+    T_s = gtsam.Pose3() if T_sensor is None else T_sensor
+    return bool(T_board.between(T_s).translation()[2] > 0)
+
+
+def lidar_face(board, T_sensor, T_board) -> float:
+    """The board face a LIDAR at ``T_sensor`` (None: lidar0) sees, as its z in the board frame: 0, the
+    pattern's, from in front; the board's thickness, its back, from behind. Decided at the
+    estimate a factor is built from (a board is never seen edge-on)."""
+    return board.back_m if from_behind(T_sensor, T_board) else 0.0
+
+
 def _key(problem: Problem, i: int):
     return None if i == problem.reference else sensor_key(i)
 
@@ -119,8 +136,9 @@ def build(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.
 
     for j, (o, m) in enumerate(zip(problem.lidar_observations, active.lidar)):
         if m is not None and m.any():
+            face = lidar_face(problem.board, _pose(problem, rt_sensor, o.sensor), pose3_from_rt(rt_board[o.snapshot]))
             g.add(make(_key(problem, o.sensor), board_key(o.snapshot), o.points[m], sigma_of(sigma_lidar_m, o.sensor),
-                       **effect("lidar", j, o.sensor)))
+                       face_m=face, **effect("lidar", j, o.sensor)))
     for j, (o, m) in enumerate(zip(problem.camera_observations, active.camera)):
         if m is not None and m.any():
             s = problem.sensors[o.sensor]
@@ -169,12 +187,13 @@ def lidar_edge_factors(problem: Problem, active: Active, rt_sensor: np.ndarray, 
 def edge_factor(problem: Problem, o, T_sensor, T_board, *, beam_rad: float):
     """The edge factor of LIDAR observation ``o`` (factors/lidar_edge.py), its intervals assigned
     to the board's sides at the pose estimate (T_sensor None: lidar0); None if none is usable."""
-    keep, axis, bounds, ends, rng = edge_sides(T_sensor, T_board, o.edge_rays, problem.board)
+    face = lidar_face(problem.board, T_sensor, T_board)
+    keep, axis, bounds, ends, rng = edge_sides(T_sensor, T_board, o.edge_rays, problem.board, face_m=face)
     if not keep.any():
         return None
     sig = edge_sigmas(ends[keep], rng[keep], axis[keep], bounds[keep], beam_rad=beam_rad)
     return lidar_edge_factor(_key(problem, o.sensor), board_key(o.snapshot), o.edge_rays[keep], axis[keep],
-                             bounds[keep], sig)
+                             bounds[keep], sig, face_m=face)
 
 
 def residuals(problem: Problem, rt_sensor: np.ndarray, rt_board: np.ndarray, *, lidar: str = "range"):
@@ -199,7 +218,8 @@ def residual_of(problem: Problem, kind: str, j: int, poses: list, rt_board: np.n
         return None
     if kind == "lidar":
         fn = lidar_plane_residuals if lidar == "plane" else lidar_range_residuals
-        return fn(poses[o.sensor], pose3_from_rt(b), o.points)
+        T_b = pose3_from_rt(b)
+        return fn(poses[o.sensor], T_b, o.points, lidar_face(problem.board, poses[o.sensor], T_b))
     s = problem.sensors[o.sensor]
     return camera_corners_residuals(poses[o.sensor], pose3_from_rt(b), o.corners_px, s.lensmodel, s.intrinsics,
                                     problem.board)

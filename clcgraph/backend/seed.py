@@ -9,7 +9,10 @@
    camera rolled by 90 or 180 deg to the other still links); any pair with a
    LIDAR from the board planes (rotation by Procrustes on the normals, translation by least
    squares on the plane offsets ``n_a . t = d_a - d_b``, which are unbiased, plus a weak pull
-   of the centroids, which hold the directions the normals leave open). Mismatched pairs
+   of the centroids, which hold the directions the normals leave open). Each normal points at
+   its own sensor, so a board between two sensors shows them opposite normals: each board's
+   sign is chosen with the rotation, and the boards' centres pick between the hypotheses
+   (``_sides``). Mismatched pairs
    (normal > ``seed_max_normal_deg``, offset > ``seed_max_center_m``) are dropped and refit.
 3. A best-first spanning tree from lidar0 over the pairs (most shared boards first)
    chains the pairs into poses; a sensor it cannot reach is a DegenerateError naming it.
@@ -173,20 +176,48 @@ def _pair(a_obs: list[_Obs], b_obs: list[_Obs], options):
             sv = np.linalg.svd(nb, compute_uv=False)
             if sv[1] < np.sin(np.radians(5.0)) * sv[0]:
                 return None  # all boards parallel: the rotation about their normal is unknown
-            R = _procrustes(na, nb)
-            da = np.array([o.d for o in A]) - np.array([o.d for o in B])
-            ca = np.array([o.centroid for o in A]) - np.array([o.centroid for o in B]) @ R.T
-            M = np.vstack([na, _CENTROID_WEIGHT * np.tile(np.eye(3), (len(A), 1))])
-            y = np.r_[da, _CENTROID_WEIGHT * ca.ravel()]
-            t = np.linalg.lstsq(M, y, rcond=None)[0]
-        # residuals of every shared observation under this estimate
-        ang = np.array([np.arccos(np.clip(x.n @ (R @ y.n), -1, 1)) for x, y in zip(a_obs, b_obs)])
-        off = np.array([abs(x.n @ t - (x.d - y.d)) for x, y in zip(a_obs, b_obs)])
+            best = None
+            for R, side in _sides(na, nb):
+                da = np.array([o.d for o in A]) - side * np.array([o.d for o in B])
+                ca = np.array([o.centroid for o in A]) - np.array([o.centroid for o in B]) @ R.T
+                M = np.vstack([na, _CENTROID_WEIGHT * np.tile(np.eye(3), (len(A), 1))])
+                y = np.r_[da, _CENTROID_WEIGHT * ca.ravel()]
+                t = np.linalg.lstsq(M, y, rcond=None)[0]
+                miss = float(np.median(np.linalg.norm(ca - t, axis=1)))  # the boards' centres apart
+                if best is None or miss < best[0]:
+                    best = (miss, R, t)
+            _, R, t = best
+        # residuals of every shared observation under this estimate, each board on its side
+        sign = np.array([1.0 if x.n @ (R @ y.n) >= 0 else -1.0 for x, y in zip(a_obs, b_obs)])
+        ang = np.array([np.arccos(np.clip(s * x.n @ (R @ y.n), -1, 1)) for x, y, s in zip(a_obs, b_obs, sign)])
+        off = np.array([abs(x.n @ t - (x.d - s * y.d)) for x, y, s in zip(a_obs, b_obs, sign)])
         new = (ang <= max_angle) & (off <= options.seed_max_center_m)
         if np.array_equal(new, keep):
             return rt_from_R_t(R, t), int(keep.sum())
         keep = new
     return (rt_from_R_t(R, t), int(keep.sum())) if keep.sum() >= options.min_shared_snapshots else None
+
+
+def _sides(na: np.ndarray, nb: np.ndarray) -> list:
+    """[(R, side (K,) +-1)]: rotations taking the normals ``nb`` to ``na``, each normal turned by its
+    board's side (-1: the board is between the sensors, their normals opposite), from both
+    sensors on the same side of every board and from the other side of every board, each
+    board's side then taken from the rotation and the rotation refitted. Both are kept: where
+    the normals lie in one plane (upright boards), the two fit them alike (a half turn about
+    that plane's normal) and only where they put the boards' centres tells them apart."""
+    out = []
+    for start in (1.0, -1.0):
+        side = np.full(len(na), start)
+        for _ in range(3):
+            R = _procrustes(na, nb * side[:, None])
+            new = np.where(np.einsum("ki,ki->k", na, nb @ R.T) >= 0, 1.0, -1.0)
+            if np.array_equal(new, side):
+                break
+            side = new
+        else:
+            R = _procrustes(na, nb * side[:, None])
+        out.append((R, side))
+    return out
 
 
 def _rt_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:

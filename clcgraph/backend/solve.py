@@ -331,30 +331,65 @@ def _covariance(problem: Problem, g, values, rt_sensor, options) -> np.ndarray:
     for a, ka in enumerate(keys):
         for b, kb in enumerate(keys):
             C[6 * a:6 * a + 6, 6 * b:6 * b + 6] = jm.at(ka, kb)
-    bad = []
-    for a, i in enumerate(idx):
-        # judged in GTSAM's tangent (per-axis angles and metres, not Rodrigues coordinates),
-        # the direction turned from the sensor's axes into lidar0's
-        blk = C[6 * a:6 * a + 6, 6 * a:6 * a + 6]
-        R = R_from_r(rt_sensor[i][:3])
-        for part, lim, what in ((slice(0, 3), np.radians(options.max_stdev_deg), "rotation about"),
-                                (slice(3, 6), options.max_stdev_m, "translation along")):
-            w, V = np.linalg.eigh(blk[part, part])
-            sd = np.sqrt(max(w[-1], 0.0))
-            if sd > lim:
-                ax = R @ V[:, -1]
-                ax = ax * np.sign(ax[np.argmax(np.abs(ax))])
-                unit = f"{sd:.2g} m" if what.startswith("t") else f"{np.degrees(sd):.2g} deg"
-                bad.append(f"{problem.sensors[i].topic}: {what} lidar0 ({ax[0]:+.2f}, {ax[1]:+.2f}, {ax[2]:+.2f}) = "
-                           f"{consistency.axis_words(ax)}, 1-sigma {unit}")
+    bad = _beyond_max_stdev(problem, rt_sensor, C, options)
     if bad:
-        raise DegenerateError("unobservable: " + "; ".join(bad)
+        raise DegenerateError("unobservable: " + "; ".join(f"{b[0]}, 1-sigma {b[1]}" for b in bad)
                               + "; capture board poses that constrain it (tilt the board in different directions)")
     J = np.zeros_like(C)
     for a, i in enumerate(idx):
         J[6 * a:6 * a + 6, 6 * a:6 * a + 6] = drt_dxi(rt_sensor[i])
     C = J @ C @ J.T
     return 0.5 * (C + C.T)
+
+
+def _beyond_max_stdev(problem: Problem, rt_sensor: np.ndarray, C: np.ndarray, options) -> list:
+    """[(sensor and direction in words, its 1-sigma, (6 ns,) the direction in C's tangent)] where a
+    sensor's 1-sigma (C: GTSAM's tangent, per-axis angles and metres, the variable sensors in
+    order) exceeds ``max_stdev_deg`` / ``max_stdev_m``: the worst direction of each part, turned
+    from the sensor's axes into lidar0's."""
+    idx = [i for i in range(len(problem.sensors)) if i != problem.reference]
+    bad = []
+    for a, i in enumerate(idx):
+        blk = C[6 * a:6 * a + 6, 6 * a:6 * a + 6]
+        R = R_from_r(rt_sensor[i][:3])
+        for o, lim, what in ((0, np.radians(options.max_stdev_deg), "rotation about"),
+                             (3, options.max_stdev_m, "translation along")):
+            w, V = np.linalg.eigh(blk[o:o + 3, o:o + 3])
+            sd = np.sqrt(max(w[-1], 0.0))
+            if sd > lim:
+                ax = R @ V[:, -1]
+                ax = ax * np.sign(ax[np.argmax(np.abs(ax))])
+                unit = f"{sd:.2g} m" if what.startswith("t") else f"{np.degrees(sd):.2g} deg"
+                direction = np.zeros(len(C))
+                direction[6 * a + o:6 * a + o + 3] = V[:, -1]
+                bad.append((f"{problem.sensors[i].topic}: {what} lidar0 ({ax[0]:+.2f}, {ax[1]:+.2f}, {ax[2]:+.2f}) = "
+                            f"{consistency.axis_words(ax)}", unit, direction))
+    return bad
+
+
+def _refuse_imprecise(problem: Problem, rt_sensor: np.ndarray, cov_rt: np.ndarray, record: dict, options) -> None:
+    """DegenerateError where a sensor's 1-sigma with the consider terms (``cov_rt``, rt coordinates;
+    ``record``: consider.add_terms') exceeds max_stdev_m / max_stdev_deg, naming the term that
+    makes most of it: the capture does not determine the pose to a usable accuracy."""
+    idx = [i for i in range(len(problem.sensors)) if i != problem.reference]
+    Jinv = np.zeros_like(cov_rt)
+    for a, i in enumerate(idx):
+        Jinv[6 * a:6 * a + 6, 6 * a:6 * a + 6] = np.linalg.inv(drt_dxi(rt_sensor[i]))
+    C = Jinv @ cov_rt @ Jinv.T
+    bad = _beyond_max_stdev(problem, rt_sensor, C, options)
+    if not bad:
+        return
+    parts = []
+    for words, unit, v in bad:
+        var = float(v @ C @ v)
+        shares = {name: float(np.sum((np.asarray(cols) @ Jinv.T @ v) ** 2)) / var
+                  for name, cols in record["sigma_rt"].items()}
+        shares[consider.MODEL_TERM] = 1.0 - sum(shares.values())
+        top = max(shares, key=shares.get)
+        parts.append(f"{words}, 1-sigma {unit}, {100 * shares[top]:.0f} % of its variance from {top}")
+    raise DegenerateError(f"imprecise, no result written: {'; '.join(parts)} (> solve.max_stdev_m "
+                          f"{options.max_stdev_m:g} m / max_stdev_deg {options.max_stdev_deg:g} deg: the capture does "
+                          f"not determine it to a usable accuracy; --set solve.max_stdev_m=... writes it)")
 
 
 def calibrate(problem: Problem, options, *, on_estimate: Callable[[Result], None] | None = None) -> Result:
@@ -537,6 +572,7 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
     terms = consider.consider_terms(problem, rebuild, values, options, S=S)
     cov, uncertainty_terms = consider.add_terms(problem, rt_sensor, cov, terms)
     times["consider"] = time.perf_counter() - t
+    _refuse_imprecise(problem, rt_sensor, cov, uncertainty_terms, options)
     final = stages[-1]
     step = _final_step_sigma(problem, final.pop("_last_step"), values, rt_sensor, cov)
     for r in stages:

@@ -21,8 +21,9 @@ sqrt(12 n); each side's sigmas are scaled up to that where it is less than they 
 (``edge_sigmas``; staggered intervals, W << L, keep theirs).
 
 Jacobians (right perturbation ``T Exp([omega, v])``, rotation first): with T_bs = T_b^-1 T_s the
-sensor in the board frame, a ray u leaves o = t_bs along w = R_bs u and meets z = 0 at
-q = o + lam w, lam = -o_z / w_z. For a change dp of o + lam w at fixed lam, dq = (I - w e3^T / w_z) dp;
+sensor in the board frame, a ray u leaves o = t_bs along w = R_bs u and meets the face it sees, z = f
+(0, or the board's thickness from behind: graph.lidar_face), at q = o + lam w, lam = (f - o_z) / w_z.
+For a change dp of o + lam w at fixed lam, dq = (I - w e3^T / w_z) dp;
 dp = R_bs (dv - [lam u]x domega) for the sensor's perturbation, [q]x domega - dv for the board's.
 
 SYNOPSIS
@@ -42,8 +43,9 @@ _MIN_WZ = 0.05  # |cos| of a ray's angle to the board normal below which it graz
 HUBER_K = 1.345  # the Huber threshold in sigmas (95 % efficiency on Gaussian errors)
 
 
-def _crossings(T_sensor, T_board, rays: np.ndarray):
-    """(q (M,3) board frame, w (M,3), lam (M,), R_bs) for the M rays ``rays`` (M,3), sensor frame."""
+def _crossings(T_sensor, T_board, rays: np.ndarray, face_m: float):
+    """(q (M,3) board frame, w (M,3), lam (M,), R_bs) for the M rays ``rays`` (M,3), sensor frame,
+    crossed with the board face z = ``face_m``."""
     import gtsam
 
     T_s = gtsam.Pose3() if T_sensor is None else T_sensor
@@ -51,16 +53,17 @@ def _crossings(T_sensor, T_board, rays: np.ndarray):
     R_bs, o = T_bs.rotation().matrix(), T_bs.translation()
     w = rays @ R_bs.T
     wz = np.where(np.abs(w[:, 2]) < _MIN_WZ, np.where(w[:, 2] < 0, -_MIN_WZ, _MIN_WZ), w[:, 2])
-    lam = -o[2] / wz
+    lam = (face_m - o[2]) / wz
     q = o + lam[:, None] * w
     return q, w, wz, lam, R_bs
 
 
-def _residual(T_sensor, T_board, rays: np.ndarray, axis: np.ndarray, bounds: np.ndarray, want: bool):
+def _residual(T_sensor, T_board, rays: np.ndarray, axis: np.ndarray, bounds: np.ndarray, want: bool,
+              face_m: float = 0.0):
     """``rays`` (E,2,3) or (E,3,3) (the side normals, unused here)."""
     E = len(axis)
     rays = rays[:, :2]
-    q, w, wz, lam, R_bs = _crossings(T_sensor, T_board, rays.reshape(-1, 3))
+    q, w, wz, lam, R_bs = _crossings(T_sensor, T_board, rays.reshape(-1, 3), face_m)
     sel = np.repeat(axis, 2)  # per ray: the coordinate its interval bounds
     qa = q[np.arange(2 * E), sel]
     err = 0.5 * (qa[0::2] + qa[1::2]) - bounds
@@ -93,7 +96,8 @@ def skew_rows(x: np.ndarray) -> np.ndarray:
     return S
 
 
-def edge_sides(T_lidar0_sensor, T_lidar0_board, rays: np.ndarray, board, *, min_cos: float = 0.9):
+def edge_sides(T_lidar0_sensor, T_lidar0_board, rays: np.ndarray, board, *, face_m: float = 0.0,
+               min_cos: float = 0.9):
     """Which board side each interval bounds, at a pose estimate: (keep (E,) bool, axis (E,) 0 x /
     1 y, bounds (E,) m, ends (E,2) m: where its two rays cross the plane along that axis, ranges (E,) m
     to the edge). ``rays``
@@ -101,10 +105,10 @@ def edge_sides(T_lidar0_sensor, T_lidar0_board, rays: np.ndarray, board, *, min_
     (frontend/board_edges.py), all in the sensor frame. The normal, turned into the board frame by
     the estimate's rotation, names the side (only the board's orientation is used, not where it
     sits in its plane); kept where it is within acos(``min_cos``) of that side's normal and both
-    rays meet the plane ahead."""
+    rays meet the face ``face_m`` ahead."""
     rays = np.asarray(rays, float).reshape(-1, 3, 3)
     E = len(rays)
-    q, _, _, lam, R_bs = _crossings(T_lidar0_sensor, T_lidar0_board, rays[:, :2].reshape(-1, 3))
+    q, _, _, lam, R_bs = _crossings(T_lidar0_sensor, T_lidar0_board, rays[:, :2].reshape(-1, 3), face_m)
     nb = rays[:, 2] @ R_bs.T  # the sides' normals in the board frame
     axis = np.argmax(np.abs(nb[:, :2]), axis=1)
     c = nb[np.arange(E), axis]
@@ -116,10 +120,10 @@ def edge_sides(T_lidar0_sensor, T_lidar0_board, rays: np.ndarray, board, *, min_
     return keep, axis, bounds, ends, lam[0::2]  # w is a unit vector: lam is the range to the crossing
 
 
-def lidar_edge_residuals(T_lidar0_sensor, T_lidar0_board, rays, axis, bounds) -> np.ndarray:
+def lidar_edge_residuals(T_lidar0_sensor, T_lidar0_board, rays, axis, bounds, face_m: float = 0.0) -> np.ndarray:
     """(E,) m: each interval's midpoint along its board side's axis minus the side's bound."""
     return _residual(T_lidar0_sensor, T_lidar0_board, np.asarray(rays, float), np.asarray(axis), np.asarray(bounds, float),
-                     False)[0]
+                     False, face_m)[0]
 
 
 def edge_sigmas(ends: np.ndarray, ranges: np.ndarray, axis: np.ndarray, bounds: np.ndarray, *,
@@ -148,19 +152,19 @@ def edge_sigmas(ends: np.ndarray, ranges: np.ndarray, axis: np.ndarray, bounds: 
     return np.sqrt(var)
 
 
-def lidar_edge_factor(sensor_key: int | None, board_key: int, rays, axis, bounds, sigmas):
-    """The edge factor of one LIDAR observation: keys (sensor, board), or (board) for lidar0
-    (``sensor_key`` None); a Huber loss on sigmas ``sigmas`` (E,)."""
+def lidar_edge_factor(sensor_key: int | None, board_key: int, rays, axis, bounds, sigmas, *, face_m: float = 0.0):
+    """The edge factor of one LIDAR observation of the board face ``face_m``: keys (sensor, board), or
+    (board) for lidar0 (``sensor_key`` None); a Huber loss on sigmas ``sigmas`` (E,)."""
     import gtsam
 
     rays = np.array(rays, dtype=float)[:, :2].copy()
     axis = np.asarray(axis, np.int64)
     bounds = np.asarray(bounds, float)
     if sensor_key is None:
-        fn = lambda poses, want: _residual(None, poses[0], rays, axis, bounds, want)  # noqa: E731
+        fn = lambda poses, want: _residual(None, poses[0], rays, axis, bounds, want, face_m)  # noqa: E731
         keys = [board_key]
     else:
-        fn = lambda poses, want: _residual(poses[0], poses[1], rays, axis, bounds, want)  # noqa: E731
+        fn = lambda poses, want: _residual(poses[0], poses[1], rays, axis, bounds, want, face_m)  # noqa: E731
         keys = [sensor_key, board_key]
     noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(HUBER_K),
                                            gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigmas, float)))

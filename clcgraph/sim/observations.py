@@ -190,7 +190,7 @@ def _lidar_hits(model: SimLidar, rt_sensor_board: np.ndarray, board: BoardGeomet
     """
     R, t = R_from_r(rt_sensor_board[:3]), rt_sensor_board[3:]
     n = R[:, 2]
-    d = n @ t
+    d = _face_offset(n, t, board)
     n_rings, n_az = len(model.elevations_rad), model.npoints_per_rotation
     u_nominal = _rays(model.elevations_rad, n_az)
     u = u_nominal if ring_elevation_error_rad is None else \
@@ -217,6 +217,13 @@ def _lidar_hits(model: SimLidar, rt_sensor_board: np.ndarray, board: BoardGeomet
         measured[inside] += rng.normal(0, sigma_m, int(inside.sum()))
     return (u_nominal[inside] * measured[inside, None], ring[inside],
             _edge_rays(model, u_nominal, inside, R, t, board))
+
+
+def _face_offset(n: np.ndarray, t: np.ndarray, board: BoardGeometry) -> float:
+    """d of the board face a sensor sees, n . x = d in its frame (n, t: the board's normal and
+    origin there): the pattern's, or from behind (d < 0) the back, board.back_m behind it."""
+    d = float(n @ t)
+    return d + board.back_m if d < 0 else d
 
 
 def _edge_rays(model: SimLidar, u: np.ndarray, inside: np.ndarray, R: np.ndarray, t: np.ndarray,
@@ -250,7 +257,7 @@ def _edge_rays(model: SimLidar, u: np.ndarray, inside: np.ndarray, R: np.ndarray
     rays = np.concatenate(out)
     n = R[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
-        rho = (n @ t) / (rays @ n)  # (E,2) where the rays meet the board's plane
+        rho = _face_offset(n, t, board) / (rays @ n)  # (E,2) where the rays meet the face seen
     q = (rays * np.where(rho > 0, rho, 0.0)[..., None] - t) @ R  # (E,2,3) in the board frame
     xmin, xmax, ymin, ymax = board.extent()
     ok, axis, sign = exit_sides(q[:, 0, :2], q[:, 1, :2], np.array([xmin, ymin]), np.array([xmax, ymax]))

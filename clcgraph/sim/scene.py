@@ -20,8 +20,6 @@ import numpy as np
 from ..geometry import R_from_r
 from ..types import BoardGeometry
 
-BOARD_THICKNESS_M = 0.01
-
 
 def box_mesh(sx, sy, sz, x, y, z, yaw=0.0):
     """Legacy open3d box of size (sx, sy, sz), centred at (x, y) in xy, bottom at z."""
@@ -68,11 +66,11 @@ def static_meshes(rng, *, clutter: bool = True, walls_m=(12.0, 25.0)) -> list:
 
 
 def board_mesh(board: BoardGeometry, T_world_board: np.ndarray):
-    """The board as a thin box: its front face is the board plane z = 0 (facing -z of the board)."""
+    """The board as a box ``board.back_m`` thick: its front face is the board plane z = 0 (facing -z)."""
     import open3d as o3d
 
     xmin, xmax, ymin, ymax = board.extent()
-    m = o3d.geometry.TriangleMesh.create_box(xmax - xmin, ymax - ymin, BOARD_THICKNESS_M)
+    m = o3d.geometry.TriangleMesh.create_box(xmax - xmin, ymax - ymin, max(board.back_m, 1e-4))  # a 0-thick box has no back
     m.translate((xmin, ymin, 0.0))  # board frame: z from 0 (front) to +thickness (back)
     m.transform(T_world_board)
     return m

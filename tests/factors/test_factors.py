@@ -22,13 +22,14 @@ def _pose(rng, rot=0.5, trans=1.0):
     return gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(0, rot, 3)), rng.normal(0, trans, 3))
 
 
-def _scene(rng):
-    """A board 4 m in front of lidar0 and a sensor 0.5 m away; board points in the sensor frame."""
+def _scene(rng, face=0.0):
+    """A board 4 m in front of lidar0 and a sensor 0.5 m away; points on its face z = ``face``
+    (0: the pattern's; the thickness: the back) in the sensor frame."""
     T_b = gtsam.Pose3(gtsam.Rot3.Ypr(*rng.uniform(-0.4, 0.4, 3)) * gtsam.Rot3.Ypr(0, np.pi / 2, -np.pi / 2),
                       np.array([4.0, rng.uniform(-1, 1), 0.3]))
     T_s = _pose(rng, 0.2, 0.5)
     uv = rng.uniform(0, 1.0, (40, 2))
-    on_board = np.c_[uv, np.zeros(40)]
+    on_board = np.c_[uv, np.full(40, face)]
     p_lidar0 = np.array([T_b.transformFrom(x) for x in on_board])
     p_sensor = np.array([T_s.transformTo(x) for x in p_lidar0])
     return T_s, T_b, p_sensor
@@ -41,27 +42,30 @@ def _values(**poses):
     return v
 
 
+@pytest.mark.parametrize("face", [0.0, 0.012])
 @pytest.mark.parametrize("fn,resid,factor", [(plane_fn, lidar_plane_residuals, lidar_plane_factor),
                                              (range_fn, lidar_range_residuals, lidar_range_factor)])
-def test_lidar_factors(fn, resid, factor):
+def test_lidar_factors(fn, resid, factor, face):
     rng = np.random.default_rng(1)
     for _ in range(5):
-        T_s, T_b, p = _scene(rng)
-        assert np.abs(resid(T_s, T_b, p)).max() < 1e-12
+        T_s, T_b, p = _scene(rng, face)
+        assert np.abs(resid(T_s, T_b, p, face)).max() < 1e-12
+        if face:  # against the pattern's face the points are the thickness off
+            assert np.abs(resid(T_s, T_b, p)).min() >= face - 1e-12
         p_lidar0 = np.array([T_s.transformFrom(x) for x in p])
-        assert np.abs(resid(None, T_b, p_lidar0)).max() < 1e-12
+        assert np.abs(resid(None, T_b, p_lidar0, face)).max() < 1e-12
         # Jacobians at perturbed (non-zero residual) poses, with and without a sensor variable
         Ts2, Tb2 = perturb(T_s, rng.normal(0, 0.05, 6)), perturb(T_b, rng.normal(0, 0.05, 6))
-        assert check_jacobians(lambda P, w: fn(P[0], P[1], p, w), [Ts2, Tb2]) < 1e-6
-        assert check_jacobians(lambda P, w: fn(None, P[0], p, w), [Tb2]) < 1e-6
-        f = factor(S, B, p, 0.02)
+        assert check_jacobians(lambda P, w: fn(P[0], P[1], p, w, face_m=face), [Ts2, Tb2]) < 1e-6
+        assert check_jacobians(lambda P, w: fn(None, P[0], p, w, face_m=face), [Tb2]) < 1e-6
+        f = factor(S, B, p, 0.02, face_m=face)
         v = _values(s=Ts2, b=Tb2)
-        e = resid(Ts2, Tb2, p)
+        e = resid(Ts2, Tb2, p, face)
         np.testing.assert_allclose(f.unwhitenedError(v), e, rtol=1e-12, atol=1e-15)  # H is None path
         assert f.error(v) == pytest.approx(0.5 * np.sum((e / 0.02) ** 2), rel=1e-10)
         lin = f.linearize(v)  # the H path through GTSAM
         A = lin.jacobian()[0]
-        _, J = fn(Ts2, Tb2, p, True)
+        _, J = fn(Ts2, Tb2, p, True, face_m=face)
         np.testing.assert_allclose(A, np.hstack(J) / 0.02, rtol=1e-9, atol=1e-9)
         f0 = factor(None, B, p, 0.02)
         assert f0.keys() == [B]

@@ -33,17 +33,17 @@ def _rays(rng, E):
     return r / np.linalg.norm(r, axis=2, keepdims=True)
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_jacobians_match_central_differences(seed):
+@pytest.mark.parametrize("seed,face", [(0, 0.0), (1, 0.0), (2, 0.0), (3, 0.015)])
+def test_jacobians_match_central_differences(seed, face):
     import gtsam
 
     rng = np.random.default_rng(seed)
     Ts = gtsam.Pose3(gtsam.Rot3.Rodrigues(*rng.normal(0, 0.1, 3)), rng.normal(0, 0.3, 3))
     Tb = pose3_from_rt(_facing_board(rng))
     rays, axis, bounds = _rays(rng, 7), rng.integers(0, 2, 7), rng.normal(0, 0.3, 7)
-    fn = lambda poses, want: _residual(poses[0], poses[1], rays, axis, bounds, want)  # noqa: E731
+    fn = lambda poses, want: _residual(poses[0], poses[1], rays, axis, bounds, want, face)  # noqa: E731
     assert check_jacobians(fn, [Ts, Tb]) < 1e-6
-    fn0 = lambda poses, want: _residual(None, poses[0], rays, axis, bounds, want)  # noqa: E731  lidar0
+    fn0 = lambda poses, want: _residual(None, poses[0], rays, axis, bounds, want, face)  # noqa: E731  lidar0
     assert check_jacobians(fn0, [Tb]) < 1e-6
     err, H = fn([Ts, Tb], False)
     assert H is None and err.shape == (7,)
