@@ -75,9 +75,11 @@ HOWTO = {
 
 def _board_line(board) -> str:
     ox, oy = board.pattern_offset_m
+    thick = (f"{board.thickness_m * 1e3:g} mm thick" if board.thickness_m is not None else
+             f"thickness not stated ({board.back_m * 1e3:g} mm assumed where a LIDAR sees its back)")
     return (f"Board: {board.corners_x} x {board.corners_y} inner corners, {board.square_m * 1e3:g} mm squares, "
             f"{board.width_m * 1e3:g} x {board.height_m * 1e3:g} mm (width x height), pattern centre offset "
-            f"({ox * 1e3:g}, {oy * 1e3:g}) mm from the board's centre.")
+            f"({ox * 1e3:g}, {oy * 1e3:g}) mm from the board's centre, {thick}.")
 
 
 def _fmt(v, f="{:.3g}"):
