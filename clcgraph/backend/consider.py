@@ -23,9 +23,10 @@ The sigmas stated by the user (solve options):
   lowest bending mode, 0 on the edges: ``(1-u^2)(1-v^2)`` over the board); LIDAR points move
   along their rays, corners off the plane and are reprojected.
 - ``board_thickness_sigma_m``: how well the board's thickness is known (board_thickness_sigma),
-  which places its back face: the points of the observations made from behind the board (graph.lidar_face) move along
-  their rays as the back face moves (none seen from behind: no term). The edge factors' crossings
-  with that face move too, little against their quantisation, and are not included.
+  which places its back face: the points of the observations made from behind the board
+  (graph.lidar_face) move along their rays as the back face moves (none seen from behind: no
+  term). The edge factors' crossings with that face move too, little against their
+  quantisation, and are not included.
 - ``lidar_range_offset_m``: one range offset common to every point of a LIDAR (one term per
   LIDAR).
 - ``lidar_ring_range_bias_m``, ``lidar_ring_elevation_deg``: each laser's (ring's) own range
