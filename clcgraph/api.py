@@ -174,6 +174,7 @@ def _tf_priors(bags, sensors: Sequence[Sensor], sigma_rad: float, sigma_m: float
                  for i, rt in nominal_poses(bags, sensors, strict=True).items())
 
 
+@single_threaded_blas()  # OpenBLAS's idle threads spin: they doubled the frontend's CPU time
 def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (), *, config=None,
                  timings: dict | None = None, report_material: dict | None = None) -> Problem:
     """Bags -> Problem: snapshots, LIDAR board segmentation, chessboard detection.
