@@ -190,7 +190,7 @@ def average_scans(scans: list[LidarScan]) -> tuple[LidarScan, np.ndarray]:
     total = np.zeros(len(ref.points))
     total[R.index] = R.range
     key_r = R.ring * 8.0 + R.azimuth  # ring, then azimuth in [-pi, pi): one sortable key
-    step_r = typical_step(neighbour_steps(R))
+    step_r = typical_step(neighbour_steps(R)) if ref.shape is not None else None  # for _same_rays' organised clouds
     for scan in scans[1:]:
         found = _same_rays(ref, scan, R, step_r) or _along_rings(scan, R, key_r)
         if found is None:
