@@ -408,6 +408,7 @@ def _why_missed(sensors, lidar_obs, camera_obs, rejected) -> str:
     return ("; ".join(parts) + "; ") if parts else ""
 
 
+@single_threaded_blas()  # as read_problem's (`clcgraph segment`, scripts)
 def segment(scans, *, config=None, sensor: int = 0, snapshots: Sequence[int] | None = None,
             board: BoardGeometry | None = None, ring_offsets: dict | None = None) -> list:
     """LIDAR board segmentation of many scans: LidarBoardObservation or Rejected per scan.
