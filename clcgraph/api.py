@@ -174,6 +174,7 @@ def _tf_priors(bags, sensors: Sequence[Sensor], sigma_rad: float, sigma_m: float
                  for i, rt in nominal_poses(bags, sensors, strict=True).items())
 
 
+@single_threaded_blas()  # OpenBLAS's idle threads spin: they doubled the frontend's CPU time
 def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (), *, config=None,
                  timings: dict | None = None, report_material: dict | None = None) -> Problem:
     """Bags -> Problem: snapshots, LIDAR board segmentation, chessboard detection.
@@ -407,6 +408,7 @@ def _why_missed(sensors, lidar_obs, camera_obs, rejected) -> str:
     return ("; ".join(parts) + "; ") if parts else ""
 
 
+@single_threaded_blas()  # as read_problem's (`clcgraph segment`, scripts)
 def segment(scans, *, config=None, sensor: int = 0, snapshots: Sequence[int] | None = None,
             board: BoardGeometry | None = None, ring_offsets: dict | None = None) -> list:
     """LIDAR board segmentation of many scans: LidarBoardObservation or Rejected per scan.

@@ -147,7 +147,8 @@ def build(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.
                                         s.intrinsics, problem.board, sigma_of(sigma_camera_px, o.sensor),
                                         **effect("camera", j, o.sensor)))
     if lidar == "range":  # from a rough seed (point-to-plane) the sides may be wrong
-        for f in lidar_edge_factors(problem, active, rt_sensor, rt_board, options) if edge_factors is None else edge_factors:
+        made = lidar_edge_factors(problem, active, rt_sensor, rt_board, options) if edge_factors is None else edge_factors
+        for f in made.values():
             g.add(f)
     used, seen_by_camera = active.boards(problem)
     nominal = rt_board if board_nominal is None else board_nominal
@@ -169,18 +170,24 @@ def _pose(problem: Problem, rt_sensor: np.ndarray, i: int):
     return None if i == problem.reference else pose3_from_rt(rt_sensor[i])
 
 
-def lidar_edge_factors(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.ndarray, options) -> list:
-    """The edge factors of the active LIDAR observations at the given poses (edge_factor), none
-    unless ``options.lidar_edges``."""
-    out = []
+def lidar_edge_factors(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.ndarray, options, *,
+                       reuse: tuple | None = None) -> dict:
+    """{LIDAR observation index: its edge factor at the given poses (edge_factor)} of the active
+    observations that have one; none unless ``options.lidar_edges``. ``reuse``: (another problem,
+    its lidar_edge_factors at the same poses and masks): an observation with that problem's edge
+    rays (the same array: a move of the points only) takes its factor from there."""
+    out = {}
     if not getattr(options, "lidar_edges", False):
         return out
-    for o, m in zip(problem.lidar_observations, active.lidar):
-        if m is not None and m.any() and o.edge_rays is not None and len(o.edge_rays):
+    for j, (o, m) in enumerate(zip(problem.lidar_observations, active.lidar)):
+        if reuse is not None and o.edge_rays is reuse[0].lidar_observations[j].edge_rays:
+            if j in reuse[1]:
+                out[j] = reuse[1][j]
+        elif m is not None and m.any() and o.edge_rays is not None and len(o.edge_rays):
             f = edge_factor(problem, o, _pose(problem, rt_sensor, o.sensor), pose3_from_rt(rt_board[o.snapshot]),
                             beam_rad=options.lidar_edge_beam_rad)
             if f is not None:
-                out.append(f)
+                out[j] = f
     return out
 
 

@@ -278,16 +278,18 @@ def _solve_with_effects(problem, active, rt_sensor, rt_board, sig, options, nomi
     effects = N.initial_effects(problem)
     values, iters, lin = None, [], None
     for rnd in range(_MAX_EFFECT_ROUNDS):
+        edges = G.lidar_edge_factors(problem, active, rt_sensor, rt_board, options)  # (rebuild remakes the moved)
         g, v = G.build(problem, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig, sigma_camera_px=sig,
                        options=options, board_nominal=nominal, effects=N.effect_sigmas(problem, effects),
-                       effect_values=values)
+                       effect_values=values, edge_factors=edges)
         # which components the data show is decided once, on the first linearization
         at = N.Linearization(problem, g, v)
 
-        def rebuild(p, rt_sensor=rt_sensor, rt_board=rt_board, sig=sig, effects=effects, values=values):
+        def rebuild(p, rt_sensor=rt_sensor, rt_board=rt_board, sig=sig, effects=effects, values=values, edges=edges):
             return G.build(p, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig, sigma_camera_px=sig,
                            options=options, board_nominal=nominal, effects=N.effect_sigmas(problem, effects),
-                           effect_values=values)[0]
+                           effect_values=values, edge_factors=G.lidar_edge_factors(p, active, rt_sensor, rt_board,
+                                                                                   options, reuse=(problem, edges)))[0]
 
         # the consider terms' errors are in the data too: D and the white noise get what they leave
         known = consider.known_columns(problem, at, g, rebuild, options)
@@ -302,7 +304,7 @@ def _solve_with_effects(problem, active, rt_sensor, rt_board, sig, options, nomi
             sig, effects = new_sig, new_effects
             g, values = G.build(problem, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig,
                                 sigma_camera_px=sig, options=options, board_nominal=nominal,
-                                effects=N.effect_sigmas(problem, effects), effect_values=values)
+                                effects=N.effect_sigmas(problem, effects), effect_values=values, edge_factors=edges)
             break
         sig, effects = new_sig, new_effects
         rt_sensor, rt_board, rec, (g, values) = _lm(problem, active, rt_sensor, rt_board, "range", sig, options,
@@ -551,14 +553,15 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
     t = time.perf_counter()
     effect_sig = None if effects is None else N.effect_sigmas(problem, effects)
 
-    # made once, for the moves that leave the edge rays alone (all but the ring elevations')
+    # made once: a move remakes only those of the observations whose edge rays it moves (a ring
+    # elevation's, of one LIDAR)
     edges = G.lidar_edge_factors(problem, active, rt_sensor, rt_board, options)
 
     def rebuild(p):  # the final graph of p: the same masks, sigmas and D, other measurements
-        same = all(a.edge_rays is b.edge_rays for a, b in zip(problem.lidar_observations, p.lidar_observations))
         return G.build(p, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig, sigma_camera_px=sig,
                        options=options, board_nominal=nominal, effects=effect_sig, effect_values=values,
-                       edge_factors=edges if same else None)[0]
+                       edge_factors=G.lidar_edge_factors(p, active, rt_sensor, rt_board, options,
+                                                         reuse=(problem, edges)))[0]
 
     # the consider terms' errors as columns of the final linearization: the jackknife's expected
     # ratio and the consistency checks count them in

@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from .board_outline import Outline, ScanRays, ray_plane
-from .lidar_preprocess import ring_neighbours
+from .lidar_preprocess import ring_neighbours, slice_medians
 
 # How far a fitted rectangle's side may lie from the board's (board_outline's finest grid cell:
 # its centre to a cell, its angle to a cell at the corners)
@@ -137,7 +137,7 @@ def edge_rays(rays: ScanRays, rows: np.ndarray, n: np.ndarray, d: float, outline
 
     # across the rings: above the highest ring on the board, below the lowest, at the middle of
     # that ring's piece
-    elev = np.array([np.median(np.arcsin(np.clip(u[a:b, 2], -1, 1))) for a, b in zip(R.starts[:-1], R.starts[1:])])
+    elev = slice_medians(np.arcsin(np.clip(u[:, 2], -1, 1)), R.starts)
     by_elev = np.argsort(elev)  # slices of R by elevation
     rank_of_slice = np.empty(len(elev), np.int64)
     rank_of_slice[by_elev] = np.arange(len(elev))

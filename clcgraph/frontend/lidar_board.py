@@ -44,7 +44,7 @@ from ..types import BoardGeometry, LidarBoardObservation, LidarScan, Rejected
 from .board_edges import edge_rays
 from .board_outline import fit_outline, scan_rays
 from .lidar_preprocess import (Rings, finite_rows, neighbour_steps, prepare, ring_of, row_norms, session_masks,
-                               typical_step)
+                               slice_medians, typical_step)
 
 STAGE = "segmentation"
 log = logging.getLogger(__name__)
@@ -87,7 +87,7 @@ def _ring_ranks(R: Rings) -> tuple[np.ndarray, np.ndarray]:
     """Per point the ring's rank by elevation (ring numbers need not be ordered), and the
     elevation (rad) of each rank."""
     el = np.arcsin(np.clip(R.points[:, 2] / np.maximum(R.range, 1e-9), -1, 1))
-    med = np.array([np.median(el[a:b]) for a, b in zip(R.starts[:-1], R.starts[1:])])
+    med = slice_medians(el, R.starts)
     order = np.argsort(med)
     rank_of_slice = np.empty(len(med), np.int64)
     rank_of_slice[order] = np.arange(len(med))
