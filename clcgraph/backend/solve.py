@@ -13,7 +13,8 @@ re-estimation and outlier rejection until stable -> covariance from gtsam.Margin
 - **Degeneracy**: a sensor whose pose the data do not determine (information singular, or a
   1-sigma beyond ``max_stdev_m`` / ``max_stdev_deg`` in some direction) is a DegenerateError
   naming the sensor and the direction, never a number (GTSAM's "Indeterminate linear
-  system" included: consistency.unobservable_error names the free direction).
+  system" included: consistency.unobservable_error names the free direction); the same
+  limits with the consider terms added ("imprecise"), naming the term that makes most of it.
 - **Consistency**: the final solution must pass backend/consistency.py's checks (leave one
   snapshot out, per sensor pair, no material error a single snapshot could hide), else a
   SolveError / DegenerateError naming the snapshot, sensor and direction; the verdict is
