@@ -287,6 +287,12 @@ class SolveOptions:
     # A camera's lens-model error: a smooth pixel-error field fixed in the image, the same for
     # every board at the same image position (RMS px of the error vector, 1 sigma).
     camera_lens_field_px: float = 0.0
+    # A camera's focal length, relative error (1 sigma, e.g. 0.01 = 1 %), for cameras whose model
+    # carries no covariance of its own (those that do have their intrinsics term). Boards all
+    # at one distance cannot tell it from the camera's depth: on the real ACFR fisheye 1 % moves
+    # the camera 31-35 mm (a 32 mm sigma, docs/uncertainty.md). 0: not included (the report says
+    # so); state yours.
+    camera_focal_scale_sigma: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -657,6 +663,7 @@ _RANGES = {
     "solve.lidar_ring_range_bias_m": "[0, 1]",
     "solve.lidar_ring_elevation_deg": "[0, 5]",
     "solve.camera_lens_field_px": "[0, 10]",
+    "solve.camera_focal_scale_sigma": "[0, 0.5]",
     "solve.max_stdev_deg": "(0, 180]",
     "sectors.n_sectors": "[1, 3600]",
     "sectors.threshold_valid_lidar_range_m": "[0, inf)",

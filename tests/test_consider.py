@@ -415,3 +415,27 @@ def test_a_pose_the_terms_leave_imprecise_is_refused_naming_the_term():
                                               r"\(.*\) = .*x.*, 1-sigma 0.\d+ m, \d+ % of its variance from range "
                                               r"offset /lidar0 \(> solve.max_stdev_m 0.03 m"):
         calibrate(problem, dataclasses.replace(base, lidar_range_offset_m=0.1))
+
+
+def test_focal_length_term_matches_a_resolve_with_the_focal_length_scaled(solved):
+    """A camera without an intrinsics covariance, its focal length stated to 1 %: the term's
+    one-step sensitivity is a re-solve with fx, fy 1 % longer (to 3 %), and it moves that
+    camera along its line of sight (the boards' distance is PnP's, proportional to f)."""
+    problem, truth, options, sigma, solve, build, idx, x, values = solved
+    opts = dataclasses.replace(options, board_flatness_m=0.0, camera_focal_scale_sigma=0.01)
+    rt_s = truth.rt_lidar0_sensor.copy()
+    for a, i in enumerate(idx):
+        rt_s[i] = x[6 * a:6 * a + 6]
+    rt_b = np.array([rt_from_pose3(values.atPose3(G.board_key(k))) for k in range(len(truth.rt_lidar0_board))])
+    cols = _rt_columns(consider.consider_terms(problem, lambda p: build(p, rt_s, rt_b)[0], values, opts), x, idx)
+    cams = [i for i in idx if problem.sensors[i].is_camera]
+    assert set(cols) == {f"focal length {problem.sensors[i].topic}" for i in cams}
+    i = cams[0]
+    d = np.zeros(len(problem.sensors[i].intrinsics))
+    d[:2] = 0.01 * np.asarray(problem.sensors[i].intrinsics[:2])
+    x_moved, _ = solve(consider._intrinsics_moved(problem, i, d), rt_s, rt_b)
+    dx = x_moved - x
+    pred = cols[f"focal length {problem.sensors[i].topic}"][:, 0]
+    a = idx.index(i)
+    assert np.linalg.norm(dx[6 * a + 3:6 * a + 6]) > 0.005  # centimetres for boards metres away
+    assert np.linalg.norm(pred - dx) < 0.03 * np.linalg.norm(dx)

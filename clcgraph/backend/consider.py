@@ -39,6 +39,8 @@ The sigmas stated by the user (solve options):
   terms of two directions each: the 1-sigma directions of ``Cov(a, b) = sigma^2 (A'WA)^-1
   A'W^2A (A'WA)^-1`` (A = [1, e] over the rings the boards met, W their point counts).
 
+- ``camera_focal_scale_sigma``: a camera's focal length (fx and fy together) off by this
+  fraction, for cameras without an intrinsics covariance (those have the term above).
 - ``camera_lens_field_px``: a lens-model error field, the same at the same image position in
   every board (RMS of the pixel error vector; lens_field_kernel's smoothness): the leading
   eigenmodes of its covariance, per pixel axis (the residuals are linear in the corners: a
@@ -420,9 +422,15 @@ def _wanted(problem: Problem, values, options):
             if s.is_camera and any(o.sensor == i for o in problem.camera_observations):
                 lens[i] = lens_field_modes(s.imagersize, options.camera_lens_field_px)
     for i, s in enumerate(problem.sensors):
-        if s.is_camera and s.intrinsics_covariance is not None and np.any(s.intrinsics_covariance):
+        if not s.is_camera or not any(o.sensor == i for o in problem.camera_observations):
+            continue
+        if s.intrinsics_covariance is not None and np.any(s.intrinsics_covariance):
             wanted[f"intrinsics {s.topic}"] = [lambda sign, i=i, d=d: _intrinsics_moved(problem, i, sign * d)
                                               for d in intrinsics_directions(s.intrinsics_covariance)]
+        elif options.camera_focal_scale_sigma > 0:  # fx, fy together (mrcal's first two intrinsics)
+            d = np.zeros(len(s.intrinsics))
+            d[:2] = options.camera_focal_scale_sigma * np.asarray(s.intrinsics[:2], float)
+            wanted[f"focal length {s.topic}"] = [lambda sign, i=i, d=d: _intrinsics_moved(problem, i, sign * d)]
     return wanted, lens
 
 

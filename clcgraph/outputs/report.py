@@ -204,9 +204,11 @@ def _uncertainty_terms(result: Result) -> str:
     """What the sigmas include (backend/consider.py): each term's share of the final variance."""
     terms = result.stats.get("uncertainty_terms") or {}
     cams = [s.topic for s in result.problem.sensors if s.is_camera
-            and f"intrinsics {s.topic}" not in terms.get("included", ())]
+            and not {f"intrinsics {s.topic}", f"focal length {s.topic}"} & set(terms.get("included", ()))]
     note = (f"<p>Camera intrinsics uncertainty is not included for {', '.join(html.escape(c) for c in cams)} "
-            "(its camera model carries no optimization_inputs).</p>") if cams else ""
+            "(its camera model carries no optimization_inputs; state its focal length's error with "
+            "<code>solve.camera_focal_scale_sigma</code>: where every board stands at one distance, 1 % of it "
+            "is ~1 % of that distance along the camera's line of sight).</p>") if cams else ""
     if not terms:
         return note
     names = terms["included"]

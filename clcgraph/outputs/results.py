@@ -191,9 +191,12 @@ def _plain(v, digits: int | None = None):
 def uncertainty_terms_dict(result: Result) -> dict:
     """Which terms the sigmas include (backend/consider.py), each term's share of every sensor's
     final position / orientation variance, and per camera whether its intrinsics' uncertainty
-    is in them (only where its .cameramodel carries the calibration that made it)."""
+    is in them (only where its .cameramodel carries the calibration that made it; its focal
+    length's alone where solve.camera_focal_scale_sigma states it)."""
     terms = result.stats.get("uncertainty_terms") or {}
-    cams = {s.topic: ("included" if f"intrinsics {s.topic}" in terms.get("included", ()) else
+    included = set(terms.get("included", ()))
+    cams = {s.topic: ("included" if f"intrinsics {s.topic}" in included else
+                      "focal length only (solve.camera_focal_scale_sigma)" if f"focal length {s.topic}" in included else
                       "not included (the camera model carries no optimization_inputs)")
             for s in result.problem.sensors if s.is_camera}
     out = {"camera_intrinsics_uncertainty": cams}
