@@ -58,6 +58,14 @@ def solved():
     return truth_problem, truth, options, sigma, solve, build, idx, x, values
 
 
+def _solved_poses(truth, idx, x, values):
+    """(rt_sensor, rt_board) of the fixture's solve: the variable sensors' ``x``, lidar0's truth."""
+    rt_s = truth.rt_lidar0_sensor.copy()
+    for a, i in enumerate(idx):
+        rt_s[i] = x[6 * a:6 * a + 6]
+    return rt_s, np.array([rt_from_pose3(values.atPose3(G.board_key(k))) for k in range(len(truth.rt_lidar0_board))])
+
+
 def _rt_columns(terms, x, idx):
     J = np.zeros((6 * len(idx), 6 * len(idx)))
     for a in range(len(idx)):
@@ -70,10 +78,7 @@ def test_consider_sensitivity_matches_a_resolve_of_the_moved_measurements(solved
     problem, truth, options, sigma, solve, build, idx, x, values = solved
     h = 0.004
     opts = dataclasses.replace(options, **{"board_flatness_m": 0.0, what: h})
-    rt_s = truth.rt_lidar0_sensor.copy()
-    for a, i in enumerate(idx):
-        rt_s[i] = x[6 * a:6 * a + 6]
-    rt_b = np.array([rt_from_pose3(values.atPose3(G.board_key(k))) for k in range(len(truth.rt_lidar0_board))])
+    rt_s, rt_b = _solved_poses(truth, idx, x, values)
     terms = consider.consider_terms(problem, lambda p: build(p, rt_s, rt_b)[0], values, opts)
     cols = _rt_columns(terms, x, idx)
     name = "board flatness" if what == "board_flatness_m" else "range offset /lidar0"
@@ -273,10 +278,7 @@ def test_ring_term_sensitivity_matches_a_resolve_of_the_moved_measurements(solve
     problem, truth, options, sigma, solve, build, idx, x, values = solved
     opts = dataclasses.replace(options, board_flatness_m=0.0, lidar_ring_range_bias_m=0.03 * (name[5] == "r"),
                                lidar_ring_elevation_deg=0.3 * (name[5] == "e"))
-    rt_s = truth.rt_lidar0_sensor.copy()
-    for a, i in enumerate(idx):
-        rt_s[i] = x[6 * a:6 * a + 6]
-    rt_b = np.array([rt_from_pose3(values.atPose3(G.board_key(k))) for k in range(len(truth.rt_lidar0_board))])
+    rt_s, rt_b = _solved_poses(truth, idx, x, values)
     terms = consider.consider_terms(problem, lambda p: build(p, rt_s, rt_b)[0], values, opts)
     assert set(terms) == {name}
     cols = _rt_columns(terms, x, idx)[name]
@@ -298,10 +300,7 @@ def test_lens_field_term_in_closed_form_is_the_relinearized_one_and_a_resolve(so
 
     problem, truth, options, sigma, solve, build, idx, x, values = solved
     opts = dataclasses.replace(options, board_flatness_m=0.0, camera_lens_field_px=0.5)
-    rt_s = truth.rt_lidar0_sensor.copy()
-    for a, i in enumerate(idx):
-        rt_s[i] = x[6 * a:6 * a + 6]
-    rt_b = np.array([rt_from_pose3(values.atPose3(G.board_key(k))) for k in range(len(truth.rt_lidar0_board))])
+    rt_s, rt_b = _solved_poses(truth, idx, x, values)
     rebuild = lambda p: build(p, rt_s, rt_b)[0]  # noqa: E731
     terms = consider.consider_terms(problem, rebuild, values, opts)
     assert set(terms) == {"lens field /cam0", "lens field /cam1"}
@@ -423,10 +422,7 @@ def test_focal_length_term_matches_a_resolve_with_the_focal_length_scaled(solved
     camera along its line of sight (the boards' distance is PnP's, proportional to f)."""
     problem, truth, options, sigma, solve, build, idx, x, values = solved
     opts = dataclasses.replace(options, board_flatness_m=0.0, camera_focal_scale_sigma=0.01)
-    rt_s = truth.rt_lidar0_sensor.copy()
-    for a, i in enumerate(idx):
-        rt_s[i] = x[6 * a:6 * a + 6]
-    rt_b = np.array([rt_from_pose3(values.atPose3(G.board_key(k))) for k in range(len(truth.rt_lidar0_board))])
+    rt_s, rt_b = _solved_poses(truth, idx, x, values)
     cols = _rt_columns(consider.consider_terms(problem, lambda p: build(p, rt_s, rt_b)[0], values, opts), x, idx)
     cams = [i for i in idx if problem.sensors[i].is_camera]
     assert set(cols) == {f"focal length {problem.sensors[i].topic}" for i in cams}
