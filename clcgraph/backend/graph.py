@@ -124,6 +124,10 @@ def build(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.
     g = gtsam.NonlinearFactorGraph()
     v = gtsam.Values()
     centre = board_centre(problem)
+    used, seen_by_camera = active.boards(problem)
+    # each pose made once: the values, and which face each LIDAR observation sees
+    T_s = [_pose(problem, rt_sensor, i) for i in range(len(problem.sensors))]
+    T_b = {k: pose3_from_rt(rt_board[k]) for k in used}
 
     def effect(kind, j, sensor):
         if effects is None:
@@ -136,7 +140,7 @@ def build(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.
 
     for j, (o, m) in enumerate(zip(problem.lidar_observations, active.lidar)):
         if m is not None and m.any():
-            face = lidar_face(problem.board, _pose(problem, rt_sensor, o.sensor), pose3_from_rt(rt_board[o.snapshot]))
+            face = lidar_face(problem.board, T_s[o.sensor], T_b[o.snapshot])
             g.add(make(_key(problem, o.sensor), board_key(o.snapshot), o.points[m], sigma_of(sigma_lidar_m, o.sensor),
                        face_m=face, **effect("lidar", j, o.sensor)))
     for j, (o, m) in enumerate(zip(problem.camera_observations, active.camera)):
@@ -150,7 +154,6 @@ def build(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.
         made = lidar_edge_factors(problem, active, rt_sensor, rt_board, options) if edge_factors is None else edge_factors
         for f in made.values():
             g.add(f)
-    used, seen_by_camera = active.boards(problem)
     nominal = rt_board if board_nominal is None else board_nominal
     for k in sorted(used - seen_by_camera):
         g.add(board_prior_factor(board_key(k), pose3_from_rt(nominal[k]), options.board_prior_sigma_rad,
@@ -158,11 +161,11 @@ def build(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.
     for p in problem.priors:
         if p.sensor != problem.reference:
             g.add(pose_prior_factor(sensor_key(p.sensor), pose3_from_rt(p.rt_lidar0_sensor), p.sigma_rt))
-    for i in range(len(problem.sensors)):
-        if i != problem.reference:
-            v.insert(sensor_key(i), pose3_from_rt(rt_sensor[i]))
+    for i, T in enumerate(T_s):
+        if T is not None:  # lidar0 has no variable
+            v.insert(sensor_key(i), T)
     for k in sorted(used):
-        v.insert(board_key(k), pose3_from_rt(rt_board[k]))
+        v.insert(board_key(k), T_b[k])
     return g, v
 
 
