@@ -96,10 +96,7 @@ def _bow_moves(problem: Problem, values, h: float):
             continue
         rt_board_sensor = compose_rt(invert_rt(rt_b), rt_s[o.sensor])
         q = transform(rt_board_sensor, o.points)  # board frame
-        u = o.points / np.linalg.norm(o.points, axis=1, keepdims=True)
-        cos = np.abs(u @ R_from_r(rt_board_sensor[:3])[2])  # the ray against the board's normal
-        drho = h * bow_shape(problem.board, q[:, :2]) / np.maximum(cos, 0.05)
-        lidar.append(dataclasses.replace(o, points=o.points + u * drho[:, None]))
+        lidar.append(_farther(o, rt_board_sensor, h * bow_shape(problem.board, q[:, :2])))
     camera = []
     corners = problem.board.corners()
     bowed = np.c_[corners[:, :2], h * bow_shape(problem.board, corners[:, :2])]
@@ -116,6 +113,14 @@ def _bow_moves(problem: Problem, values, h: float):
     return dataclasses.replace(problem, lidar_observations=tuple(lidar), camera_observations=tuple(camera))
 
 
+def _farther(o, rt_board_sensor: np.ndarray, dn):
+    """LIDAR observation ``o`` with the board's surface ``dn`` (m, one or per point) farther from the
+    sensor along the board's normal: each point along its ray, by dn / cos(the ray against the normal)."""
+    u = o.points / np.linalg.norm(o.points, axis=1, keepdims=True)
+    cos = np.abs(u @ R_from_r(rt_board_sensor[:3])[2])
+    return dataclasses.replace(o, points=o.points + u * (dn / np.maximum(cos, 0.05))[:, None])
+
+
 def _seen_from_behind(problem: Problem, values) -> list:
     """Per LIDAR observation: its sensor is behind its board at ``values`` (graph.lidar_face)."""
     out = []
@@ -128,17 +133,10 @@ def _seen_from_behind(problem: Problem, values) -> list:
 
 def _thickness_moves(problem: Problem, values, behind: list, h: float):
     """The observations with the board ``h`` (m) thicker: its back face that much nearer to the
-    LIDARs behind it, their ranges shorter by h / cos(the ray against the normal)."""
+    LIDARs behind it."""
     rt_s = _poses(problem, values)
-    lidar = []
-    for o, b in zip(problem.lidar_observations, behind):
-        if not b:
-            lidar.append(o)
-            continue
-        R_bs = R_from_r(compose_rt(invert_rt(_board_rt(values, o.snapshot)), rt_s[o.sensor])[:3])
-        u = o.points / np.linalg.norm(o.points, axis=1, keepdims=True)
-        cos = np.abs(u @ R_bs[2])
-        lidar.append(dataclasses.replace(o, points=o.points - u * (h / np.maximum(cos, 0.05))[:, None]))
+    lidar = [_farther(o, compose_rt(invert_rt(_board_rt(values, o.snapshot)), rt_s[o.sensor]), -h) if b else o
+             for o, b in zip(problem.lidar_observations, behind)]
     return dataclasses.replace(problem, lidar_observations=tuple(lidar))
 
 
