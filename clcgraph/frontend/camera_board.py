@@ -295,17 +295,22 @@ def _run_mrgingham(grays: list[np.ndarray], n: int, jobs: int) -> list[np.ndarra
 def _opencv_one(args) -> np.ndarray | None:
     import cv2
 
-    gray, nx, ny = args
+    gray, nx, ny, exhaustive = args
     cv2.setNumThreads(1)
-    flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
+    flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_ACCURACY | (cv2.CALIB_CB_EXHAUSTIVE if exhaustive else 0)
     ok, c = cv2.findChessboardCornersSB(gray, (nx, ny), flags=flags)
     if not ok or c is None:
         return None
     return c.reshape(-1, 2).astype(float)
 
 
-def _run_opencv(grays: list[np.ndarray], nx: int, ny: int, jobs: int) -> list[np.ndarray | None]:
-    args = [(g, nx, ny) for g in grays]
+def _run_opencv(grays: list[np.ndarray], nx: int, ny: int, jobs: int, *,
+                exhaustive=True) -> list[np.ndarray | None]:
+    """Corners (N,2) or None per image, from OpenCV's sector-based detector. ``exhaustive``: per image
+    (or one for all), whether it searches exhaustively (CALIB_CB_EXHAUSTIVE: more board hypotheses,
+    for a board anywhere among clutter; on a miss it costs 2x)."""
+    exhaustive = [exhaustive] * len(grays) if isinstance(exhaustive, bool) else list(exhaustive)
+    args = [(g, nx, ny, e) for g, e in zip(grays, exhaustive)]
     if jobs <= 1 or len(grays) < 2:
         return [_opencv_one(a) for a in args]
     # threads: OpenCV releases the GIL while detecting (and worker processes would fork a
@@ -416,11 +421,14 @@ class BoardDetection:
         # upsampled image too (its grid passes the same checks). The full detector is slow, so
         # it runs only where OpenCV's quick check sees a board, except in low-resolution images
         # (<= SMALL_IMAGE_PX on the long side, cheap to search): there a board at LIDAR ranges
-        # has squares of 3-5 px, which the quick check misses
+        # has squares of 3-5 px, which the quick check misses. Its exhaustive search (twice the
+        # cost of a miss, the usual outcome here: a board hidden in part) only where the board can
+        # be anywhere in the image; a box the LIDARs predicted holds little but the board
         if still and self.options.fallback_opencv:
             still = [k for k in still if max(self.grays[k].shape) <= SMALL_IMAGE_PX
                      or cv2.checkChessboard(up[k], (nx, ny))]
-            for k, c in zip(still, _run_opencv([up[k] for k in still], nx, ny, jobs)):
+            anywhere = [regions is None or regions[k] is None for k in still]
+            for k, c in zip(still, _run_opencv([up[k] for k in still], nx, ny, jobs, exhaustive=anywhere)):
                 if c is not None:
                     self.results[k] = self._validated(k, back(k, c + _OFFSET_PX["opencv"]))
         return self.results
