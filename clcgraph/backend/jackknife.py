@@ -4,7 +4,12 @@ Each snapshot (board pose) is left out in turn and the sensor poses re-solved by
 Gauss-Newton step from the final linearization: the snapshot's board and D variables are
 marginalized out of the normal equations (noise.Linearization.reduced, a Schur complement),
 so leaving snapshot k out is ``dx_k = (S - S_k)^-1 (r - r_k)`` on the sensors only: a few
-small solves instead of a re-solve per snapshot. The spread of the answers,
+small solves instead of a re-solve per snapshot. With the per-observation model, the variance
+components are re-estimated without the snapshot first (VCE from the solve's values, the same
+components kept) and S, r reweighted with them, as a re-solve does: on the real ACFR run 2 one
+board alone carried the camera's board-translation component (4.5 mm with it, 0.65 mm
+without), and the moves this re-weighting makes were half of the re-solves' spread along the
+camera's lateral axis, which the fixed-weight step did not see. The spread of the answers,
 ``C_jk = (n-1)/n sum_k (x_k - mean)(x_k - mean)^T``, estimates the sensors' covariance
 without trusting the noise model; it is compared with the model covariance along the
 model's principal axes (per sensor, position in lidar0 and orientation, rt coordinates).
@@ -66,11 +71,31 @@ def _axes(C_model: np.ndarray, C_jk: np.ndarray, scale: float, expected_var) -> 
             "expected": centre, "expected_95": centre[:, None] * np.sqrt(q)}
 
 
-def jackknife(problem, lin, rt_lidar0_sensor: np.ndarray, covariance_rt: np.ndarray, known=None) -> dict:
+def _refit_weights(problem, lin, k, components) -> dict:
+    """Group weights (relative to ``lin``'s) of the variance components re-estimated without
+    snapshot ``k``: ``components`` = (white sigmas, D's sigmas, the linearization VCE ran on);
+    the weights held ({}) where VCE without it meets a singular system."""
+    from .noise import estimate_components
+
+    sig, effects, on = components
+    try:
+        sig_k, eff_k, _ = estimate_components(problem, on.without(k), sig, effects, select=False)
+    except np.linalg.LinAlgError:  # without it, a component swallows a direction the rest barely holds
+        return {}
+    return {g: float((sig[g[1]] / sig_k[g[1]]) ** 2) if g[0] == "white"
+            else float((effects[g[1]][g[2]] / eff_k[g[1]][g[2]]) ** 2) for g in lin.groups}
+
+
+def jackknife(problem, lin, rt_lidar0_sensor: np.ndarray, covariance_rt: np.ndarray, known=None,
+              components=None) -> dict:
     """Leave-one-snapshot-out spread vs the model covariance (module doc); {} if < 4 snapshots.
     ``known``: ``lin`` with the stated consider terms' errors (noise.Linearization.with_known):
     fixed for the capture, they still move each leave-one-out answer by its own amount (a ring
-    trend tilts each board by its own b / range), so the expected ratio counts them in."""
+    trend tilts each board by its own b / range), so the expected ratio counts them in.
+    ``components``: (white sigmas, D's sigmas, the linearization VCE estimates them on) to
+    re-estimate them without each snapshot; None: the weights held. The expected ratio is the
+    fixed-weight model's either way: a ratio above its range says the model, the components'
+    own uncertainty included, is short along that axis."""
     S, r, parts = lin.reduced()
     if lin.ns == 0 or len(parts) < _MIN_SNAPSHOTS:
         return {}
@@ -87,7 +112,11 @@ def jackknife(problem, lin, rt_lidar0_sensor: np.ndarray, covariance_rt: np.ndar
         except np.linalg.LinAlgError:  # without this board some sensor is not determined
             indispensable.append(k)
             continue
-        moves[k] = J @ (np.linalg.solve(S - S_k, r - r_k) - x_full)
+        if components is None:
+            moves[k] = J @ (np.linalg.solve(S - S_k, r - r_k) - x_full)
+        else:  # the variance components re-estimated without the snapshot, as a re-solve would
+            Sw, rw, pw = lin.reduced(_refit_weights(problem, lin, k, components))
+            moves[k] = J @ (np.linalg.solve(Sw - pw[k][0], rw - pw[k][1]) - x_full)
         A[k] = np.linalg.inv(S - S_k) - Si
     ks = sorted(moves)
     X = np.array([moves[k] for k in ks])
@@ -161,7 +190,9 @@ def jackknife(problem, lin, rt_lidar0_sensor: np.ndarray, covariance_rt: np.ndar
                       "largest_influence": big}
         if worst is None or big["position_mm"] > worst["position_mm"]:
             worst = {"sensor": i, **big}
-    return {"method": "one-step Gauss-Newton from the final linearization, one snapshot left out at a time",
+    method = "one-step Gauss-Newton from the final linearization, one snapshot left out at a time" + (
+        "" if components is None else ", the variance components re-estimated without it")
+    return {"method": method,
             "n_snapshots": n, "indispensable_snapshots": indispensable, "covariance_rt": C_jk,
             "moves_rt": {int(k): moves[k] for k in ks}, "sensors": sensors, "largest_influence": worst}
 

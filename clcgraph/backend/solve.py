@@ -570,8 +570,11 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
     # ratio and the consistency checks count them in
     known = consider.known_columns(problem, lin, g, rebuild, options)
     # the jackknife judges the board-to-board part: it cannot see the common part of errors fixed for the capture
-    jk = jackknife(problem, lin, rt_sensor, cov, known=lin.with_known(*known) if known else None)
-    cov = raise_where_rejected(cov, jk)  # where the jackknife rejects the model, its spread
+    with_known = lin.with_known(*known) if known else None
+    jk = jackknife(problem, lin, rt_sensor, cov, known=with_known,
+                   components=None if effects is None else (sig, effects, with_known or lin))
+    if options.jackknife_floor:  # where the jackknife rejects the model, its spread
+        cov = raise_where_rejected(cov, jk)
     times["jackknife"] = time.perf_counter() - t
     t = time.perf_counter()
 
