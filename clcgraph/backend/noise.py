@@ -69,6 +69,11 @@ def initial_effects(problem) -> dict:
     return {i: {c: _START[c] for c in comp} for i, comp in components(problem).items()}
 
 
+def any_kept(effects: dict | None) -> bool:
+    """Whether some D component is above its floor (the data showed it)."""
+    return any(s > _FLOOR[c] * (1 + 1e-9) for e in (effects or {}).values() for c, s in e.items())
+
+
 def effect_sigmas(problem, effects: dict) -> np.ndarray:
     """(Nsensors,6) prior sigmas of D for graph.build from {sensor: {component: sigma}}."""
     out = np.full((len(problem.sensors), 6), _UNSEEN)

@@ -571,8 +571,10 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
     known = consider.known_columns(problem, lin, g, rebuild, options)
     # the jackknife judges the board-to-board part: it cannot see the common part of errors fixed for the capture
     with_known = lin.with_known(*known) if known else None
+    # the components re-estimated without each snapshot where some D is kept: the white sigmas
+    # alone rest on thousands of points, one board changes them by nothing
     jk = jackknife(problem, lin, rt_sensor, cov, known=with_known,
-                   components=None if effects is None else (sig, effects, with_known or lin))
+                   components=(sig, effects, with_known or lin) if N.any_kept(effects) else None)
     if options.jackknife_floor:  # where the jackknife rejects the model, its spread
         cov = raise_where_rejected(cov, jk)
     times["jackknife"] = time.perf_counter() - t
