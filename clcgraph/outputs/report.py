@@ -578,6 +578,24 @@ def convergence_verdict(conv: dict, what: str = "Solve") -> tuple | None:
     return (False, what, "NOT CONVERGED", html.escape("; ".join(conv.get("warnings", ()))))
 
 
+def _jackknife_verdict(result: Result):
+    """The banner line of the leave-one-snapshot-out check (None without one): the axes along which
+    it rejected the model and the sigma was raised to its spread."""
+    jk = result.jackknife
+    if not jk:
+        return None
+    raised = [(result.problem.sensors[i].topic, what, float(f)) for i, s in jk["sensors"].items()
+              for what in ("position", "orientation") for f in np.asarray(s.get(f"{what}_raised", ())) if f > 1]
+    if not raised:
+        return (True, "Sigmas against the leave-one-snapshot-out spread", "confirmed",
+                f"along every principal axis the jackknife over {jk['n_snapshots']} snapshots is within or below the "
+                "range the noise model expects of it")
+    top = max(raised, key=lambda x: x[2])
+    return (None, "Sigmas against the leave-one-snapshot-out spread", f"raised on {len(raised)} axes",
+            f"the noise model was short along {len(raised)} principal axes; the sigmas there are the jackknife's "
+            f"(up to x{top[2]:.2f}: {html.escape(top[0])} {top[1]}), see the Uncertainty check")
+
+
 def _verdicts(result: Result, inputs, checks: dict, coverage: list) -> str:
     """The banner at the top: what says the calibration is right (or not), worst first."""
     items = [consistency_verdict(result), convergence_verdict(result.stats.get("convergence") or {})]
@@ -595,6 +613,7 @@ def _verdicts(result: Result, inputs, checks: dict, coverage: list) -> str:
                       f"{worst['spill_sigma']:.1f} sigma ({html.escape(p.sensors[worst['lidar']].topic)} in "
                       f"{html.escape(p.sensors[worst['camera']].topic)}, {html.escape(_snapshot_name(worst['snapshot'], inputs))}; "
                       f"more than 4 sigma is flagged).{nom}"))
+    items.append(_jackknife_verdict(result))
     for c in coverage:
         if c["coverage"].get("warning"):
             items.append((False, f"Image coverage of {c['title']}", "too little", html.escape(c["coverage"]["warning"])))
