@@ -241,6 +241,11 @@ class SolveOptions:
     # one in ten, each named: docs/uncertainty.md). False: written with its verdict in
     # calibration.yaml, the report and a line under the summary table.
     refuse_inconsistent: bool = True
+    # Along a principal axis where the leave-one-snapshot-out jackknife rejects the noise model
+    # (its ratio above the range the model expects: ~2.5 % of the axes when the model is right),
+    # the covariance is raised to the jackknife's spread (backend/jackknife.py). False: the
+    # model's covariance as it is (the check is still reported).
+    jackknife_floor: bool = True
     # Each observation's own board-pose error (a LIDAR's plane tilt and offset, a camera's
     # board-pose jitter), its sigmas estimated from the data: real errors are correlated
     # within one observation (docs/uncertainty.md; on the real ACFR captures it brings the

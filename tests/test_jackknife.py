@@ -68,3 +68,53 @@ def test_expected_jackknife_variance_matches_monte_carlo():
             lo, hi = s[f"{key}_ratio_expected_95"].T
             inside = np.mean((ratio_mc >= lo) & (ratio_mc <= hi), axis=0)
             assert np.all((inside > 0.90) & (inside < 0.99)), inside
+
+
+def _capture(rng, ns=12, n_snap=10):
+    """A random design: (S, parts S_k, rt, J)."""
+    S_parts = [_spd(rng, ns, 6, 1.0) for _ in range(n_snap)]
+    S = sum(S_parts) + _spd(rng, ns, ns, 0.3)
+    rt = np.zeros((3, 6))
+    rt[1:] = rng.normal(size=(2, 6)) * 0.3
+    J = np.zeros((ns, ns))
+    for a in range(2):
+        J[6 * a:6 * a + 6, 6 * a:6 * a + 6] = drt_dxi(rt[a + 1])
+    return S, S_parts, rt, J
+
+
+def test_covariance_raised_only_where_the_jackknife_rejects_the_model():
+    from clcgraph.backend.jackknife import raise_where_rejected
+
+    rng = np.random.default_rng(11)
+    raised, axes, back = {"right": 0, "too small": 0}, 0, []
+    for trial in range(20):
+        S, S_parts, rt, J = _capture(rng)
+        model = J @ np.linalg.inv(S) @ J.T
+        axes += 12
+        # the data's errors as the model says, and 5x its variance (its sigmas 0.45x the truth)
+        for scale, label in ((1.0, "right"), (5.0, "too small")):
+            draws = [rng.multivariate_normal(np.zeros(len(S)), scale * Sk) for Sk in S_parts]
+            parts = {k: (Sk, d) for k, (Sk, d) in enumerate(zip(S_parts, draws))}
+            jk = jackknife(None, _Lin(S, sum(draws), parts), rt, model)
+            cov = raise_where_rejected(model, jk)
+            assert np.all(np.linalg.eigvalsh(cov - model) > -1e-12 * np.abs(model).max())  # only raised
+            for a, i in enumerate((1, 2)):
+                s = jk["sensors"][i]
+                for what, o in (("orientation", 0), ("position", 3)):
+                    V, f = np.asarray(s[f"{what}_axes"]), np.asarray(s[f"{what}_raised"])
+                    blk = slice(6 * a + o, 6 * a + o + 3)
+                    before = np.einsum("ax,xy,ay->a", V, model[blk, blk], V)
+                    after = np.einsum("ax,xy,ay->a", V, cov[blk, blk], V)
+                    np.testing.assert_allclose(after, f**2 * before, rtol=1e-9)
+                    rejected = np.asarray(s[f"{what}_ratio"]) > np.asarray(s[f"{what}_ratio_expected_95"])[:, 1]
+                    assert np.all((f > 1) == rejected)
+                    # raised, the sigma is the jackknife's over the ratio the model expects
+                    np.testing.assert_allclose(f[rejected], (s[f"{what}_ratio"] / s[f"{what}_ratio_expected"])[rejected])
+                    raised[label] += int(rejected.sum())
+                    if label == "too small":
+                        back += list(after[rejected] / (scale * before[rejected]))
+    # the model right: an axis is raised about 2.5 % of the time (its ratio above the 97.5 % point)
+    assert raised["right"] <= 0.07 * axes, (raised, axes)
+    # the sigmas 0.45x the truth: most axes are caught, and raised to about the true variance
+    assert raised["too small"] >= 0.6 * axes, (raised, axes)
+    assert 0.7 < np.median(back) < 1.5, np.median(back)

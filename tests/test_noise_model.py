@@ -57,11 +57,15 @@ def test_vce_finds_per_observation_plane_offsets_and_keeps_the_sigma_honest():
     assert np.all(np.abs(_z(res, truth)) < 3.5), _z(res, truth)
     # refused by default (a snapshot 22.8 sigma off: its own check sees the offsets it does not
     # model); written here to look at its sigmas
-    white = _solve(shifted, observation_effects=False, refuse_inconsistent=False)
+    white = _solve(shifted, observation_effects=False, refuse_inconsistent=False, jackknife_floor=False)
     # the white model trusts 1000 points per board: its sigmas are several times too small,
     # and its own jackknife says so
     assert np.max(np.abs(_z(white, truth))) > 4
     assert np.median([r for s in white.jackknife["sensors"].values() for r in s["position_ratio"]]) > 2
+    # raised where the jackknife rejects it, the same white model is honest
+    floored = _solve(shifted, observation_effects=False, refuse_inconsistent=False)
+    assert np.max(np.abs(_z(floored, truth))) < 3.5, _z(floored, truth)
+    assert sum(np.sum(s["position_raised"] > 1) for s in floored.jackknife["sensors"].values()) >= 3
     assert 0.6 < np.median([r for s in res.jackknife["sensors"].values() for r in s["position_ratio"]]) < 1.6
 
 

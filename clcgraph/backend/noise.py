@@ -40,7 +40,7 @@ log = logging.getLogger(__name__)
 
 # D's DOFs (board-centre tangent [omega, v]) each variance component covers
 LIDAR_COMPONENTS = {"tilt_rad": (0, 1), "offset_m": (5,)}
-CAMERA_COMPONENTS = {"rotation_rad": (0, 1, 2), "translation_m": (3, 4, 5)}
+CAMERA_COMPONENTS = {"tilt_rad": (0, 1), "spin_rad": (2,), "translation_m": (3, 4, 5)}
 # The prior sigma of D's DOFs a LIDAR cannot see (in-plane): pinned at zero. Loose, they are
 # not free: with the plane tilted by D, an in-plane shift of the centre moves the plane
 # (second order), and a LIDAR's D wandered there (leave-one-out re-solves on the real ACFR
@@ -48,8 +48,8 @@ CAMERA_COMPONENTS = {"rotation_rad": (0, 1, 2), "translation_m": (3, 4, 5)}
 _UNSEEN = 1e-4
 # Where VCE starts (a real board's plane is good to ~1 mrad / a few mm) and the floor: below
 # these a component adds nothing to the covariance, and an exact prior would be singular.
-_START = {"tilt_rad": 1e-3, "offset_m": 3e-3, "rotation_rad": 1e-3, "translation_m": 3e-3}
-_FLOOR = {"tilt_rad": 1e-4, "offset_m": 1e-4, "rotation_rad": 1e-4, "translation_m": 1e-4}
+_START = {"tilt_rad": 1e-3, "offset_m": 3e-3, "spin_rad": 1e-3, "translation_m": 3e-3}
+_FLOOR = {"tilt_rad": 1e-4, "offset_m": 1e-4, "spin_rad": 1e-4, "translation_m": 1e-4}
 _MIN_REDUNDANCY = 0.5  # a component the data hardly see keeps its value
 # Likelihood-ratio statistic (-2 log, REML) a component must reach to be kept: a variance on
 # the boundary (zero) has the null distribution 0.5 chi2_0 + 0.5 chi2_1, so 9.55 is p = 1e-3
@@ -67,6 +67,11 @@ def components(problem) -> dict:
 def initial_effects(problem) -> dict:
     """{sensor: {component: sigma}} where VCE starts."""
     return {i: {c: _START[c] for c in comp} for i, comp in components(problem).items()}
+
+
+def any_kept(effects: dict | None) -> bool:
+    """Whether some D component is above its floor (the data showed it)."""
+    return any(s > _FLOOR[c] * (1 + 1e-9) for e in (effects or {}).values() for c, s in e.items())
 
 
 def effect_sigmas(problem, effects: dict) -> np.ndarray:
@@ -189,6 +194,19 @@ class Linearization:
                 out.rows.append((f, None if A is None else np.sqrt(w) * A, None if b is None else np.sqrt(w) * b))
         if getattr(self, "_batch_cache", None) is not None:
             out._batch_cache = _reweighted_batches(self._batch_cache, self._weights(self._batch_cache[0], weights))
+        return out
+
+    def without(self, snapshot: int) -> "Linearization":
+        """The system with ``snapshot``'s terms left out (its board and D's with them): what the
+        jackknife re-estimates the variance components on."""
+        out = object.__new__(Linearization)
+        out.variable_sensors, out.ns, out.groups = self.variable_sensors, self.ns, self.groups
+        out._context, out.values = getattr(self, "_context", None), getattr(self, "values", None)
+        out.local = {k: v for k, v in self.local.items() if k != snapshot}
+        keep = [t for t, term in enumerate(self.terms) if term[0] != snapshot]
+        out.terms = [self.terms[t] for t in keep]
+        out.rows = None if self.rows is None else [self.rows[t] for t in keep]
+        out.factors = None
         return out
 
     def with_known(self, db: dict, m: int) -> "Linearization":
@@ -474,3 +492,4 @@ def _white_floor(problem, group) -> float:
     from .solve import _MIN_SIGMA_CAMERA_PX, _MIN_SIGMA_LIDAR_M
 
     return _MIN_SIGMA_LIDAR_M if problem.sensors[group[1]].is_lidar else _MIN_SIGMA_CAMERA_PX
+

@@ -19,6 +19,8 @@ re-estimation and outlier rejection until stable -> covariance from gtsam.Margin
   snapshot out, per sensor pair, no material error a single snapshot could hide), else a
   SolveError / DegenerateError naming the snapshot, sensor and direction; the verdict is
   ``Result.stats["consistency"]``.
+- **Uncertainty check**: the leave-one-snapshot-out jackknife (backend/jackknife.py); along
+  an axis where it rejects the model, the covariance is raised to the jackknife's spread.
 
 SYNOPSIS
     result = calibrate(problem, Config().solve)      # -> types.Result
@@ -39,7 +41,7 @@ from . import consider, consistency
 from . import graph as G
 from . import noise as N
 from .convergence import MAX_UNCONVERGED_STEP_SIGMA, optimize_lm, public, step_sigma
-from .jackknife import jackknife
+from .jackknife import jackknife, raise_where_rejected
 from .replay import without_snapshots
 from .seed import seed as make_seed
 
@@ -568,7 +570,13 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
     # ratio and the consistency checks count them in
     known = consider.known_columns(problem, lin, g, rebuild, options)
     # the jackknife judges the board-to-board part: it cannot see the common part of errors fixed for the capture
-    jk = jackknife(problem, lin, rt_sensor, cov, known=lin.with_known(*known) if known else None)
+    with_known = lin.with_known(*known) if known else None
+    # the components re-estimated without each snapshot where some D is kept: the white sigmas
+    # alone rest on thousands of points, one board changes them by nothing
+    jk = jackknife(problem, lin, rt_sensor, cov, known=with_known,
+                   components=(sig, effects, with_known or lin) if N.any_kept(effects) else None)
+    if options.jackknife_floor:  # where the jackknife rejects the model, its spread
+        cov = raise_where_rejected(cov, jk)
     times["jackknife"] = time.perf_counter() - t
     t = time.perf_counter()
 

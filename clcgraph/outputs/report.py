@@ -184,16 +184,19 @@ def _uncertainty_check(result: Result) -> str:
             m, j, r = s[f"{what}_model_{unit}"], s[f"{what}_jackknife_{unit}"], s[f"{what}_ratio"]
             lo, hi = np.asarray(s[f"{what}_ratio_expected_95"]).T  # the ratio's range if the model is right
             flag = " style='background:#fdd'" if np.any((np.asarray(r) > hi) | (np.asarray(r) < lo)) else ""
+            up = np.asarray(s.get(f"{what}_raised", np.ones(3)))
             rows.append(f"<tr{flag}><td>{html.escape(result.problem.sensors[i].topic)}</td><td>{what} ({unit})</td>"
                         f"<td>{' / '.join(f.format(x) for x in m)}</td><td>{' / '.join(f.format(x) for x in j)}</td>"
                         f"<td>{' / '.join(f'{x:.2f}' for x in r)}</td>"
                         f"<td>{' / '.join(f'{a:.2f}-{b:.2f}' for a, b in zip(lo, hi))}</td>"
+                        f"<td>{' / '.join('-' if x == 1 else f'x{x:.2f}' for x in up)}</td>"
                         + (f"<td rowspan=2>snapshot {big['snapshot']}: {big['position_mm']:.1f} mm, "
                            f"{big['orientation_deg']:.3f} deg</td>" if what == "position" else "") + "</tr>")
     w = jk["largest_influence"]
     need = jk["indispensable_snapshots"]
     return ("<table><tr><th>sensor</th><th></th><th>model sigma (3 principal axes)</th><th>jackknife sigma</th>"
-            "<th>ratio</th><th>ratio expected if the model is right (95 %)</th><th>largest single-snapshot move</th></tr>" + "".join(rows) + "</table>"
+            "<th>ratio</th><th>ratio expected if the model is right (95 %)</th><th>sigma raised</th>"
+            "<th>largest single-snapshot move</th></tr>" + "".join(rows) + "</table>"
             f"<p>Snapshot {w['snapshot']} moves <code>{html.escape(result.problem.sensors[w['sensor']].topic)}</code> most: "
             f"{w['position_mm']:.1f} mm, {w['orientation_deg']:.3f} deg."
             + (f" Without snapshot(s) {', '.join(map(str, need))} some sensor is not determined." if need else "")
@@ -575,6 +578,24 @@ def convergence_verdict(conv: dict, what: str = "Solve") -> tuple | None:
     return (False, what, "NOT CONVERGED", html.escape("; ".join(conv.get("warnings", ()))))
 
 
+def _jackknife_verdict(result: Result):
+    """The banner line of the leave-one-snapshot-out check (None without one): the axes along which
+    it rejected the model and the sigma was raised to its spread."""
+    jk = result.jackknife
+    if not jk:
+        return None
+    raised = [(result.problem.sensors[i].topic, what, float(f)) for i, s in jk["sensors"].items()
+              for what in ("position", "orientation") for f in np.asarray(s.get(f"{what}_raised", ())) if f > 1]
+    if not raised:
+        return (True, "Sigmas against the leave-one-snapshot-out spread", "confirmed",
+                f"along every principal axis the jackknife over {jk['n_snapshots']} snapshots is within or below the "
+                "range the noise model expects of it")
+    top = max(raised, key=lambda x: x[2])
+    return (None, "Sigmas against the leave-one-snapshot-out spread", f"raised on {len(raised)} axes",
+            f"the noise model was short along {len(raised)} principal axes; the sigmas there are the jackknife's "
+            f"(up to x{top[2]:.2f}: {html.escape(top[0])} {top[1]}), see the Uncertainty check")
+
+
 def _verdicts(result: Result, inputs, checks: dict, coverage: list) -> str:
     """The banner at the top: what says the calibration is right (or not), worst first."""
     items = [consistency_verdict(result), convergence_verdict(result.stats.get("convergence") or {})]
@@ -592,6 +613,7 @@ def _verdicts(result: Result, inputs, checks: dict, coverage: list) -> str:
                       f"{worst['spill_sigma']:.1f} sigma ({html.escape(p.sensors[worst['lidar']].topic)} in "
                       f"{html.escape(p.sensors[worst['camera']].topic)}, {html.escape(_snapshot_name(worst['snapshot'], inputs))}; "
                       f"more than 4 sigma is flagged).{nom}"))
+    items.append(_jackknife_verdict(result))
     for c in coverage:
         if c["coverage"].get("warning"):
             items.append((False, f"Image coverage of {c['title']}", "too little", html.escape(c["coverage"]["warning"])))
@@ -704,7 +726,8 @@ def report_html(result: Result, *, title: str = "clcgraph calibration", inputs: 
               "(jackknife) estimates the uncertainty without trusting the noise model. A ratio jackknife/model inside the "
               f"range the model expects of it (from the same linearization; with {jk_n(result)} snapshots, and wider along "
               "an axis few boards carry) says the sigmas can be trusted; above it, the data have errors the model does not "
-              "know of. A snapshot that moves a sensor by much more than its sigma is the first to re-take or exclude.</p>",
+              "know of, and the reported sigma along that axis is raised to the jackknife's (by ratio / expected: "
+              "'sigma raised'). A snapshot that moves a sensor by much more than its sigma is the first to re-take or exclude.</p>",
               "<h2>Rejections</h2>", _rejections(result), "</body></html>"]
     return "\n".join(parts)
 

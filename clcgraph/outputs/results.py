@@ -241,8 +241,9 @@ def uncertainty_check_dict(result: Result) -> dict:
 
     Per sensor along the model covariance's principal axes (unit vectors in lidar0, rt
     coordinates; position in mm, orientation in deg): the model sigma, the jackknife sigma and
-    their ratio (near 1: the sigma can be trusted; well above 1: it is too small), and the
-    snapshot whose removal moves the sensor most.
+    their ratio (near 1: the sigma can be trusted; well above 1: it is too small), the factor
+    the reported sigma was raised by where the ratio is above what the model expects
+    (``*_raised``; 1: the model's), and the snapshot whose removal moves the sensor most.
     """
     jk = result.jackknife
     problem = result.problem
