@@ -201,8 +201,10 @@ def raise_where_rejected(covariance_rt: np.ndarray, jk: dict) -> np.ndarray:
     """``covariance_rt`` raised along each principal axis whose jackknife ratio is above the
     range the model expects (module doc): its variance times (ratio / expected)^2. Records the
     sigma factor per axis in ``jk["sensors"][i]["position_raised"]`` / ``"orientation_raised"``
-    (1: the model's sigma kept). ``jk`` empty: the covariance as it is."""
+    (1: the model's sigma kept) and what was added in ``jk["floor_rt"]``. ``jk`` empty: the
+    covariance as it is."""
     C = np.array(covariance_rt, float)
+    before = C.copy()
     for a, (i, s) in enumerate(sorted(jk.get("sensors", {}).items())):
         for what, o in (("orientation", 0), ("position", 3)):
             ratio, expected = np.asarray(s[f"{what}_ratio"]), np.asarray(s[f"{what}_ratio_expected"])
@@ -215,4 +217,7 @@ def raise_where_rejected(covariance_rt: np.ndarray, jk: dict) -> np.ndarray:
             var = np.einsum("ax,xy,ay->a", V, C[blk, blk], V)
             C[blk, blk] += (V.T * ((factor**2 - 1) * var)) @ V
             s[f"{what}_raised"] = factor
-    return 0.5 * (C + C.T)
+    C = 0.5 * (C + C.T)
+    if jk:
+        jk["floor_rt"] = C - before
+    return C
