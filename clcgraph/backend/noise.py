@@ -11,10 +11,12 @@ detector's bias for a whole board, lens-model error at the same image position. 
 D is a Pose3 variable per (sensor, snapshot) observation (graph.effect_key) at the board's
 centre, with a zero-mean prior of per-sensor sigmas: for a LIDAR its plane tilt (omega_x,
 omega_y) and offset (v_z), the only DOFs a plane sees (the in-plane ones pinned at zero); for
-a camera all six (board-pose jitter). Marginalizing D gives each factor the covariance sigma^2 I + J_D Sigma_D J_D^T;
-keeping D as a variable keeps the graph sparse and gtsam's Marginals exact.
+a camera all six (board-pose jitter): its tilt (omega_x, omega_y), which trades off against a
+LIDAR's plane tilt, apart from its spin (omega_z), which only the LIDAR's outline sees.
+Marginalizing D gives each factor the covariance sigma^2 I + J_D Sigma_D J_D^T; keeping D as a
+variable keeps the graph sparse and gtsam's Marginals exact.
 
-The variance components (per sensor: white sigma; LIDAR tilt, offset; camera rotation,
+The variance components (per sensor: white sigma; LIDAR tilt, offset; camera tilt, spin,
 translation) are estimated by Foerstner's iterative variance-component estimation (as the
 targetless graph does): sigma_c^2 <- v_c^T W_c v_c / r_c, with r_c = n_c - tr(W_c A_c Cov A_c^T)
 the redundancy of group c, on the linearization at the solution, then re-solved. Its fixed
@@ -492,4 +494,3 @@ def _white_floor(problem, group) -> float:
     from .solve import _MIN_SIGMA_CAMERA_PX, _MIN_SIGMA_LIDAR_M
 
     return _MIN_SIGMA_LIDAR_M if problem.sensors[group[1]].is_lidar else _MIN_SIGMA_CAMERA_PX
-
