@@ -836,22 +836,3 @@ def plot_distance_histograms(distances: dict, path, *, max_m: float, title: str 
     ax.legend(fontsize=8)
     margins(fig, left=0.7, right=0.15, bottom=0.5, top=0.3)
     return _save(fig, path, dpi=80)
-
-
-def warm_up() -> None:
-    """Load what a process's first figures would otherwise load as they draw (the 3-D axes, scipy's
-    convex hull, the fonts, the PNG and JPEG writers): `clcgraph solve` calls it in a background
-    thread while it reads the bags (api._import_in_background)."""
-    import io
-
-    import mpl_toolkits.mplot3d  # noqa: F401 - plot_geometry's projection="3d"
-    from PIL import Image
-    from scipy.spatial import ConvexHull  # noqa: F401 - plot_camera_residuals_and_coverage
-
-    fig, ax = subplots(1, 1, figsize=(2, 2))
-    _title(ax, "0.5 mm", fontsize=9)
-    ax.plot([0, 1], [0, 1], "o", label="x")
-    ax.legend(fontsize=7)
-    ax.set_xlabel("x (m)", fontsize=8)
-    _save(fig, io.BytesIO(), dpi=20)
-    Image.new("RGB", (16, 16)).save(io.BytesIO(), format="jpeg", quality=90)
