@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..determinism import contiguous_arctan2
 from ..types import LidarScan
 from .lidar_preprocess import Rings, missed_rays, prepare, ring_neighbours, row_norms
 
@@ -108,7 +109,7 @@ class ScanRays:
             return every
         # |u - v| = 2 sin(angle / 2) >= 2 cos(elevation) sin(d_azimuth / 2) for unit u, v
         m_az = 2 * float(np.arcsin(np.sin(m / 2) / c))
-        az = np.arctan2(u[:, 1], u[:, 0])
+        az = contiguous_arctan2(u[:, 1], u[:, 0])
         az0 = np.arctan2(np.sin(az).mean(), np.cos(az).mean())
         rel = (az - az0 + np.pi) % (2 * np.pi) - np.pi
         lo, hi = az0 + rel.min() - m_az, az0 + rel.max() + m_az
@@ -132,7 +133,7 @@ def scan_rays(scan: LidarScan, step_rad: float, far_m: float = 1e4, *, rings: Ri
     rows = np.r_[R.index, -1]  # position -1 -> row -1
     pts = np.r_[R.points[ok], far_m * dirs]
     u = pts / row_norms(pts)[:, None]
-    az = np.arctan2(u[:, 1], u[:, 0])
+    az = contiguous_arctan2(u[:, 1], u[:, 0])
     order = np.argsort(az, kind="stable")
     return ScanRays(pts, np.r_[rows[prv[ok]], rows[before]], np.r_[rows[nxt[ok]], rows[after]], len(scan.points),
                     by_azimuth=order, azimuth=az[order], elevation=np.arcsin(np.clip(u[:, 2], -1, 1)), rings=R,

@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..determinism import contiguous_arctan2
 from ..planes import fit_plane, ransac_plane
 from ..types import BoardGeometry, LidarBoardObservation, LidarScan, Rejected
 from .board_edges import edge_rays
@@ -291,7 +292,7 @@ def _ring_pieces(pts: np.ndarray, ring: np.ndarray, step: float, o) -> np.ndarra
     """(N,) piece number per point: the points of one ring in azimuth order, cut wherever a 3D
     jump exceeds ``max_jump_spacings`` point spacings (a body or post beside the board, crossing
     its plane, is a piece of its own)."""
-    az = np.arctan2(pts[:, 1], pts[:, 0])
+    az = contiguous_arctan2(pts[:, 1], pts[:, 0])
     az0 = np.arctan2(np.sin(az).mean(), np.cos(az).mean())
     az = (az - az0 + np.pi) % (2 * np.pi) - np.pi
     order = np.lexsort((az, ring))
@@ -353,7 +354,7 @@ def _local_noise(pts: np.ndarray, ring: np.ndarray, k: int) -> float:
     """The range noise of the plane's own returns: the median RMS of straight-line fits to
     windows of ``k`` neighbouring returns along each ring, as _stage1 measures the scan's
     (0 when no ring has ``k`` returns)."""
-    az = np.arctan2(pts[:, 1], pts[:, 0])
+    az = contiguous_arctan2(pts[:, 1], pts[:, 0])
     az0 = np.arctan2(np.sin(az).mean(), np.cos(az).mean())
     order = np.lexsort(((az - az0 + np.pi) % (2 * np.pi) - np.pi, ring))
     p, r = pts[order], ring[order]

@@ -45,6 +45,7 @@ from typing import Iterable, Iterator, Sequence
 
 import numpy as np
 
+from clcgraph.determinism import contiguous_arctan2
 from clcgraph.errors import InputError
 from clcgraph.frontend.lidar_preprocess import finite_rows, row_norms, small_unique
 from clcgraph.types import Image, LidarScan, Rejected, Snapshot, names_bag
@@ -171,11 +172,11 @@ def range_image(scan: LidarScan, *, azimuth_bins: int = AZIMUTH_BINS,
     if scan.ring is not None:
         ring = np.asarray(scan.ring)[ok].astype(np.int64)
     else:
-        el = np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))
+        el = contiguous_arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))
         e = np.sort(el)
         gaps = np.flatnonzero(np.diff(e) > ring_gap_rad)
         ring = np.searchsorted(0.5 * (e[gaps] + e[gaps + 1]), el)
-    az = np.arctan2(p[:, 1], p[:, 0])
+    az = contiguous_arctan2(p[:, 1], p[:, 0])
     a = np.floor((az + np.pi) / (2 * np.pi) * azimuth_bins).astype(np.int64) % azimuth_bins
     rings, ri = small_unique(ring)
     img = np.full(len(rings) * azimuth_bins, np.inf)

@@ -21,6 +21,7 @@ from typing import Mapping
 import numpy as np
 
 from .. import cameras
+from ..determinism import contiguous_arctan2
 from ..geometry import compose_rt, invert_rt, transform
 from ..types import Result, Sensor, Snapshot
 
@@ -304,6 +305,6 @@ def lidar_residual_geometry(result: Result) -> dict[int, dict]:
         d = out.setdefault(o.sensor, {"residual": [], "range": [], "elevation_deg": [], "outlier": []})
         d["residual"].append(x[sl])
         d["range"].append(np.linalg.norm(p, axis=1))
-        d["elevation_deg"].append(np.degrees(np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))))
+        d["elevation_deg"].append(np.degrees(contiguous_arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))))
         d["outlier"].append(bad[sl])
     return {i: {k: np.concatenate(v) for k, v in d.items()} for i, d in out.items()}
