@@ -221,6 +221,27 @@ def test_a_disagreeing_snapshot_is_left_out_and_the_rest_answered():
         calibrate(_range_bias(p, 2, rear[:3], 0.04), white)
 
 
+def test_a_refusal_after_a_snapshot_was_left_out_is_one_line_naming_it(monkeypatch, caplog):
+    """Leaving a snapshot out may leave a sensor unconnected or unobservable: the refusal keeps its
+    kind and says what was left out before it, and the left-out warning (logged only once a result
+    stands) does not come first: a refused command prints one line."""
+    from clcgraph.backend import solve as S
+
+    p, _ = _three_lidar_problem(2, n_front=12)
+    calls = iter([C.Inconsistent("not self-consistent", 3, "disagrees with the other snapshots by 9 sigma"),
+                  DegenerateError("cannot connect to lidar0 /lidar0: /lidar2 (boards seen together: 2)")])
+
+    def refuse(problem, options, on_estimate=None):
+        raise next(calls)
+
+    monkeypatch.setattr(S, "_calibrate_once", refuse)
+    with caplog.at_level("INFO"), pytest.raises(DegenerateError, match=r"^cannot connect to lidar0 /lidar0: /lidar2 "
+                                                r"\(boards seen together: 2\) \(after leaving out snapshot 3 that "
+                                                r"disagreed with the others\)$"):
+        calibrate(p, REFUSING)
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]
+
+
 def test_link_resting_on_one_board_is_refused():
     """4 front boards, one of them 4 cm long: the solve moves /roof ~60 mm (10 sigma) and, with
     planes alone, no leave-one-out test can see it (that board alone fixes the direction):

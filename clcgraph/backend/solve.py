@@ -417,10 +417,17 @@ def calibrate(problem: Problem, options, *, on_estimate: Callable[[Result], None
                 if left_out:
                     raise SolveError(f"{e} (after leaving out {_left_out_words(left_out)})") from None
                 raise
-            log.warning("solve: left out snapshot %d: %s", e.snapshot, e.why)
+            log.info("solve: left out snapshot %d: %s", e.snapshot, e.why)
             left_out.append((e.snapshot, e.why))
             problem = without_snapshots(problem, [e.snapshot], "left out: it " + e.why.split(") ", 1)[-1], "consistency")
             continue
+        except (DegenerateError, SolveError) as e:  # the refusal names what was left out before it, on its one line
+            if left_out:
+                kind = DegenerateError if isinstance(e, DegenerateError) else SolveError
+                raise kind(f"{e} (after leaving out {_left_out_words(left_out)})") from None
+            raise
+        for k, why in left_out:  # warned once answered: a refusal is one line
+            log.warning("solve: left out snapshot %d: %s", k, why)
         if left_out:
             result.stats["consistency"]["left_out"] = [{"snapshot": k, "why": why} for k, why in left_out]
         return result
