@@ -189,9 +189,11 @@ def rpy_from_R(R: np.ndarray) -> np.ndarray:
 
 def R_from_rpy(rpy: np.ndarray) -> np.ndarray:
     """(roll, pitch, yaw) (...,3) in rad, fixed axes x-y-z -> R = Rz(yaw) Ry(pitch) Rx(roll) (...,3,3)."""
-    rpy = np.asarray(rpy, dtype=float)
-    cr, cp, cy = np.cos(rpy[..., 0]), np.cos(rpy[..., 1]), np.cos(rpy[..., 2])
-    sr, sp, sy = np.sin(rpy[..., 0]), np.sin(rpy[..., 1]), np.sin(rpy[..., 2])
+    # the angles as contiguous rows: numpy's SVML sin/cos of a strided column fall back to libm's,
+    # a bit off, where malloc puts the output right after the input (determinism.contiguous_arctan2)
+    r, p, y = np.ascontiguousarray(np.moveaxis(np.asarray(rpy, dtype=float), -1, 0))
+    cr, cp, cy = np.cos(r), np.cos(p), np.cos(y)
+    sr, sp, sy = np.sin(r), np.sin(p), np.sin(y)
     return np.stack([
         np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),
         np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1),
