@@ -305,19 +305,20 @@ def _opencv_one(args) -> np.ndarray | None:
     return c.reshape(-1, 2).astype(float)
 
 
-def _run_opencv(grays: list[np.ndarray], nx: int, ny: int, jobs: int, *, refined: bool,
+def _run_opencv(grays: list[np.ndarray], nx: int, ny: int, jobs: int, *, quick_first: bool,
                 exhaustive=True) -> list[np.ndarray | None]:
     """Corners (N,2) or None per image, from OpenCV's sector-based detector. ``exhaustive``: per image
     (or one for all), whether it searches exhaustively (CALIB_CB_EXHAUSTIVE: more board hypotheses,
-    for a board anywhere among clutter; on a miss it costs 2x). ``refined``: the corners will be
-    refined (refine_corners): OpenCV's own refinement (CALIB_CB_ACCURACY, on an upsampled image)
-    only where the search without it missed. It takes 4-5x the time (1.4-1.8 s against 0.33 s per
-    real ACFR 1920x1208 image), and the refined corners are the same with or without it
-    (0.0002-0.0005 px; 0.05 px on one of 9 boards); but it finds 2 boards of those 11 that the
-    search without it misses."""
+    for a board anywhere among clutter; on a miss it costs 2x). ``quick_first``: search without
+    OpenCV's own refinement (CALIB_CB_ACCURACY, on an upsampled image) first, with it only where
+    that missed; for whole images whose corners will be refined (refine_corners). There it takes
+    4-5x the time (1.4-1.8 s against 0.33 s per real ACFR 1920x1208 image) and the refined corners
+    are the same with or without it (0.0002-0.0005 px; 0.05 px on one of 9 boards), though it finds
+    2 boards of those 11 that the quick search misses. Not for the fallback's small crops of boards
+    mrgingham missed: there it costs 0.1-0.2 s and finds what the quick search misses."""
     exhaustive = [exhaustive] * len(grays) if isinstance(exhaustive, bool) else list(exhaustive)
-    out = _opencv_all([(g, nx, ny, e, not refined) for g, e in zip(grays, exhaustive)], jobs)
-    if refined:
+    out = _opencv_all([(g, nx, ny, e, not quick_first) for g, e in zip(grays, exhaustive)], jobs)
+    if quick_first:
         missed = [k for k, c in enumerate(out) if c is None]
         for k, c in zip(missed, _opencv_all([(grays[k], nx, ny, exhaustive[k], True) for k in missed], jobs)):
             out[k] = c
@@ -382,7 +383,7 @@ class BoardDetection:
             raw = [None if c is None else c + _OFFSET_PX["mrgingham"] for c in _run_mrgingham(self.grays, nx, jobs)]
         else:
             raw = [None if c is None else c + _OFFSET_PX["opencv"]
-                   for c in _run_opencv(self.grays, nx, ny, jobs, refined=options.refine_subpix)]
+                   for c in _run_opencv(self.grays, nx, ny, jobs, quick_first=options.refine_subpix)]
         self.results = [self._validated(k, c) for k, c in enumerate(raw)]
         # only mrgingham's misses are retried (OpenCV has searched the whole image already)
         self.missed = [k for k, c in enumerate(raw) if c is None] if self.detector == MRGINGHAM else []
@@ -445,7 +446,7 @@ class BoardDetection:
                      or cv2.checkChessboard(up[k], (nx, ny))]
             anywhere = [regions is None or regions[k] is None for k in still]
             for k, c in zip(still, _run_opencv([up[k] for k in still], nx, ny, jobs, exhaustive=anywhere,
-                                               refined=self.options.refine_subpix)):
+                                               quick_first=False)):
                 if c is not None:
                     self.results[k] = self._validated(k, back(k, c + _OFFSET_PX["opencv"]))
         return self.results
