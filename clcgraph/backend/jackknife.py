@@ -75,15 +75,14 @@ def _refit_weights(problem, lin, k, components) -> dict:
     """Group weights (relative to ``lin``'s) of the variance components re-estimated without
     snapshot ``k``: ``components`` = (white sigmas, D's sigmas, the linearization VCE ran on);
     the weights held ({}) where VCE without it meets a singular system."""
-    from .noise import estimate_components
+    from .noise import estimate_components, group_weights
 
     sig, effects, on = components
     try:
         sig_k, eff_k, _ = estimate_components(problem, on.without(k), sig, effects, select=False)
     except np.linalg.LinAlgError:  # without it, a component swallows a direction the rest barely holds
         return {}
-    return {g: float((sig[g[1]] / sig_k[g[1]]) ** 2) if g[0] == "white"
-            else float((effects[g[1]][g[2]] / eff_k[g[1]][g[2]]) ** 2) for g in lin.groups}
+    return group_weights(lin.groups, sig, effects, sig_k, eff_k)
 
 
 def jackknife(problem, lin, rt_lidar0_sensor: np.ndarray, covariance_rt: np.ndarray, known=None,

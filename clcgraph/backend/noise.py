@@ -76,6 +76,14 @@ def any_kept(effects: dict | None) -> bool:
     return any(s > _FLOOR[c] * (1 + 1e-9) for e in (effects or {}).values() for c, s in e.items())
 
 
+def group_weights(groups, sig: np.ndarray, effects: dict, new_sig: np.ndarray, new_effects: dict) -> dict:
+    """{group: weight} that turns a Linearization built with (``sig``, ``effects``) into one with
+    (``new_sig``, ``new_effects``) (Linearization.reweighted, reduced): each group's old variance
+    over its new one."""
+    return {g: float((sig[g[1]] / new_sig[g[1]]) ** 2) if g[0] == "white"
+            else float((effects[g[1]][g[2]] / new_effects[g[1]][g[2]]) ** 2) for g in groups}
+
+
 def effect_sigmas(problem, effects: dict) -> np.ndarray:
     """(Nsensors,6) prior sigmas of D for graph.build from {sensor: {component: sigma}}."""
     out = np.full((len(problem.sensors), 6), _UNSEEN)

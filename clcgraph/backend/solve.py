@@ -302,8 +302,7 @@ def _solve_with_effects(problem, active, rt_sensor, rt_board, sig, options, nomi
                      + [abs(new_effects[i][c] / effects[i][c] - 1) for i in effects for c in effects[i]])
         if change < 0.03 and values is not None:  # weights within 3 %: the estimate stands; the graph
             # gets them, at the same values: its linearization is this one reweighted
-            lin = at.reweighted({gr: float((sig[gr[1]] / new_sig[gr[1]]) ** 2) if gr[0] == "white" else
-                                 float((effects[gr[1]][gr[2]] / new_effects[gr[1]][gr[2]]) ** 2) for gr in at.groups})
+            lin = at.reweighted(N.group_weights(at.groups, sig, effects, new_sig, new_effects))
             sig, effects = new_sig, new_effects
             g, values = G.build(problem, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig,
                                 sigma_camera_px=sig, options=options, board_nominal=nominal,
