@@ -1,25 +1,10 @@
-"""The same bytes out whatever the thread count (BLAS side; small_gicp's side is in targetless/gicp.py)
-and wherever the allocator puts the arrays (``contiguous_arctan2``)."""
+"""The same bytes out whatever the thread count (BLAS side; small_gicp's side is in targetless/gicp.py;
+numpy's SVML kernels on strided columns: geometry.contiguous_arctan2)."""
 
 from __future__ import annotations
 
 from contextlib import contextmanager
 
-import numpy as np
-
-
-def contiguous_arctan2(y: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """``np.arctan2(y, x)`` with the same bits wherever numpy's output lands, e.g. the azimuths
-    ``contiguous_arctan2(p[:, 1], p[:, 0])`` of (N,3) points.
-
-    numpy 1.24 computes arctan2 with SVML's AVX-512 kernel unless input and output overlap, and
-    its overlap check spans a strided column to ``start + step * len``, past the column's last
-    element: an output that malloc places right after the points looks overlapping and gets
-    libm's atan2, a bit off SVML's in a third of the values. Where malloc puts it changes from
-    run to run (the LIDAR frontend's points moved by up to 5e-14 m between two processes).
-    Contiguous copies never look overlapping, and cost less than SVML's strided loads save.
-    np.sin, np.exp, np.power and the other SVML ufuncs share the check: pass them no strided columns."""
-    return np.arctan2(np.ascontiguousarray(y), np.ascontiguousarray(x))
 
 
 @contextmanager

@@ -1,4 +1,5 @@
-"""Rigid transforms: rt (mrcal's Rodrigues + translation 6-vector), Rt (4x3), 4x4, gtsam.Pose3.
+"""Rigid transforms: rt (mrcal's Rodrigues + translation 6-vector), Rt (4x3), 4x4, gtsam.Pose3;
+the directions of points (azimuth, elevation) and angle arithmetic.
 
 The only place conversions live. ``T_a_b`` / ``rt_a_b`` map points in frame b into frame a:
 ``x_a = R x_b + t``. Functions broadcast over leading dimensions where it is cheap.
@@ -17,6 +18,43 @@ import math
 import numpy as np
 
 _SMALL = 1e-7
+
+
+def contiguous_arctan2(y: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``np.arctan2(y, x)`` with the same bits wherever numpy's output lands, e.g. the azimuths
+    ``contiguous_arctan2(p[:, 1], p[:, 0])`` of (N,3) points.
+
+    numpy 1.24 computes arctan2 with SVML's AVX-512 kernel unless input and output overlap, and
+    its overlap check spans a strided column to ``start + step * len``, past the column's last
+    element: an output that malloc places right after the points looks overlapping and gets
+    libm's atan2, a bit off SVML's in a third of the values. Where malloc puts it changes from
+    run to run (the LIDAR frontend's points moved by up to 5e-14 m between two processes).
+    Contiguous copies never look overlapping, and cost less than SVML's strided loads save.
+    np.sin, np.exp, np.power and the other SVML ufuncs share the check: pass them no strided columns."""
+    return np.arctan2(np.ascontiguousarray(y), np.ascontiguousarray(x))
+
+
+def azimuth(p: np.ndarray) -> np.ndarray:
+    """(...,3) points -> (...) azimuth atan2(y, x) [rad] in [-pi, pi] (the same bits wherever
+    numpy puts the output: contiguous_arctan2)."""
+    p = np.asarray(p, dtype=float)
+    return contiguous_arctan2(p[..., 1], p[..., 0])
+
+
+def elevation(p: np.ndarray) -> np.ndarray:
+    """(...,3) points -> (...) elevation above the x-y plane [rad] in [-pi/2, pi/2]."""
+    p = np.asarray(p, dtype=float)
+    return contiguous_arctan2(p[..., 2], np.hypot(p[..., 0], p[..., 1]))
+
+
+def wrap_angle(a):
+    """Angle(s) [rad] wrapped into [-pi, pi)."""
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def circular_mean(a: np.ndarray) -> float:
+    """The mean direction [rad] of angles ``a`` (continuous across +-pi)."""
+    return float(np.arctan2(np.mean(np.sin(a)), np.mean(np.cos(a))))
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -190,7 +228,7 @@ def rpy_from_R(R: np.ndarray) -> np.ndarray:
 def R_from_rpy(rpy: np.ndarray) -> np.ndarray:
     """(roll, pitch, yaw) (...,3) in rad, fixed axes x-y-z -> R = Rz(yaw) Ry(pitch) Rx(roll) (...,3,3)."""
     # the angles as contiguous rows: numpy's SVML sin/cos of a strided column fall back to libm's,
-    # a bit off, where malloc puts the output right after the input (determinism.contiguous_arctan2)
+    # a bit off, where malloc puts the output right after the input (contiguous_arctan2)
     r, p, y = np.ascontiguousarray(np.moveaxis(np.asarray(rpy, dtype=float), -1, 0))
     cr, cp, cy = np.cos(r), np.cos(p), np.cos(y)
     sr, sp, sy = np.sin(r), np.sin(p), np.sin(y)

@@ -14,14 +14,13 @@ import numpy as np
 
 from clcgraph import cameras
 from clcgraph.backend.uncertainty import worst_direction_stdev
-from clcgraph.determinism import contiguous_arctan2
-from clcgraph.geometry import compose_rt, invert_rt, transform
+from clcgraph.geometry import azimuth, compose_rt, invert_rt, transform
 from clcgraph.types import Result, SectorReport
 
 
 def _isector(p_vehicle: np.ndarray, n: int) -> np.ndarray:
     """(...,3) vehicle-frame points -> (...,) sector indices by azimuth."""
-    az = np.mod(contiguous_arctan2(p_vehicle[..., 1], p_vehicle[..., 0]), 2 * np.pi)
+    az = np.mod(azimuth(p_vehicle), 2 * np.pi)
     return np.minimum((az / (2 * np.pi / n)).astype(int), n - 1)
 
 

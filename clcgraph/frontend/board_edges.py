@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..geometry import circular_mean, wrap_angle
 from .board_outline import Outline, ScanRays, ray_plane
 from .lidar_preprocess import ring_neighbours, slice_medians
 
@@ -97,8 +98,7 @@ def edge_rays(rays: ScanRays, rows: np.ndarray, n: np.ndarray, d: float, outline
 
     # along the rings: the ends of each ring's piece, in azimuth about the board
     ring = R.ring[pos]
-    az0 = np.arctan2(np.mean(np.sin(R.azimuth[pos])), np.mean(np.cos(R.azimuth[pos])))
-    rel = (R.azimuth[pos] - az0 + np.pi) % (2 * np.pi) - np.pi
+    rel = wrap_angle(R.azimuth[pos] - circular_mean(R.azimuth[pos]))
     order = np.lexsort((rel, ring))
     p_sorted, r_sorted = pos[order], ring[order]
     starts = np.r_[0, np.flatnonzero(np.diff(r_sorted)) + 1]
@@ -153,7 +153,7 @@ def edge_rays(rays: ScanRays, rows: np.ndarray, n: np.ndarray, d: float, outline
         az = R.azimuth[mid]
         s2 = by_elev[nb]
         a, b = R.starts[s2], R.starts[s2 + 1]
-        gap = np.abs((R.azimuth[a:b] - az + np.pi) % (2 * np.pi) - np.pi)
+        gap = np.abs(wrap_angle(R.azimuth[a:b] - az))
         k = int(np.argmin(gap)) if b > a else -1
         if k >= 0 and gap[k] <= 0.5 * step_rad:
             other = a + k

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..determinism import contiguous_arctan2
+from ..geometry import azimuth, circular_mean, wrap_angle
 from ..types import LidarScan
 from .lidar_preprocess import Rings, missed_rays, prepare, ring_neighbours, row_norms
 
@@ -109,14 +109,13 @@ class ScanRays:
             return every
         # |u - v| = 2 sin(angle / 2) >= 2 cos(elevation) sin(d_azimuth / 2) for unit u, v
         m_az = 2 * float(np.arcsin(np.sin(m / 2) / c))
-        az = contiguous_arctan2(u[:, 1], u[:, 0])
-        az0 = np.arctan2(np.sin(az).mean(), np.cos(az).mean())
-        rel = (az - az0 + np.pi) % (2 * np.pi) - np.pi
+        az = azimuth(u)
+        az0 = circular_mean(az)
+        rel = wrap_angle(az - az0)
         lo, hi = az0 + rel.min() - m_az, az0 + rel.max() + m_az
         if hi - lo >= 2 * np.pi:
             return every
-        lo = (lo + np.pi) % (2 * np.pi) - np.pi  # the window may wrap past +-pi
-        hi = (hi + np.pi) % (2 * np.pi) - np.pi
+        lo, hi = wrap_angle(lo), wrap_angle(hi)  # the window may wrap past +-pi
         a, b = np.searchsorted(self.azimuth, [lo, hi])
         k = self.by_azimuth[a:b] if lo <= hi else np.r_[self.by_azimuth[a:], self.by_azimuth[:b]]
         return k[(self.elevation[k] >= el_lo) & (self.elevation[k] <= el_hi)]
@@ -133,7 +132,7 @@ def scan_rays(scan: LidarScan, step_rad: float, far_m: float = 1e4, *, rings: Ri
     rows = np.r_[R.index, -1]  # position -1 -> row -1
     pts = np.r_[R.points[ok], far_m * dirs]
     u = pts / row_norms(pts)[:, None]
-    az = contiguous_arctan2(u[:, 1], u[:, 0])
+    az = azimuth(u)
     order = np.argsort(az, kind="stable")
     return ScanRays(pts, np.r_[rows[prv[ok]], rows[before]], np.r_[rows[nxt[ok]], rows[after]], len(scan.points),
                     by_azimuth=order, azimuth=az[order], elevation=np.arcsin(np.clip(u[:, 2], -1, 1)), rings=R,

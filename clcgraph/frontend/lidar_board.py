@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..determinism import contiguous_arctan2
+from ..geometry import azimuth, circular_mean, wrap_angle
 from ..planes import fit_plane, ransac_plane
 from ..types import BoardGeometry, LidarBoardObservation, LidarScan, Rejected
 from .board_edges import edge_rays
@@ -218,8 +218,8 @@ def _stage3(R: Rings, rank: np.ndarray, rank_el: np.ndarray, members: np.ndarray
     tol = o.point_plane_tolerance_m
     mrank = rank[members]
     lo_r, hi_r = mrank.min() - o.max_ring_step, mrank.max() + o.max_ring_step
-    az0 = np.arctan2(*np.mean(np.c_[np.sin(R.azimuth[members]), np.cos(R.azimuth[members])], axis=0))
-    rel = lambda az: (az - az0 + np.pi) % (2 * np.pi) - np.pi  # noqa: E731  azimuth around the cluster
+    az0 = circular_mean(R.azimuth[members])
+    rel = lambda az: wrap_angle(az - az0)  # noqa: E731  azimuth around the cluster
     out, pending = [], []
     is_member = np.zeros(len(R.index), bool)  # a run holds one of its ring's members (no np.isin per run)
     is_member[members] = True
@@ -292,9 +292,8 @@ def _ring_pieces(pts: np.ndarray, ring: np.ndarray, step: float, o) -> np.ndarra
     """(N,) piece number per point: the points of one ring in azimuth order, cut wherever a 3D
     jump exceeds ``max_jump_spacings`` point spacings (a body or post beside the board, crossing
     its plane, is a piece of its own)."""
-    az = contiguous_arctan2(pts[:, 1], pts[:, 0])
-    az0 = np.arctan2(np.sin(az).mean(), np.cos(az).mean())
-    az = (az - az0 + np.pi) % (2 * np.pi) - np.pi
+    az = azimuth(pts)
+    az = wrap_angle(az - circular_mean(az))
     order = np.lexsort((az, ring))
     p, r = pts[order], ring[order]
     jump = row_norms(np.diff(p, axis=0))
@@ -354,9 +353,8 @@ def _local_noise(pts: np.ndarray, ring: np.ndarray, k: int) -> float:
     """The range noise of the plane's own returns: the median RMS of straight-line fits to
     windows of ``k`` neighbouring returns along each ring, as _stage1 measures the scan's
     (0 when no ring has ``k`` returns)."""
-    az = contiguous_arctan2(pts[:, 1], pts[:, 0])
-    az0 = np.arctan2(np.sin(az).mean(), np.cos(az).mean())
-    order = np.lexsort(((az - az0 + np.pi) % (2 * np.pi) - np.pi, ring))
+    az = azimuth(pts)
+    order = np.lexsort((wrap_angle(az - circular_mean(az)), ring))
     p, r = pts[order], ring[order]
     starts = np.r_[0, np.flatnonzero(np.diff(r)) + 1]
     ends = np.r_[starts[1:], len(r)]

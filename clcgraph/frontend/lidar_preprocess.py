@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..determinism import contiguous_arctan2
+from ..geometry import azimuth, elevation, wrap_angle
 from ..types import LidarScan
 
 # Npoints_per_rotation values real LIDARs use; an estimate within 3% snaps to one of these.
@@ -70,7 +70,7 @@ def ring_of(scan: LidarScan) -> np.ndarray:
     if scan.ring is not None:
         return np.asarray(scan.ring).astype(np.int64)
     p = np.asarray(scan.points, float)
-    el = np.degrees(contiguous_arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1])))
+    el = np.degrees(elevation(p))
     ok = np.asarray(scan.valid, bool) & np.isfinite(el)
     ring = np.full(len(p), -1, np.int64)
     if not ok.any():
@@ -121,7 +121,7 @@ def prepare(scan: LidarScan, *, min_range_m: float = 0.0, max_range_m: float = n
     pts = p[idx]
     with np.errstate(invalid="ignore", over="ignore"):  # huge garbage points fail the range test
         rng = row_norms(pts)
-    az = contiguous_arctan2(pts[:, 1], pts[:, 0])
+    az = azimuth(pts)
     # np.lexsort((az, ring)): by ring as 16-bit keys where they fit (a radix sort), then each ring by
     # azimuth, stably (a ring's returns come in azimuth order, which the stable sort exploits; the
     # returns of all rings at once, interleaved, cost 3x)
@@ -240,7 +240,7 @@ def _same_rays(ref: LidarScan, scan: LidarScan, R: Rings, step: float | None):
         near &= np.asarray(scan.ring)[R.index] == R.ring
     if near.sum() < 2:
         return None
-    daz = (np.arctan2(p[near, 1], p[near, 0]) - R.azimuth[near] + np.pi) % (2 * np.pi) - np.pi
+    daz = wrap_angle(azimuth(p[near]) - R.azimuth[near])
     if np.median(np.abs(daz)) > 0.02 * step:
         return None
     return np.where(near, r, 0.0), near, np.zeros(len(r)), step
@@ -345,7 +345,7 @@ def static_masks(scans, *, npoints_per_rotation: int, quantum_m: float = 0.2, mi
         ring = ring_of(s)
         with np.errstate(invalid="ignore", over="ignore"):  # garbage points are masked out below
             r = row_norms(p)
-            az = contiguous_arctan2(p[:, 1], p[:, 0])
+            az = azimuth(p)
         # only returns in segmentation range take part: one scan of garbage (a false is_bigendian)
         # must not overflow the keys and spoil every other scan's modes
         ok = np.asarray(s.valid, bool) & np.isfinite(r) & (r <= max_range_m) & (ring >= 0)

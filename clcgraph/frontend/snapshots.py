@@ -45,9 +45,9 @@ from typing import Iterable, Iterator, Sequence
 
 import numpy as np
 
-from clcgraph.determinism import contiguous_arctan2
 from clcgraph.errors import InputError
-from clcgraph.frontend.lidar_preprocess import finite_rows, row_norms, small_unique
+from clcgraph.geometry import azimuth
+from clcgraph.frontend.lidar_preprocess import finite_rows, ring_of, row_norms, small_unique
 from clcgraph.types import Image, LidarScan, Rejected, Snapshot, names_bag
 
 log = logging.getLogger(__name__)
@@ -157,26 +157,18 @@ def time_spread_s(stamps_ns: Iterable[int]) -> float:
 # ---------------------------------------------------------------- motion detection
 
 
-def range_image(scan: LidarScan, *, azimuth_bins: int = AZIMUTH_BINS,
-                ring_gap_rad: float = np.radians(0.3)) -> tuple[np.ndarray, np.ndarray]:
+def range_image(scan: LidarScan, *, azimuth_bins: int = AZIMUTH_BINS) -> tuple[np.ndarray, np.ndarray]:
     """Per-(ring, azimuth bin) nearest range of a scan.
 
     Returns (ring_ids (R,), ranges (R, azimuth_bins)) with NaN where no valid point
-    fell. Rings come from the scan's ring field, else from clusters of elevation angles
-    separated by gaps > ``ring_gap_rad`` (numbered from the lowest).
+    fell. Rings as the segmentation numbers them (lidar_preprocess.ring_of).
     """
     p = np.asarray(scan.points, float)
     ok = np.asarray(scan.valid, bool) & finite_rows(p)
+    ring = ring_of(scan)[ok]
     p = p[ok]
     r = row_norms(p)
-    if scan.ring is not None:
-        ring = np.asarray(scan.ring)[ok].astype(np.int64)
-    else:
-        el = contiguous_arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))
-        e = np.sort(el)
-        gaps = np.flatnonzero(np.diff(e) > ring_gap_rad)
-        ring = np.searchsorted(0.5 * (e[gaps] + e[gaps + 1]), el)
-    az = contiguous_arctan2(p[:, 1], p[:, 0])
+    az = azimuth(p)
     a = np.floor((az + np.pi) / (2 * np.pi) * azimuth_bins).astype(np.int64) % azimuth_bins
     rings, ri = small_unique(ring)
     img = np.full(len(rings) * azimuth_bins, np.inf)

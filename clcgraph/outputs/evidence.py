@@ -21,8 +21,7 @@ from typing import Mapping
 import numpy as np
 
 from .. import cameras
-from ..determinism import contiguous_arctan2
-from ..geometry import compose_rt, invert_rt, transform
+from ..geometry import compose_rt, elevation, invert_rt, transform
 from ..types import Result, Sensor, Snapshot
 
 log = logging.getLogger(__name__)
@@ -305,6 +304,6 @@ def lidar_residual_geometry(result: Result) -> dict[int, dict]:
         d = out.setdefault(o.sensor, {"residual": [], "range": [], "elevation_deg": [], "outlier": []})
         d["residual"].append(x[sl])
         d["range"].append(np.linalg.norm(p, axis=1))
-        d["elevation_deg"].append(np.degrees(contiguous_arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))))
+        d["elevation_deg"].append(np.degrees(elevation(p)))
         d["outlier"].append(bad[sl])
     return {i: {k: np.concatenate(v) for k, v in d.items()} for i, d in out.items()}

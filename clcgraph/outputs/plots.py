@@ -25,8 +25,7 @@ from matplotlib.cm import ScalarMappable
 from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 
-from ..determinism import contiguous_arctan2
-from ..geometry import T_from_rt, transform
+from ..geometry import T_from_rt, azimuth, elevation, transform
 from ..types import Result
 
 log = logging.getLogger(__name__)
@@ -461,9 +460,9 @@ def plot_scan_preview(scan, path, *, title: str = "") -> Path:
     _title(a, "top view")
     if len(pts):
         rng = np.linalg.norm(pts, axis=1)
-        az = np.degrees(contiguous_arctan2(pts[:, 1], pts[:, 0]))
+        az = np.degrees(azimuth(pts))
         ring = (np.asarray(scan.ring)[np.asarray(scan.valid, bool)] if scan.ring is not None
-                else np.degrees(contiguous_arctan2(pts[:, 2], np.hypot(pts[:, 0], pts[:, 1]))))
+                else np.degrees(elevation(pts)))
         s = b.scatter(az, ring, c=rng, s=0.5, cmap="turbo", vmax=np.percentile(rng, 98))
         fig.colorbar(s, ax=b, label="range [m]")
     b.set_xlabel("azimuth [deg]")
@@ -515,8 +514,8 @@ def plot_segmentation(scan, debug, result, path) -> Path:
     if focus is not None and len(focus):
         c = pts[focus].mean(axis=0)
         near = ok & (np.linalg.norm(pts - c, axis=1) < 2.0)
-        az = np.degrees(contiguous_arctan2(pts[:, 1], pts[:, 0]))
-        el = np.degrees(contiguous_arctan2(pts[:, 2], np.hypot(pts[:, 0], pts[:, 1])))
+        az = np.degrees(azimuth(pts))
+        el = np.degrees(elevation(pts))
         b.scatter(az[near], el[near], s=4, c="0.6")
         b.scatter(az[focus], el[focus], s=6, c="tab:green" if getattr(result, "indices", None) is not None else "tab:red")
         b.invert_xaxis()
