@@ -306,32 +306,38 @@ def intrinsics_directions(covariance: np.ndarray) -> np.ndarray:
     return (V[:, keep] * np.sqrt(lam[keep])).T
 
 
-def consider_terms(problem: Problem, build, values, options, S: np.ndarray | None = None) -> dict:
+def _nominal(problem: Problem, build, values, nominal):
+    """(g, lin): the nominal graph ``build(problem)`` and its noise.Linearization at ``values``
+    (``nominal``: the two if already made)."""
+    from .noise import Linearization
+
+    if nominal is not None:
+        return nominal
+    g = build(problem)
+    return g, Linearization(problem, g, values)
+
+
+def consider_terms(problem: Problem, build, values, options, nominal=None) -> dict:
     """{term name: (ns, m) columns sigma_c J_c in the sensors' tangent (noise.Linearization
     order)}: the term's covariance is their outer product.
 
     ``build(problem) -> g``: the final graph of ``problem`` (same active masks, sigmas, D), so
     only the measurements (or a camera's intrinsics) differ between the nominal and the
-    perturbed linearizations. ``S``: the nominal sensor-only information, if already reduced.
+    perturbed linearizations. ``nominal``: (that graph, its noise.Linearization at ``values``) if
+    already made. Per direction only the factors whose measurements it moves are linearized again.
     """
-    from .noise import Linearization
-
     wanted, lens = _wanted(problem, values, options)
     if not wanted and not lens:
         return {}
-    g, lin = None, None
-    if S is None or lens:
-        g = build(problem)
-        lin = Linearization(problem, g, values)
-    if S is None:
-        S = lin.reduced()[0]
+    g, lin = _nominal(problem, build, values, nominal)
+    S = lin.reduced()[0]
     out = {f"lens field {problem.sensors[i].topic}": np.linalg.solve(S, dr)
            for i, dr in _lens_field_dr(problem, lin, g, lens).items()}
     if not wanted:
         return out
 
     def r_of(p):
-        return Linearization(p, build(p), values).reduced()[1]
+        return lin.relinearized(build(p), moved_factors(problem, p, lin)).reduced()[1]
 
     # linear in c far beyond 1 sigma: a central difference at +-1 sigma
     return {**{name: np.stack([np.linalg.solve(S, (r_of(moved(1)) - r_of(moved(-1))) / 2) for moved in dirs], axis=1)
@@ -554,7 +560,7 @@ def ring_trend_projection(elevations: np.ndarray, counts: np.ndarray) -> tuple[n
     return np.linalg.solve(A.T @ (counts[:, None] * A), (counts[:, None] * A).T), e0
 
 
-def unit_error_sensitivities(problem: Problem, build, values, S: np.ndarray | None = None) -> tuple[list, np.ndarray]:
+def unit_error_sensitivities(problem: Problem, build, values, nominal=None) -> tuple[list, np.ndarray]:
     """([one dict per named error of a sensor unit], (ns, K) dx/de: how the sensors' tangent
     (noise.Linearization order) moves per unit of each error (m, rad, px)).
 
@@ -564,13 +570,9 @@ def unit_error_sensitivities(problem: Problem, build, values, S: np.ndarray | No
     ``{"sensor", "error": "lens field", "unit": "px", "mode", "axis"}``. Same arguments as
     consider_terms.
     """
-    from .noise import Linearization
-
     ns = 6 * (len(problem.sensors) - 1)
-    g = build(problem)
-    lin = Linearization(problem, g, values)
-    S_, r0, _ = lin.reduced()
-    S = S_ if S is None else S
+    g, lin = _nominal(problem, build, values, nominal)
+    S, r0, _ = lin.reduced()
 
     def r_of(p):  # only the factors p moves are linearized again: the others' terms are lin's
         return lin.relinearized(build(p), moved_factors(problem, p, lin)).reduced()[1]

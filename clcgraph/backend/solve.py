@@ -246,13 +246,13 @@ def _deleted_z(problem, active, rt_sensor, rt_board, k, kind, j, sig_l, sig_c, o
     return float(np.sqrt(np.mean(r**2)) / G.sigma_of(sig_c, problem.camera_observations[j].sensor))
 
 
-def _unit_errors(problem, rebuild, values, S, rt_sensor, options) -> dict:
+def _unit_errors(problem, rebuild, values, nominal, rt_sensor, options) -> dict:
     """What `compare` needs to pair two calibrations of the same units (comparison.py): the named
     errors of the sensor units, d rt_lidar0_sensor / d error per unit of each (rt coordinates, the
     variable sensors' order, like the covariance), and the sigmas of them already in the covariance."""
     from ..geometry import drt_dxi
 
-    errors, J = consider.unit_error_sensitivities(problem, rebuild, values, S)
+    errors, J = consider.unit_error_sensitivities(problem, rebuild, values, nominal)
     idx = [i for i in range(len(problem.sensors)) if i != problem.reference]
     for a, i in enumerate(idx):
         J[6 * a:6 * a + 6] = drt_dxi(rt_sensor[i]) @ J[6 * a:6 * a + 6]
@@ -586,8 +586,7 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
     times["jackknife"] = time.perf_counter() - t
     t = time.perf_counter()
 
-    S = lin.reduced()[0]
-    terms = consider.consider_terms(problem, rebuild, values, options, S=S)
+    terms = consider.consider_terms(problem, rebuild, values, options, nominal=(g, lin))
     cov, uncertainty_terms = consider.add_terms(problem, rt_sensor, cov, terms)
     times["consider"] = time.perf_counter() - t
     _refuse_imprecise(problem, rt_sensor, cov, uncertainty_terms, options)
@@ -612,7 +611,7 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
                                  known=known)
     times["consistency"] = time.perf_counter() - t
     t = time.perf_counter()  # after the verdict: a refused capture needs none
-    unit_errors = _unit_errors(problem, rebuild, values, S, rt_sensor, options)
+    unit_errors = _unit_errors(problem, rebuild, values, (g, lin), rt_sensor, options)
     times["unit_error_sensitivities"] = time.perf_counter() - t
 
     times["total"] = time.perf_counter() - t0
