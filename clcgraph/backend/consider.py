@@ -321,9 +321,10 @@ def consider_terms(problem: Problem, build, values, options, nominal=None) -> di
     """{term name: (ns, m) columns sigma_c J_c in the sensors' tangent (noise.Linearization
     order)}: the term's covariance is their outer product.
 
-    ``build(problem) -> g``: the final graph of ``problem`` (same active masks, sigmas, D), so
-    only the measurements (or a camera's intrinsics) differ between the nominal and the
-    perturbed linearizations. ``nominal``: (that graph, its noise.Linearization at ``values``) if
+    ``build(problem, only=None) -> g``: the final graph of ``problem`` (same active masks, sigmas,
+    D), so only the measurements (or a camera's intrinsics) differ between the nominal and the
+    perturbed linearizations; with ``only`` (factor indices) {index: factor} of those alone
+    (graph.build's). ``nominal``: (that graph, its noise.Linearization at ``values``) if
     already made. Per direction only the factors whose measurements it moves are linearized again.
     """
     wanted, lens = _wanted(problem, values, options)
@@ -337,7 +338,7 @@ def consider_terms(problem: Problem, build, values, options, nominal=None) -> di
         return out
 
     def r_of(p):
-        return lin.relinearized(build(p), moved_factors(problem, p, lin)).reduced()[1]
+        return lin.relinearized(moved_graph(problem, p, lin, build)).reduced()[1]
 
     # linear in c far beyond 1 sigma: a central difference at +-1 sigma
     return {**{name: np.stack([np.linalg.solve(S, (r_of(moved(1)) - r_of(moved(-1))) / 2) for moved in dirs], axis=1)
@@ -349,10 +350,9 @@ def known_columns(problem: Problem, lin, g, build, options):
     must know them (noise.Linearization.with_known, consistency.linearize): ({factor index of
     ``g``: (rows, m) the change of its whitened b when the measurements move by +1 sigma along
     each of the m directions}, m), or None when no term is stated. ``lin``: noise.Linearization
-    of ``g`` (its b, and whose factor is which); ``build(problem) -> graph``: ``g`` with other
-    measurements (same masks, sigmas, D). Per direction, only the factors whose measurements it
-    moves are linearized again (the measurements are linear in c far below the noise); the lens
-    field's in closed form."""
+    of ``g`` (its b, and whose factor is which); ``build``: as consider_terms'. Per direction,
+    only the factors whose measurements it moves are linearized again (the measurements are
+    linear in c far below the noise); the lens field's in closed form."""
     wanted, lens = _wanted(problem, lin.values, options)
     if not wanted and not lens:
         return None
@@ -360,10 +360,8 @@ def known_columns(problem: Problem, lin, g, build, options):
     m = 0
     for dirs in wanted.values():
         for moved in dirs:
-            p = moved(1)
-            gm = build(p)
-            for f in moved_factors(problem, p, lin):
-                db = gm.at(f).linearize(lin.values).jacobian()[1] - lin.rows[lin.factors[f][3].start][2]
+            for f, factor in moved_graph(problem, moved(1), lin, build).items():
+                db = factor.linearize(lin.values).jacobian()[1] - lin.rows[lin.factors[f][3].start][2]
                 if np.any(db):
                     cols.setdefault(f, []).append((m, db))
             m += 1
@@ -379,6 +377,12 @@ def known_columns(problem: Problem, lin, g, build, options):
             G_f[:, j] = c
         dense[f] = G_f
     return dense, m
+
+
+def moved_graph(problem: Problem, moved: Problem, lin, build) -> dict:
+    """{factor index: factor} of ``build(moved, only=...)`` for the factors ``moved`` changes
+    (moved_factors): the others are not made."""
+    return build(moved, only=set(moved_factors(problem, moved, lin)))
 
 
 def moved_factors(problem: Problem, moved: Problem, lin) -> list:
@@ -575,7 +579,7 @@ def unit_error_sensitivities(problem: Problem, build, values, nominal=None) -> t
     S, r0, _ = lin.reduced()
 
     def r_of(p):  # only the factors p moves are linearized again: the others' terms are lin's
-        return lin.relinearized(build(p), moved_factors(problem, p, lin)).reduced()[1]
+        return lin.relinearized(moved_graph(problem, p, lin, build)).reduced()[1]
 
     moves = {"ring range bias": _ring_range_moves,
              "ring elevation": lambda p, i, e0, ab: _ring_elevation_moves(p, values, i, e0, ab)}

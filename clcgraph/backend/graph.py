@@ -106,7 +106,8 @@ def sigma_of(sigma, sensor: int) -> float:
 
 def build(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.ndarray, *, lidar: str,
           sigma_lidar_m, sigma_camera_px, options, board_nominal: np.ndarray | None = None,
-          effects: np.ndarray | None = None, effect_values=None, edge_factors: list | None = None):
+          effects: np.ndarray | None = None, effect_values=None, edge_factors: list | None = None,
+          only: set | None = None):
     """(gtsam.NonlinearFactorGraph, gtsam.Values) for the active observations.
 
     ``lidar``: "plane" (point-to-plane) or "range" (maximum likelihood).
@@ -117,12 +118,25 @@ def build(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.
     zero-mean prior of these sigmas; None = independent noise only. ``effect_values``: gtsam.Values
     to start the D variables from (default: identity). ``edge_factors``: lidar_edge_factors made
     beforehand (they depend on the poses and edge rays only), for graphs built many times.
+    ``only``: indices of the graph's factors wanted: ({index: factor}, None), the others not made
+    (a few of a large graph, to be linearized again: noise.Linearization.relinearized).
     """
     import gtsam
 
     make = lidar_plane_factor if lidar == "plane" else lidar_range_factor
     g = gtsam.NonlinearFactorGraph()
     v = gtsam.Values()
+    picked: dict = {}
+    n_added = 0
+
+    def add(factor_of):  # factor_of() makes the factor: not called for one ``only`` leaves out
+        nonlocal n_added
+        if only is None:
+            g.add(factor_of())
+        elif n_added in only:
+            picked[n_added] = factor_of()
+        n_added += 1
+
     centre = board_centre(problem)
     used, seen_by_camera = active.boards(problem)
     # each pose made once: the values, and which face each LIDAR observation sees
@@ -133,34 +147,42 @@ def build(problem: Problem, active: Active, rt_sensor: np.ndarray, rt_board: np.
         if effects is None:
             return {}
         k = effect_key(kind, j)
-        start = effect_values.atPose3(k) if effect_values is not None and effect_values.exists(k) else gtsam.Pose3()
-        v.insert(k, start)
-        g.add(gtsam.PriorFactorPose3(k, gtsam.Pose3(), gtsam.noiseModel.Diagonal.Sigmas(np.asarray(effects[sensor], float))))
+        if only is None:
+            start = effect_values.atPose3(k) if effect_values is not None and effect_values.exists(k) else gtsam.Pose3()
+            v.insert(k, start)
+        add(lambda: gtsam.PriorFactorPose3(k, gtsam.Pose3(), gtsam.noiseModel.Diagonal.Sigmas(
+            np.asarray(effects[sensor], float))))
         return {"effect_key": k, "T_board_centre": centre}
 
     for j, (o, m) in enumerate(zip(problem.lidar_observations, active.lidar)):
         if m is not None and m.any():
-            face = lidar_face(problem.board, T_s[o.sensor], T_b[o.snapshot])
-            g.add(make(_key(problem, o.sensor), board_key(o.snapshot), o.points[m], sigma_of(sigma_lidar_m, o.sensor),
-                       face_m=face, **effect("lidar", j, o.sensor)))
+            kw = effect("lidar", j, o.sensor)
+            add(lambda: make(_key(problem, o.sensor), board_key(o.snapshot), o.points[m], sigma_of(sigma_lidar_m, o.sensor),
+                             face_m=lidar_face(problem.board, T_s[o.sensor], T_b[o.snapshot]), **kw))
     for j, (o, m) in enumerate(zip(problem.camera_observations, active.camera)):
         if m is not None and m.any():
-            s = problem.sensors[o.sensor]
-            q = np.where(m[:, None], o.corners_px, np.nan)
-            g.add(camera_corners_factor(sensor_key(o.sensor), board_key(o.snapshot), q, s.lensmodel,
-                                        s.intrinsics, problem.board, sigma_of(sigma_camera_px, o.sensor),
-                                        **effect("camera", j, o.sensor)))
+            kw = effect("camera", j, o.sensor)
+
+            def corners(o=o, m=m, kw=kw):
+                s = problem.sensors[o.sensor]
+                q = np.where(m[:, None], o.corners_px, np.nan)
+                return camera_corners_factor(sensor_key(o.sensor), board_key(o.snapshot), q, s.lensmodel,
+                                             s.intrinsics, problem.board, sigma_of(sigma_camera_px, o.sensor), **kw)
+
+            add(corners)
     if lidar == "range":  # from a rough seed (point-to-plane) the sides may be wrong
         made = lidar_edge_factors(problem, active, rt_sensor, rt_board, options) if edge_factors is None else edge_factors
         for f in made.values():
-            g.add(f)
+            add(lambda f=f: f)
     nominal = rt_board if board_nominal is None else board_nominal
     for k in sorted(used - seen_by_camera):
-        g.add(board_prior_factor(board_key(k), pose3_from_rt(nominal[k]), options.board_prior_sigma_rad,
-                                 options.board_prior_sigma_m))
+        add(lambda k=k: board_prior_factor(board_key(k), pose3_from_rt(nominal[k]), options.board_prior_sigma_rad,
+                                           options.board_prior_sigma_m))
     for p in problem.priors:
         if p.sensor != problem.reference:
-            g.add(pose_prior_factor(sensor_key(p.sensor), pose3_from_rt(p.rt_lidar0_sensor), p.sigma_rt))
+            add(lambda p=p: pose_prior_factor(sensor_key(p.sensor), pose3_from_rt(p.rt_lidar0_sensor), p.sigma_rt))
+    if only is not None:
+        return picked, None
     for i, T in enumerate(T_s):
         if T is not None:  # lidar0 has no variable
             v.insert(sensor_key(i), T)

@@ -172,17 +172,17 @@ class Linearization:
         sensor = None if is_prior else (sensors[0] if sensors else reference)
         return terms, rows, (sensor, snapshot, cols)
 
-    def relinearized(self, g, factors) -> "Linearization":
-        """The system with the given factors taken from ``g`` (the same graph but for those
-        factors' measurements: same keys, values and noise models), the others' terms shared:
-        what a fresh linearization of ``g`` gives, evaluating only those factors."""
+    def relinearized(self, factors: dict) -> "Linearization":
+        """The system with the given factors ({index: factor} of the same graph but for those
+        factors' measurements: same keys, values and noise models) in place of its own, the
+        others' terms shared: what a fresh linearization of that graph gives, evaluating only them."""
         out = object.__new__(Linearization)
         out.variable_sensors, out.ns, out.local, out.groups = self.variable_sensors, self.ns, self.local, self.groups
         out._context, out.factors, out.values = self._context, self.factors, self.values
         out._layout_cache = self._layout()
         out.terms, out.rows = list(self.terms), list(self.rows)
-        for f in factors:
-            terms, rows, _ = self._linearize(f, g.at(f), self.values)
+        for f, factor in factors.items():
+            terms, rows, _ = self._linearize(f, factor, self.values)
             span = self.factors[f][3]
             out.terms[span], out.rows[span] = terms, rows
         return out

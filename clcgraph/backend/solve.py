@@ -288,11 +288,13 @@ def _solve_with_effects(problem, active, rt_sensor, rt_board, sig, options, nomi
         # which components the data show is decided once, on the first linearization
         at = N.Linearization(problem, g, v)
 
-        def rebuild(p, rt_sensor=rt_sensor, rt_board=rt_board, sig=sig, effects=effects, values=values, edges=edges):
+        def rebuild(p, only=None, rt_sensor=rt_sensor, rt_board=rt_board, sig=sig, effects=effects, values=values,
+                    edges=edges):
             return G.build(p, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig, sigma_camera_px=sig,
                            options=options, board_nominal=nominal, effects=N.effect_sigmas(problem, effects),
                            effect_values=values, edge_factors=G.lidar_edge_factors(p, active, rt_sensor, rt_board,
-                                                                                   options, reuse=(problem, edges)))[0]
+                                                                                   options, reuse=(problem, edges)),
+                           only=only)[0]
 
         # the consider terms' errors are in the data too: D and the white noise get what they leave
         known = consider.known_columns(problem, at, g, rebuild, options)
@@ -566,11 +568,11 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
     # elevation's, of one LIDAR)
     edges = G.lidar_edge_factors(problem, active, rt_sensor, rt_board, options)
 
-    def rebuild(p):  # the final graph of p: the same masks, sigmas and D, other measurements
+    def rebuild(p, only=None):  # the final graph of p: the same masks, sigmas and D, other measurements
         return G.build(p, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig, sigma_camera_px=sig,
                        options=options, board_nominal=nominal, effects=effect_sig, effect_values=values,
                        edge_factors=G.lidar_edge_factors(p, active, rt_sensor, rt_board, options,
-                                                         reuse=(problem, edges)))[0]
+                                                         reuse=(problem, edges)), only=only)[0]
 
     # the consider terms' errors as columns of the final linearization: the jackknife's expected
     # ratio and the consistency checks count them in
