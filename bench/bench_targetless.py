@@ -91,6 +91,7 @@ def run_bag(duration_s: float = 60.0, small: bool = False, seed: int = 0, workdi
 
     plan = DrivePlan.small(duration_s=duration_s) if small else DrivePlan(duration_s=duration_s)
     tmp = Path(workdir or tempfile.mkdtemp(prefix="bench_targetless_"))  # left there for a look
+    tmp.mkdir(parents=True, exist_ok=True)
     bag = tmp / f"drive-{duration_s:g}s-{'small' if small else 'full'}-seed{seed}.bag"  # reused when there
     truth_file, out = bag.with_suffix(".truth.npy"), tmp / "out"
     top, side = plan.lidars[0].topic, plan.lidars[1].topic

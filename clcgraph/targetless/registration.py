@@ -276,40 +276,45 @@ def agrees(fd: FrameData, T_best: np.ndarray, Ts, o) -> bool:
 
 
 def ensemble(frames, T_guess: np.ndarray, o, *, progress=None):
-    """Best T_lidar0_sensor among the guess, per-frame registrations (ICP coarse-to-fine, GICP,
-    VGICP) and a batched ICP over all frames.
+    """Best T_lidar0_sensor among the guess, per-frame registrations (VGICP, GICP, ICP
+    coarse-to-fine) and a batched ICP over all frames.
 
     Each registration starts from the best candidate so far; every candidate is scored
-    on all frames. Once ``_AGREEING_FRAMES`` frames in a row left the best within their own
-    uncertainty of where it was before them (``agrees``: a candidate that scores worse, such as
-    point-to-point ICP's, biased by decimetres on a 16-ring scan, does not count), the other
-    frames are not registered one by one.
+    on all frames. Point-to-point ICP coarse-to-fine (the widest basin, ~4x the cost of the
+    others together) runs on a frame only where VGICP and GICP moved the best beyond that frame's
+    own uncertainty (``agrees``): where they left it, the best is already at the frame's optimum
+    and ICP from there finds nothing better (point-to-point ICP is biased by decimetres on a
+    16-ring scan). Once ``_AGREEING_FRAMES`` frames in a row left the best where it was, the
+    other frames are not registered one by one.
     Returns (T_best (4,4), list of (name, frame index (-1: all), score)).
     """
     best, best_s = T_guess, score(frames, T_guess, o)
     cands = [("initial guess", -1, best_s)]
     leaf = 0.1
     in_a_row = 0
+
+    def candidate(name, i, T):
+        nonlocal best, best_s
+        s = score(frames, T, o)
+        cands.append((name, i, s))
+        if s < best_s:
+            best, best_s = T, s
+
     for i, fd in enumerate(frames):
         before = best
-        for name in ("ICP coarse-to-fine", "GICP", "VGICP"):
-            if name == "ICP coarse-to-fine":
-                T = _run(fd, best, "ICP", o.max_corr_dist_coarse, o, leaf)
-                T = _run(fd, T, "ICP", o.max_corr_dist_fine, o, leaf)
-                T = _run(fd, T, "ICP", o.max_corr_dist_ultra_fine, o, leaf)
-            elif name == "GICP":
-                T = _run(fd, best, "GICP", o.max_corr_dist_coarse, o, leaf)
-                T = _run(fd, T, "GICP", o.max_corr_dist_fine, o, leaf)
-            else:
-                T = _run(fd, best, "VGICP", o.max_corr_dist_coarse, o, leaf)
-            s = score(frames, T, o)
-            cands.append((name, i, s))
-            if s < best_s:
-                best, best_s = T, s
+        candidate("VGICP", i, _run(fd, best, "VGICP", o.max_corr_dist_coarse, o, leaf))
+        T = _run(fd, best, "GICP", o.max_corr_dist_coarse, o, leaf)
+        candidate("GICP", i, _run(fd, T, "GICP", o.max_corr_dist_fine, o, leaf))
+        settled = agrees(fd, before, [best], o)
+        if not settled:
+            T = _run(fd, best, "ICP", o.max_corr_dist_coarse, o, leaf)
+            T = _run(fd, T, "ICP", o.max_corr_dist_fine, o, leaf)
+            candidate("ICP coarse-to-fine", i, _run(fd, T, "ICP", o.max_corr_dist_ultra_fine, o, leaf))
+            settled = agrees(fd, before, [best], o)
         # the target's covariances stay for refine_per_frame (built once; it releases them)
         if progress is not None:
             progress(1)
-        in_a_row = in_a_row + 1 if agrees(fd, before, [best], o) else 0
+        in_a_row = in_a_row + 1 if settled else 0
         if in_a_row >= _AGREEING_FRAMES and i + 1 < len(frames):
             log.info("ensemble: %d frames in a row left the best within their uncertainty; "
                      "%d of %d frames registered", in_a_row, i + 1, len(frames))
