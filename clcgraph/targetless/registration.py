@@ -23,7 +23,6 @@ import numpy as np
 
 from . import gicp
 from .deskew import deskew
-from .mapping import voxel_down
 
 log = logging.getLogger(__name__)
 
@@ -113,14 +112,22 @@ class FrameData:
         return self.normals[idx]
 
 
-def voxel_codes(points: np.ndarray, leaf: float) -> np.ndarray:
-    """(N,) int64 voxel index of each point, 19 bits per axis (+-13 km at 5 cm)."""
-    k = np.floor(points * (1.0 / leaf)).astype(np.int64)
-    k += 1 << 18
-    c = k[:, 0] << 38
-    c |= k[:, 1] << 19
-    c |= k[:, 2]
+def voxel_index(points: np.ndarray, leaf: float) -> np.ndarray:
+    """(N,3) int64 voxel of each point (floor of points / leaf)."""
+    return np.floor(points * (1.0 / leaf)).astype(np.int64)
+
+
+def pack(index: np.ndarray) -> np.ndarray:
+    """(N,) int64 code of (N,3) voxel indices, 19 bits per axis (+-13 km at 5 cm)."""
+    c = (index[:, 0] + (1 << 18)) << 38
+    c |= (index[:, 1] + (1 << 18)) << 19
+    c |= index[:, 2] + (1 << 18)
     return c
+
+
+def voxel_codes(points: np.ndarray, leaf: float) -> np.ndarray:
+    """(N,) int64 voxel code of each point (``pack`` of ``voxel_index``)."""
+    return pack(voxel_index(points, leaf))
 
 
 def keyframe_position(mp, frame_ids) -> np.ndarray:
@@ -128,15 +135,15 @@ def keyframe_position(mp, frame_ids) -> np.ndarray:
     return np.searchsorted(np.asarray(mp.keyframe_ids), np.asarray(frame_ids), side="right") - 1
 
 
-def reach_mask(points: np.ndarray, source_pts: np.ndarray, origin: np.ndarray, *, cell: float = 1.0,
+def reach_mask(cells: np.ndarray, source_pts: np.ndarray, origin: np.ndarray, *, cell: float = 1.0,
                margin_m: float = 1.0, margin_per_m: float = np.tan(np.radians(3.0)), max_cells: int = 16) -> np.ndarray:
-    """(N,) mask of the ``points`` a registration of ``source_pts`` (same frame, placed by the
-    initial guess) can use: those in the cells of size ``cell`` within ``margin_m + margin_per_m *
-    range`` (range from ``origin``, the source sensor) of a source point's cell, so a guess that is
-    off by up to ~3 deg and a few decimetres still finds all its correspondences. The cells nest
-    the dense map's voxels (``cell`` a multiple of the leaf): a voxel is kept or left out whole."""
-    if len(points) == 0 or len(source_pts) == 0:
-        return np.zeros(len(points), bool)
+    """(N,) mask of the points (given by their ``voxel_codes`` at ``cell``: ``cells``) a registration
+    of ``source_pts`` (same frame, placed by the initial guess) can use: those in the cells within
+    ``margin_m + margin_per_m * range`` (range from ``origin``, the source sensor) of a source
+    point's cell, so a guess that is off by up to ~3 deg and a few decimetres still finds all its
+    correspondences."""
+    if len(cells) == 0 or len(source_pts) == 0:
+        return np.zeros(len(cells), bool)
     own = np.unique(voxel_codes(source_pts, cell))
     centre = (_decode(own) + 0.5) * cell
     k = np.minimum(np.ceil((margin_m + margin_per_m * np.linalg.norm(centre - origin, axis=1)) / cell),
@@ -148,9 +155,8 @@ def reach_mask(points: np.ndarray, source_pts: np.ndarray, origin: np.ndarray, *
             c = np.unique((c[:, None] + shift * np.arange(-kk, kk + 1)).ravel())
         reach.append(c)
     reach = np.unique(np.concatenate(reach))
-    code = voxel_codes(points, cell)
-    at = np.minimum(np.searchsorted(reach, code), len(reach) - 1)
-    return reach[at] == code
+    at = np.minimum(np.searchsorted(reach, cells), len(reach) - 1)
+    return reach[at] == cells
 
 
 def _decode(codes: np.ndarray) -> np.ndarray:
@@ -182,16 +188,24 @@ def dense_target(mp, kid: int, T_map_lidar0: np.ndarray, o, *, max_frames: int =
         labels.append(np.full(len(f.points), np.searchsorted(positions, p), np.int64))
     allp, labels = np.concatenate(clouds), np.concatenate(labels)
     del clouds
+    index = voxel_index(allp, leaf)  # once: the reach's cells, the parts and the centroids group by it
     if source is not None:
-        # cells of whole dense voxels (10 leaves: 0.5 m at the default 5 cm); the margin: the coarse
-        # correspondence distance and 0.5 m of guess error and point neighbourhood
-        keep = reach_mask(allp, source[0], source[1], cell=leaf * max(1, round(0.5 / leaf)),
-                          margin_m=o.max_corr_dist_coarse + 0.5)
-        allp, labels = allp[keep], labels[keep]
-    pairs, counts = np.unique(voxel_codes(allp, leaf) * 64 + labels, return_counts=True)
+        # cells of whole dense voxels (n leaves: 0.5 m at the default 5 cm), so a voxel is kept or
+        # left out whole; the margin: the coarse correspondence distance and 0.5 m of guess error
+        # and point neighbourhood
+        n = max(1, round(0.5 / leaf))
+        keep = reach_mask(pack(index // n), source[0], source[1], cell=leaf * n, margin_m=o.max_corr_dist_coarse + 0.5)
+        allp, labels, index = allp[keep], labels[keep], index[keep]
+    key = pack(index) * 64 + labels
+    order = np.argsort(key)
+    key = key[order]
+    first = np.flatnonzero(np.diff(key, prepend=key[:1] - 1))  # of each (voxel, submap) pair
+    pairs, counts = key[first], np.diff(np.r_[first, len(key)])
     parts = TargetParts(leaf, pairs, counts.astype(np.int32), positions, kpos,
                         {int(p): Tinv @ mp.frames[mp.keyframe_ids[p]].T_map_lidar for p in positions})
-    pts = voxel_down(allp, leaf)
+    voxel = pairs >> 6
+    start = first[np.flatnonzero(np.diff(voxel, prepend=voxel[:1] - 1))]  # of each voxel
+    pts = np.add.reduceat(allp[order], start) / np.diff(np.r_[start, len(key)])[:, None]  # centroids
     r = np.linalg.norm(pts, axis=1)
     return pts[(r >= o.min_calibration_range) & (r <= o.max_calibration_range)], parts
 
@@ -202,20 +216,41 @@ def _adjoint_to_sensor(T_lidar0_sensor: np.ndarray, xi: np.ndarray) -> np.ndarra
     return gtsam.Pose3(np.linalg.inv(T_lidar0_sensor)).AdjointMap() @ xi
 
 
+def _frame_problem(cf, mp, T_guess: np.ndarray, o, deskew_on: bool):
+    """(cropped raw source, its times, deskewed source, dense target, TargetParts) of one calibration frame."""
+    s = cf.scan
+    r = np.linalg.norm(s.points, axis=1)
+    m = s.valid & np.isfinite(r) & (r >= o.min_calibration_range) & (r <= o.max_calibration_range)
+    raw, tau = s.points[m], (s.time_s[m] if (deskew_on and s.time_s is not None) else None)
+    src = deskew(raw, tau, _adjoint_to_sensor(T_guess, cf.twist_lidar0))
+    src0 = src @ T_guess[:3, :3].T + T_guess[:3, 3]  # in lidar0, at the guess
+    tgt, parts = dense_target(mp, cf.keyframe_id, cf.T_map_lidar0, o, source=(src0, T_guess[:3, 3]))
+    if o.crop_z_calibration_pointclouds:
+        zmax = src0[:, 2].max() + o.crop_z_calibration_pointclouds_value
+        tgt = tgt[tgt[:, 2] <= zmax]
+    return raw, tau, src, tgt, parts
+
+
 def prepare_frames(chosen, mp, T_guess: np.ndarray, o, *, deskew_on: bool = True, progress=None) -> list:
-    """Dense targets and deskewed, cropped sources for the selected calibration frames."""
+    """Dense targets and deskewed, cropped sources for the selected calibration frames: every
+    other frame's in a forked child (the other core; background.py), the same function on the
+    same data, so the same frames as one process would make."""
+    from .background import Background
+
+    chosen = list(chosen)
+
+    def problems(cfs):
+        return [_frame_problem(cf, mp, T_guess, o, deskew_on) for cf in cfs]
+
+    other = Background(problems, chosen[1::2])
+    try:
+        mine = problems(chosen[0::2])
+        theirs = other.result()
+    finally:
+        other.cancel()  # only where an error left it running
     out = []
-    for cf in chosen:
-        s = cf.scan
-        r = np.linalg.norm(s.points, axis=1)
-        m = s.valid & np.isfinite(r) & (r >= o.min_calibration_range) & (r <= o.max_calibration_range)
-        raw, tau = s.points[m], (s.time_s[m] if (deskew_on and s.time_s is not None) else None)
-        src = deskew(raw, tau, _adjoint_to_sensor(T_guess, cf.twist_lidar0))
-        src0 = src @ T_guess[:3, :3].T + T_guess[:3, 3]  # in lidar0, at the guess
-        tgt, parts = dense_target(mp, cf.keyframe_id, cf.T_map_lidar0, o, source=(src0, T_guess[:3, 3]))
-        if o.crop_z_calibration_pointclouds:
-            zmax = src0[:, 2].max() + o.crop_z_calibration_pointclouds_value
-            tgt = tgt[tgt[:, 2] <= zmax]
+    for i, cf in enumerate(chosen):
+        raw, tau, src, tgt, parts = (theirs if i % 2 else mine)[i // 2]
         out.append(FrameData.make(cf, tgt, src, threads=o.mapper_num_threads, parts=parts, raw_pts=raw, raw_time=tau))
         log.debug("frame at keyframe %d: dense target of %d points, source of %d", cf.keyframe_id, len(tgt), len(src))
         if progress is not None:
