@@ -310,6 +310,12 @@ def agrees(fd: FrameData, T_best: np.ndarray, Ts, o) -> bool:
     return all(float(d @ H @ d) < _CHI2_6DOF_99 for d in ds)
 
 
+def _largest_shift(points: np.ndarray, T_a: np.ndarray, T_b: np.ndarray) -> float:
+    """Largest distance (m) between a point of ``points`` placed by T_a and by T_b."""
+    D = T_b - T_a
+    return float(np.max(np.linalg.norm(points @ D[:3, :3].T + D[:3, 3], axis=1))) if len(points) else 0.0
+
+
 def ensemble(frames, T_guess: np.ndarray, o, *, progress=None):
     """Best T_lidar0_sensor among the guess, per-frame registrations (VGICP, GICP, ICP
     coarse-to-fine) and a batched ICP over all frames.
@@ -317,9 +323,11 @@ def ensemble(frames, T_guess: np.ndarray, o, *, progress=None):
     Each registration starts from the best candidate so far; every candidate is scored
     on all frames. Point-to-point ICP coarse-to-fine (the widest basin, ~4x the cost of the
     others together) runs on a frame only where VGICP and GICP moved the best beyond that frame's
-    own uncertainty (``agrees``): where they left it, the best is already at the frame's optimum
-    and ICP from there finds nothing better (point-to-point ICP is biased by decimetres on a
-    16-ring scan). Once ``_AGREEING_FRAMES`` frames in a row left the best where it was, the
+    own uncertainty (``agrees``) and moved some source point by more than the ultra-fine
+    correspondence distance: where they left it, the best is already at the frame's optimum, and
+    where they moved it less, it started inside the finest basin, which ICP's coarse stages only
+    widen; either way ICP from there finds nothing better (point-to-point ICP is biased by
+    decimetres on a 16-ring scan). Once ``_AGREEING_FRAMES`` frames in a row left the best where it was, the
     other frames are not registered one by one.
     Returns (T_best (4,4), list of (name, frame index (-1: all), score)).
     """
@@ -341,7 +349,7 @@ def ensemble(frames, T_guess: np.ndarray, o, *, progress=None):
         T = _run(fd, best, "GICP", o.max_corr_dist_coarse, o, leaf)
         candidate("GICP", i, _run(fd, T, "GICP", o.max_corr_dist_fine, o, leaf))
         settled = agrees(fd, before, [best], o)
-        if not settled:
+        if not settled and _largest_shift(fd.source_pts, before, best) > o.max_corr_dist_ultra_fine:
             T = _run(fd, best, "ICP", o.max_corr_dist_coarse, o, leaf)
             T = _run(fd, T, "ICP", o.max_corr_dist_fine, o, leaf)
             candidate("ICP coarse-to-fine", i, _run(fd, T, "ICP", o.max_corr_dist_ultra_fine, o, leaf))
