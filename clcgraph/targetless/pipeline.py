@@ -13,11 +13,12 @@ SYNOPSIS
 
 Stages (timed in ``res.stats["stage_time_s"]``, peak memory in ``res.stats["peak_rss_mb"]``):
 mapping (deskew + scan-to-map VGICP; the scans read and prepared in a forked child process),
-calibration frames, selection, registration (ensemble + per-frame refinement), graph (GTSAM
-fusion and Marginals; the keyframe submap registrations computed in a forked child process
-beside the calibration frames and registration), ground (base_link roll/pitch/z: in another
-forked child; the stage is the wait for it at the end). The children's memory is not in the
-peak (they share the parent's pages; their own buffers are tens of MB).
+calibration frames, selection, registration (dense targets, every other one made in a forked
+child; ensemble + per-frame refinement), graph (GTSAM fusion and Marginals; the keyframe submap
+registrations computed in a forked child process beside the calibration frames and
+registration), ground (base_link roll/pitch/z: in another forked child; the stage is the wait
+for it at the end). The children's memory is not in the peak (they share the parent's pages;
+their own buffers are tens of MB).
 """
 
 from __future__ import annotations

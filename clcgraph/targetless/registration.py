@@ -135,15 +135,14 @@ def keyframe_position(mp, frame_ids) -> np.ndarray:
     return np.searchsorted(np.asarray(mp.keyframe_ids), np.asarray(frame_ids), side="right") - 1
 
 
-def reach_mask(cells: np.ndarray, source_pts: np.ndarray, origin: np.ndarray, *, cell: float = 1.0,
-               margin_m: float = 1.0, margin_per_m: float = np.tan(np.radians(3.0)), max_cells: int = 16) -> np.ndarray:
-    """(N,) mask of the points (given by their ``voxel_codes`` at ``cell``: ``cells``) a registration
-    of ``source_pts`` (same frame, placed by the initial guess) can use: those in the cells within
-    ``margin_m + margin_per_m * range`` (range from ``origin``, the source sensor) of a source
-    point's cell, so a guess that is off by up to ~3 deg and a few decimetres still finds all its
-    correspondences."""
-    if len(cells) == 0 or len(source_pts) == 0:
-        return np.zeros(len(cells), bool)
+def reach_cells(source_pts: np.ndarray, origin: np.ndarray, *, cell: float = 1.0, margin_m: float = 1.0,
+                margin_per_m: float = np.tan(np.radians(3.0)), max_cells: int = 16) -> np.ndarray:
+    """Sorted ``voxel_codes`` at ``cell`` of the cells a registration of ``source_pts`` (placed by
+    the initial guess) can use: those within ``margin_m + margin_per_m * range`` (range from
+    ``origin``, the source sensor) of a source point's cell, so a guess that is off by up to ~3
+    deg and a few decimetres still finds all its correspondences."""
+    if len(source_pts) == 0:
+        return np.zeros(0, np.int64)
     own = np.unique(voxel_codes(source_pts, cell))
     centre = (_decode(own) + 0.5) * cell
     k = np.minimum(np.ceil((margin_m + margin_per_m * np.linalg.norm(centre - origin, axis=1)) / cell),
@@ -154,9 +153,14 @@ def reach_mask(cells: np.ndarray, source_pts: np.ndarray, origin: np.ndarray, *,
         for shift in (1 << 38, 1 << 19, 1):
             c = np.unique((c[:, None] + shift * np.arange(-kk, kk + 1)).ravel())
         reach.append(c)
-    reach = np.unique(np.concatenate(reach))
-    at = np.minimum(np.searchsorted(reach, cells), len(reach) - 1)
-    return reach[at] == cells
+    return np.unique(np.concatenate(reach))
+
+
+def _member(codes: np.ndarray, sorted_codes: np.ndarray) -> np.ndarray:
+    """(N,) whether each of ``codes`` is in ``sorted_codes``."""
+    if len(sorted_codes) == 0:
+        return np.zeros(len(codes), bool)
+    return sorted_codes[np.minimum(np.searchsorted(sorted_codes, codes), len(sorted_codes) - 1)] == codes
 
 
 def _decode(codes: np.ndarray) -> np.ndarray:
@@ -169,7 +173,7 @@ def dense_target(mp, kid: int, T_map_lidar0: np.ndarray, o, *, max_frames: int =
     """(M,3) mapping points of the frames within +-dense_pointcloud_num_keyframes keyframes, in lidar0
     at T, and the TargetParts telling which keyframe's submap each voxel came from. ``source``:
     (points (N,3), sensor origin (3,)) in lidar0 at the guess: only the target within its reach
-    (``reach_mask``) is kept."""
+    (``reach_cells``) is kept."""
     kpos = mp.keyframe_ids.index(kid)
     lo = mp.keyframe_ids[max(0, kpos - o.dense_pointcloud_num_keyframes)]
     hi = mp.keyframe_ids[min(len(mp.keyframe_ids) - 1, kpos + o.dense_pointcloud_num_keyframes)]
@@ -180,22 +184,26 @@ def dense_target(mp, kid: int, T_map_lidar0: np.ndarray, o, *, max_frames: int =
     leaf = max(o.leaf_size_dense_map, 0.02)
     pos = keyframe_position(mp, ids)
     positions = np.unique(pos)
-    clouds, labels = [], []
-    for j, p in zip(ids, pos):
-        f = mp.frames[j]
-        T = Tinv @ f.T_map_lidar
-        clouds.append(f.points @ T[:3, :3].T + T[:3, 3])
-        labels.append(np.full(len(f.points), np.searchsorted(positions, p), np.int64))
-    allp, labels = np.concatenate(clouds), np.concatenate(labels)
-    del clouds
-    index = voxel_index(allp, leaf)  # once: the reach's cells, the parts and the centroids group by it
     if source is not None:
         # cells of whole dense voxels (n leaves: 0.5 m at the default 5 cm), so a voxel is kept or
         # left out whole; the margin: the coarse correspondence distance and 0.5 m of guess error
         # and point neighbourhood
         n = max(1, round(0.5 / leaf))
-        keep = reach_mask(pack(index // n), source[0], source[1], cell=leaf * n, margin_m=o.max_corr_dist_coarse + 0.5)
-        allp, labels, index = allp[keep], labels[keep], index[keep]
+        reach = reach_cells(source[0], source[1], cell=leaf * n, margin_m=o.max_corr_dist_coarse + 0.5)
+    clouds, indices, labels = [], [], []
+    for j, p in zip(ids, pos):  # frame by frame: only the points kept are ever together
+        f = mp.frames[j]
+        T = Tinv @ f.T_map_lidar
+        q = f.points @ T[:3, :3].T + T[:3, 3]
+        index = voxel_index(q, leaf)  # once: the reach's cells, the parts and the centroids group by it
+        if source is not None:
+            keep = _member(pack(index // n), reach)
+            q, index = q[keep], index[keep]
+        clouds.append(q)
+        indices.append(index)
+        labels.append(np.full(len(q), np.searchsorted(positions, p), np.int64))
+    allp, index, labels = np.concatenate(clouds), np.concatenate(indices), np.concatenate(labels)
+    del clouds, indices
     key = pack(index) * 64 + labels
     order = np.argsort(key)
     key = key[order]
