@@ -5,7 +5,9 @@ Run: ``python -m bench.bench_targetless [--duration 60] [--small] [--in-memory]`
 From a bag (default): issue 16's goal as the user meets it: the drive written to a ROS1 bag,
 then ``clcgraph targetless --bag ... --out ...`` in a child process (reading the bag, mapping,
 registration, graph, ground, outputs and the report): its wall time, CPU time and peak
-memory (the child's own rusage), the stages from its timings.yaml, and the accuracy from its
+memory (the child's own rusage: the largest of its processes), the memory it and its forked
+children use together (the drop of the machine's MemAvailable while it runs; the goal's
+figure is the larger of the two), the stages from its timings.yaml, and the accuracy from its
 calibration.yaml.
 
 ``--in-memory``: the calibration of the simulated scans (no bag, no report), a table of
@@ -81,6 +83,14 @@ def run(duration_s: float = 60.0, small: bool = False, seed: int = 0) -> list[tu
     return rows
 
 
+def _available_mb() -> float:
+    """The machine's MemAvailable (MB): its drop while the command runs is the memory the command
+    and its forked children use together (ru_maxrss is one process's; other jobs on the machine
+    count too)."""
+    with open("/proc/meminfo") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("MemAvailable")) / 1024.0
+
+
 def run_bag(duration_s: float = 60.0, small: bool = False, seed: int = 0, workdir: str | None = None) -> list[tuple]:
     """Rows as :func:`run`'s, of ``clcgraph targetless`` on the drive's bag in a child process (CPU
     and peak memory per stage are not known there: the whole run's are in the total row)."""
@@ -111,9 +121,15 @@ def run_bag(duration_s: float = 60.0, small: bool = False, seed: int = 0, workdi
     cmd = [sys.executable, "-m", "clcgraph", "-q", "targetless", "--bag", str(bag), "--mapping-topic", top,
            "--calibration-topics", side, "--base-frame", "base_link", "--out", str(out), "--force"]
     t = time.perf_counter()
+    before, in_use = _available_mb(), 0.0
     with open(tmp / "stderr.txt", "w") as err:
         p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err)
-        _, status, ru = os.wait4(p.pid, 0)  # the child's own CPU time and peak RSS
+        while True:  # the child's own CPU time and peak RSS, and the memory it and its children use
+            pid, status, ru = os.wait4(p.pid, os.WNOHANG)
+            if pid:
+                break
+            in_use = max(in_use, before - _available_mb())
+            time.sleep(0.02)
     wall = time.perf_counter() - t
     if os.waitstatus_to_exitcode(status) != 0:
         raise RuntimeError(f"clcgraph targetless failed: {(tmp / 'stderr.txt').read_text()[-2000:]}")
@@ -122,6 +138,7 @@ def run_bag(duration_s: float = 60.0, small: bool = False, seed: int = 0, workdi
         rows.append((k, float("nan"), v, v / duration_s, (stages.get("peak_rss_mb") or {}).get(k, float("nan"))))
     rows.append(("clcgraph targetless (whole process)", ru.ru_utime + ru.ru_stime, wall, wall / duration_s,
                  ru.ru_maxrss / 1024.0))
+    rows.append(("  with its forked children (MemAvailable drop)", float("nan"), wall, wall / duration_s, in_use))
     cal = yaml.safe_load((out / "calibration.yaml").read_text())
     s = next(x for x in cal["sensors"] if x["topic"] == side)
     T = np.array(s["T_lidar0_sensor"])
@@ -155,14 +172,17 @@ def main(argv=None) -> int:
             print(name)
             continue
         print(f"{name:<44} {c:8.2f} {s:9.2f} {rtf:12.3f} {mb:14.0f}")
-    # issue 16's goals: calibration within the drive's duration, peak memory <= 1.5 GB (60 s drive)
-    total = rows[-2]
+    # issue 16's goals: calibration within the drive's duration, peak memory <= 1.5 GB (60 s drive):
+    # the whole command's, with its forked children where measured
+    total = next(r for r in rows if r[0].startswith("clcgraph targetless") or r[0] == "calibration total")
+    children = next((r for r in rows if r[0].startswith("  with its forked children")), None)
+    peak = max(total[4], children[4]) if children else total[4]
     what = "in memory" if a.in_memory else "whole command"
     print(f"{'goal':<44} {'measured':>8} {'goal':>9} {'ratio':>12}")
     print(f"{'wall time (s, ' + what + ')':<44} {total[2]:8.2f} {a.duration:9.0f} {total[2] / a.duration:12.2f}")
     print(f"{'CPU time (s, all threads; 2 cores: <= 2x)':<44} {total[1]:8.2f} {a.duration:9.0f} "
           f"{total[1] / a.duration:12.2f}")
-    print(f"{'peak RSS (MB)':<44} {total[4]:8.0f} {1500:9.0f} {total[4] / 1500:12.2f}")
+    print(f"{'peak memory (MB)':<44} {peak:8.0f} {1500:9.0f} {peak / 1500:12.2f}")
     return 0
 
 
