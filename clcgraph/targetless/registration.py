@@ -335,8 +335,8 @@ def ensemble(frames, T_guess: np.ndarray, o, *, progress=None):
     correspondence distance: where they left it, the best is already at the frame's optimum, and
     where they moved it less, it started inside the finest basin, which ICP's coarse stages only
     widen; either way ICP from there finds nothing better (point-to-point ICP is biased by
-    decimetres on a 16-ring scan). Once ``_AGREEING_FRAMES`` frames in a row left the best where it was, the
-    other frames are not registered one by one.
+    decimetres on a 16-ring scan). Once ``_AGREEING_FRAMES`` frames in a row left the best where
+    it was, the other frames are not registered one by one.
     Returns (T_best (4,4), list of (name, frame index (-1: all), score)).
     """
     best, best_s = T_guess, score(frames, T_guess, o)
