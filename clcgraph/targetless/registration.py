@@ -295,8 +295,8 @@ def _run(fd, T0, kind, corr, o, leaf):
     return gicp.align(target, src, fd.tree, registration_type=kind, **kw).T_target_source
 
 
-# The ensemble stops once this many frames in a row (each registered three ways from the best so
-# far) left the best where it was, within their own uncertainty: more frames from the same start
+# The ensemble stops once this many frames in a row (each registered from the best so far)
+# left the best where it was, within their own uncertainty: more frames from the same start
 # find the same pose.
 _AGREEING_FRAMES = 3
 _CHI2_6DOF_99 = 16.81  # 99 % quantile of chi-square with 6 degrees of freedom
