@@ -18,7 +18,8 @@ child; ensemble + per-frame refinement), graph (GTSAM fusion and Marginals; the 
 registrations computed in a forked child process beside the calibration frames and
 registration), ground (base_link roll/pitch/z: in another forked child; the stage is the wait
 for it at the end). The children's memory is not in the peak (they share the parent's pages;
-their own buffers are tens of MB).
+their own buffers are tens of MB, the dense targets' child's a few hundred: bench_targetless
+measures them together).
 """
 
 from __future__ import annotations

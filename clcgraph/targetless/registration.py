@@ -23,6 +23,7 @@ import numpy as np
 
 from . import gicp
 from .deskew import deskew
+from .mapping import crop_range
 
 log = logging.getLogger(__name__)
 
@@ -227,8 +228,7 @@ def _adjoint_to_sensor(T_lidar0_sensor: np.ndarray, xi: np.ndarray) -> np.ndarra
 def _frame_problem(cf, mp, T_guess: np.ndarray, o, deskew_on: bool):
     """(cropped raw source, its times, deskewed source, dense target, TargetParts) of one calibration frame."""
     s = cf.scan
-    r = np.linalg.norm(s.points, axis=1)
-    m = s.valid & np.isfinite(r) & (r >= o.min_calibration_range) & (r <= o.max_calibration_range)
+    m = crop_range(s.points, s.valid, o.min_calibration_range, o.max_calibration_range)
     raw, tau = s.points[m], (s.time_s[m] if (deskew_on and s.time_s is not None) else None)
     src = deskew(raw, tau, _adjoint_to_sensor(T_guess, cf.twist_lidar0))
     src0 = src @ T_guess[:3, :3].T + T_guess[:3, 3]  # in lidar0, at the guess
