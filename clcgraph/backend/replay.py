@@ -35,7 +35,8 @@ def renoise_problem(
     """A copy of ``problem`` whose observations are the ones the given geometry predicts plus noise.
 
     LIDAR points are moved along their rays onto the given board plane, then by N(0, sigma_lidar_m)
-    in range; camera corners are the board corners projected through the given poses plus
+    in range (their edge intervals are dropped, not re-drawn: a sample's LIDARs have their planes
+    alone); camera corners are the board corners projected through the given poses plus
     N(0, sigma_camera_px) per coordinate. Observations of snapshots without a finite board pose
     are dropped. Used for Monte-Carlo uncertainty checks (replay --inject-noise).
     """

@@ -127,7 +127,8 @@ def add_replay(sub):
     p = add_command(sub, "replay", run=_replay,
                     help="re-solve a problem dump (problem.npz), like the seed's fit-from-inputs-dump")
     p.add_argument("dump", help="problem.npz written with a calibration (or its --out directory)")
-    p.add_argument("--inject-noise", action="store_true", help="re-noise the observations around the solve, re-solve")
+    p.add_argument("--inject-noise", action="store_true", help="re-noise the observations around the solve, re-solve (the LIDARs' "
+                   "board outlines are not re-drawn: a sample has their planes alone, and its sigmas are those)")
     p.add_argument("--fit-seed", action="store_true", help="stop after the seed (initial estimate)")
     p.add_argument("--exclude", default="", metavar="K,BAG,...",
                    help="snapshots to leave out, comma-separated: indices or bag names (as calibration.yaml lists them)")
