@@ -119,7 +119,7 @@ def run_bag(duration_s: float = 60.0, small: bool = False, seed: int = 0, workdi
     rows = [("simulate + write the bag (not timed below)", c_sim, t_sim, t_sim / duration_s, _peak_mb())]
     truth = {side: np.load(truth_file)}
     cmd = [sys.executable, "-m", "clcgraph", "-q", "targetless", "--bag", str(bag), "--mapping-topic", top,
-           "--calibration-topics", side, "--base-frame", "base_link", "--out", str(out), "--force"]
+           "--calibration-topics", side, "--base-frame", "base_link", "--out", str(out)]
     t = time.perf_counter()
     before, in_use = _available_mb(), 0.0
     with open(tmp / "stderr.txt", "w") as err:
