@@ -445,10 +445,11 @@ def _profile(lin: Linearization, w: dict, g, base: dict, floor: dict) -> float:
 def _m2l_or_inf(evaluate) -> float:
     """-2 log L_REML from ``evaluate()``, or +inf where the normal matrix at those weights is not
     positive definite (numerically singular: a component's sigma so large that its effects
-    swallow a direction of the fit; an infinite sigma, whose weight's log is -inf): no likelihood
-    there, so the profile never picks it."""
+    swallow a direction of the fit, which rounding can leave with a negative diagonal, a NaN
+    in the Jacobi scaling; an infinite sigma, whose weight's log is -inf): no likelihood there,
+    so the profile never picks it (a NaN would: argmin takes it)."""
     try:
-        with np.errstate(divide="raise"):
+        with np.errstate(divide="raise", invalid="raise"):
             return float(evaluate())
     except (np.linalg.LinAlgError, FloatingPointError):
         return float("inf")
