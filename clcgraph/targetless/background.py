@@ -142,7 +142,9 @@ class Prefetched:
         def child(f):  # prepare and send, one pickle per item; (0, x) item, (1, e) error, (2,) end
             try:
                 for item in self.items:
-                    pickle.dump((0, self.fn(item)), f, protocol=pickle.HIGHEST_PROTOCOL)
+                    # pickled whole, then written: pickle.dump into the pipe sends a scan's arrays in
+                    # pieces, each a wake-up of the reader (12 ms per 2 MB scan against 3 ms)
+                    f.write(pickle.dumps((0, self.fn(item)), protocol=pickle.HIGHEST_PROTOCOL))
                 pickle.dump((2,), f)
             except BaseException as e:  # noqa: BLE001 - raised in the parent, in sequence
                 if isinstance(e, BrokenPipeError):  # the parent stopped reading
