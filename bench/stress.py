@@ -21,6 +21,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -183,6 +184,10 @@ def _env() -> dict:
     return env
 
 
+# what the warnings module prints: "path/file.py:98: RuntimeWarning: invalid value encountered in sqrt"
+_PYTHON_WARNING = re.compile(r"^\S+:\d+: \w*Warning: ")
+
+
 def _clcgraph(*args, timeout=1800) -> subprocess.CompletedProcess:
     """The real entry point (the console script beside this Python), as a user runs it."""
     exe = Path(sys.executable).parent / "clcgraph"
@@ -310,7 +315,10 @@ def run_capture(c: Capture, settings: tuple[str, ...] = (), build: Path = BUILD,
         bar = (0.1, 5.0)
     seconds = time.perf_counter() - t0
     err = r.stderr.strip().splitlines()
-    if r.returncode == 2 and len(err) == 1:
+    warned = next((line for line in err if _PYTHON_WARNING.match(line)), None)
+    if warned is not None:  # numpy's RuntimeWarning and the like: a user must never see one
+        o = Outcome(c.name, "FAILED", f"exit {r.returncode}, a Python warning on stderr: {warned.strip()}")
+    elif r.returncode == 2 and len(err) == 1:
         o = Outcome(c.name, "refused", err[0])
     elif r.returncode == 0:
         o = _judge(c, out, truth, *bar)
