@@ -755,10 +755,11 @@ def report_writer(result: Result, *, title: str = "clcgraph calibration", inputs
             write("out/")             # out/report.html
     """
     if result.method == "targetless":
-        from .report_targetless import write_targetless_report
+        from .report_targetless import start_figures as start_targetless_figures, write_targetless_report
 
-        yield lambda out_dir: write_targetless_report(result, out_dir, inputs=inputs,
-                                                      title=title.replace("calibration", "targetless calibration"))
+        with start_targetless_figures(result) as drawing:
+            yield lambda out_dir: write_targetless_report(result, out_dir, inputs=inputs, drawing=drawing,
+                                                          title=title.replace("calibration", "targetless calibration"))
         return
 
     def write(out_dir) -> Path:

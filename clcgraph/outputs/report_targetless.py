@@ -50,27 +50,48 @@ def _png(draw) -> bytes:
     return buf.getvalue()
 
 
-def figures(result: Result) -> dict[str, bytes]:
-    """Every picture of the report as PNG bytes, in report order (name -> PNG), drawn by
-    outputs/plots.py from the arrays the calibration kept."""
+def figure_jobs(result: Result) -> list[tuple[str, object]]:
+    """[(name, job)] of every picture of the report, in report order: a job draws its picture from
+    the arrays the calibration kept (outputs/plots.py) and returns [PNG bytes]."""
     run = result.targetless
     m = run.pictures["map"]
     kf = np.asarray(m["keyframes"])
-    out = {"map_top.png": _png(lambda f: plots.plot_map_trajectory(m["map_points"], m["trajectory"], f,
-                                                                  keyframes=m["trajectory"][kf]))}
+    jobs = [("map_top.png", lambda f: plots.plot_map_trajectory(m["map_points"], m["trajectory"], f,
+                                                                keyframes=m["trajectory"][kf]))]
     for topic, rows in run.per_frame.items():
-        out[f"scores_{_name(topic)}.png"] = _png(lambda f: plots.plot_frame_scores(
-            [r["score_guess"] for r in rows], [r["score_final"] for r in rows], f, title=f"{topic}: per-frame scores"))
+        jobs.append((f"scores_{_name(topic)}.png", lambda f, topic=topic, rows=rows: plots.plot_frame_scores(
+            [r["score_guess"] for r in rows], [r["score_final"] for r in rows], f, title=f"{topic}: per-frame scores")))
         pic = run.pictures["alignment"].get(topic)
         if pic:
             states = {"before (tf_static)": {"mapping (dense)": pic["target"], topic: pic["source_guess"]},
                       "after (solved)": {"mapping (dense)": pic["target"], topic: pic["source_final"]}}
             box = plots.crop_box([pic["target"], pic["source_final"]], margin_m=0.2)
-            out[f"aligned_{_name(topic)}.png"] = _png(lambda f: plots.plot_cloud_overlap(states, f, box=box))
+            jobs.append((f"aligned_{_name(topic)}.png",
+                         lambda f, states=states, box=box: plots.plot_cloud_overlap(states, f, box=box)))
             dist = {"before": pic["distances_guess"], "after": pic["distances_final"]}
-            out[f"distances_{_name(topic)}.png"] = _png(lambda f: plots.plot_distance_histograms(
-                dist, f, max_m=pic["max_corr_m"] * 3, title=f"{topic}: all {pic['frames']} calibration frames"))
-    return out
+            jobs.append((f"distances_{_name(topic)}.png", lambda f, topic=topic, pic=pic, dist=dist:
+                         plots.plot_distance_histograms(dist, f, max_m=pic["max_corr_m"] * 3,
+                                                        title=f"{topic}: all {pic['frames']} calibration frames")))
+    return [(name, lambda draw=draw: [_png(draw)]) for name, draw in jobs]
+
+
+def start_figures(result: Result):
+    """An ``outputs.drawing.Drawing`` of the report's pictures, its second process drawing from now on
+    (the clouds first: the map's and the overlaps' take longest, so the two processes finish together)."""
+    from .drawing import Drawing
+
+    jobs = figure_jobs(result)
+    order = sorted(range(len(jobs)), key=lambda k: not jobs[k][0].startswith(("map_", "aligned_")))
+    return Drawing([job for _, job in jobs], names=[name for name, _ in jobs], order=order)
+
+
+def figures(result: Result, drawing=None) -> dict[str, bytes]:
+    """Every picture of the report as PNG bytes, in report order (name -> PNG); ``drawing``:
+    ``start_figures(result)``, started earlier (else here). A picture that failed is left out (logged)."""
+    if drawing is None:
+        with start_figures(result) as drawing:
+            return figures(result, drawing)
+    return {name: png[0] for name, png in zip(drawing.names, drawing.results()) if png}
 
 
 def verdicts(result: Result) -> list[tuple]:
@@ -161,11 +182,12 @@ def targetless_report_html(result: Result, pngs: dict[str, bytes], *, title: str
 
 
 def write_targetless_report(result: Result, out_dir, *, title: str = "clcgraph targetless calibration",
-                            inputs=None) -> Path:
+                            inputs=None, drawing=None) -> Path:
     """Write ``out_dir/report.html``: one file, the pictures embedded. ``inputs``: an
-    ``evidence.ReportInputs`` (the run's record: bags, the call, the settings)."""
+    ``evidence.ReportInputs`` (the run's record: bags, the call, the settings); ``drawing``: its
+    pictures' ``start_figures``, started earlier."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "report.html"
-    path.write_text(targetless_report_html(result, figures(result), title=title, inputs=inputs))
+    path.write_text(targetless_report_html(result, figures(result, drawing), title=title, inputs=inputs))
     return path
