@@ -459,11 +459,14 @@ def influence(fd: FrameData, T: np.ndarray, o) -> dict:
             for g, pos in enumerate(pa.positions) if Hj[g].trace() > 0}
 
 
-def refine_per_frame(frames, T0: np.ndarray, o) -> list:
-    """Fine GICP of each frame from T0; returns FrameMeasurement per frame (with its graph links)."""
+def _refine(frames, T0: np.ndarray, o, threads: int | None = None) -> list:
+    """FrameMeasurement per frame of ``frames``: fine GICP from T0 (``threads``: the frames' own
+    thread count replaced, e.g. by 1 in a forked child, where OpenMP cannot start threads)."""
     out = []
     kw = dict(registration_type="GICP", max_iterations=min(o.solver_iterations, 60))
     for fd in frames:
+        if threads is not None:
+            fd.threads = threads
         tgt, src = fd.gicp_target(), fd.source_cloud(0.05)
         r = gicp.align(tgt, src, fd.tree, init_T_target_source=T0, max_correspondence_distance=o.max_corr_dist_fine, **kw)
         r = gicp.align(tgt, src, fd.tree, init_T_target_source=r.T_target_source,
@@ -474,6 +477,24 @@ def refine_per_frame(frames, T0: np.ndarray, o) -> list:
         out.append(FrameMeasurement(T, np.asarray(r.H), int(r.num_inliers), float(r.error),
                                     fd.parts.anchor if fd.parts is not None else None, links))
     return out
+
+
+def refine_per_frame(frames, T0: np.ndarray, o) -> list:
+    """Fine GICP of each frame from T0; returns FrameMeasurement per frame (with its graph links).
+    Every other frame is refined in a forked child (background.py; per-point covariances are the
+    same on one thread): the same measurements as one process makes."""
+    from .background import Background
+
+    frames = list(frames)
+    other = Background(_refine, frames[1::2], T0, o, 1)
+    try:
+        mine = _refine(frames[0::2], T0, o)
+        theirs = other.result()
+    finally:
+        other.cancel()  # only where an error left it running
+    for fd in frames[1::2]:
+        fd.release()  # refined in the child: this process's covariances and sources are not needed
+    return [(theirs if i % 2 else mine)[i // 2] for i in range(len(frames))]
 
 
 def submap(mp, pos: int, *, max_frames: int = 3) -> np.ndarray:
