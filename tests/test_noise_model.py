@@ -368,3 +368,60 @@ def test_profile_point_without_a_positive_definite_matrix_counts_as_infinite(ind
         warnings.simplefilter("error")
         got = N._profile(NegativeDiagonalAboveOneCentimetre(), w, group, base, floor)
     assert np.isfinite(got) and got <= min(below) + 1e-9
+
+
+def test_a_normal_matrix_that_is_not_positive_definite_raises_and_vce_keeps_the_last_that_solved(independent):
+    # the Jacobi scaling's sqrt of a non-positive diagonal gave a NaN that passed the Cholesky and
+    # every comparison after it: VCE then "converged" to NaN weights without a word (max(0, nan)
+    # is 0). It must raise, and VCE must end at the last weights whose system solved.
+    from clcgraph.backend import graph as G
+    from clcgraph.backend import noise as N
+
+    for bad in (np.diag([1.0, -1e-18]), np.diag([1.0, np.nan])):
+        with pytest.raises(np.linalg.LinAlgError):
+            N._inv(bad)
+        with pytest.raises(np.linalg.LinAlgError):
+            N._logdet(bad)
+
+    problem, truth, res, _ = independent
+    sig = np.array([res.noise["per_sensor"][i] for i in range(4)])
+    effects = res.noise["observation_effects"]
+    g, v = G.build(problem, G.Active.all(problem), res.rt_lidar0_sensor, res.rt_lidar0_board, lidar="range",
+                   sigma_lidar_m=sig, sigma_camera_px=sig, options=Config().solve,
+                   effects=N.effect_sigmas(problem, effects))
+    lin = N.Linearization(problem, g, v)
+    base = {gr: (sig[gr[1]] if gr[0] == "white" else effects[gr[1]][gr[2]]) for gr in lin.groups}
+    floor = {gr: (N._white_floor(problem, gr) if gr[0] == "white" else N._FLOOR[gr[2]]) for gr in base}
+    camera = next(gr for gr in lin.groups if gr[0] == "white" and problem.sensors[gr[1]].is_camera)
+    start = {gr: 1.0 for gr in base}
+    start[camera] = 4.0  # its sigma half the estimate's: VCE's first step moves it
+
+    class NotPositiveDefiniteAfterTheStart:  # the real linearization, its camera rows negated once VCE stepped
+        groups = lin.groups
+
+        def solve_and_trace(self, weights, trace=True):
+            if weights != start:
+                weights = {**weights, camera: -weights[camera]}
+            return lin.solve_and_trace(weights, trace)
+
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        w, red, m2l = N._vce(NotPositiveDefiniteAfterTheStart(), start, set(), base, floor)
+    assert w == start and np.isfinite(m2l) and all(np.isfinite(r) for r in red.values())
+    assert m2l == lin.solve_and_trace(start, trace=False)[1]
+    with pytest.raises(np.linalg.LinAlgError):  # nothing solved: nothing to keep
+        N._vce(NotPositiveDefiniteAfterTheStart(), {**start, camera: 3.0}, set(), base, floor)
+
+
+def test_a_covariance_that_is_not_finite_is_refused_naming_the_sensor(independent):
+    from clcgraph.backend.solve import _refuse_non_finite
+    from clcgraph.errors import SolveError
+
+    problem, _, res, _ = independent
+    cov = res.covariance_rt.copy()
+    _refuse_non_finite(problem, cov)  # the solve's own: finite
+    cov[6 * 1 + 2, 6 * 1 + 2] = np.nan  # the second variable sensor's
+    with pytest.raises(SolveError, match=f"^{problem.sensors[2].topic}: the pose's covariance is not finite"):
+        _refuse_non_finite(problem, cov)

@@ -93,9 +93,19 @@ def effect_sigmas(problem, effects: dict) -> np.ndarray:
     return out
 
 
+def _jacobi(diagonal: np.ndarray) -> np.ndarray:
+    """1 / sqrt of a normal matrix's diagonal (its Jacobi scaling); LinAlgError where a diagonal
+    entry is not positive and finite: such a matrix is not positive definite, as the Cholesky
+    after it would say (rounding can leave a singular Schur complement slightly negative, and
+    the NaN of its sqrt would pass the Cholesky and every comparison after it)."""
+    if not np.all((diagonal > 0) & np.isfinite(diagonal)):
+        raise np.linalg.LinAlgError("normal matrix not positive definite (a diagonal entry <= 0 or not finite)")
+    return 1.0 / np.sqrt(diagonal)
+
+
 def _inv(M: np.ndarray) -> np.ndarray:
     """Inverse of a symmetric positive definite M, Jacobi-scaled (its scales span 1e-8..1e10)."""
-    d = 1.0 / np.sqrt(np.diag(M))
+    d = _jacobi(np.diag(M))
     return d[:, None] * np.linalg.inv(d[:, None] * M * d[None, :]) * d[None, :]
 
 
@@ -328,7 +338,7 @@ class Linearization:
         locals' log-determinants summed). Jacobi-scaled like _inv (scales span 1e-8..1e10)."""
         ns = self.ns
         L, B = M[:, ns:, ns:], M[:, :ns, ns:]
-        d = 1.0 / np.sqrt(np.diagonal(L, axis1=1, axis2=2))
+        d = _jacobi(np.diagonal(L, axis1=1, axis2=2))
         Ls = d[:, :, None] * L * d[:, None, :]
         logdet = 2 * np.sum(np.log(np.diagonal(np.linalg.cholesky(Ls), axis1=1, axis2=2)), axis=1) - 2 * np.sum(np.log(d), axis=1)
         iL = d[:, :, None] * np.linalg.inv(Ls) * d[:, None, :]
@@ -406,19 +416,29 @@ def _reweighted_batches(cache, wv: np.ndarray):
 
 def _logdet(M: np.ndarray) -> float:
     """log det of a symmetric positive definite M, Jacobi-scaled like _inv."""
-    d = 1.0 / np.sqrt(np.diag(M))
+    d = _jacobi(np.diag(M))
     return float(2 * np.sum(np.log(np.diag(np.linalg.cholesky(d[:, None] * M * d[None, :])))) - 2 * np.sum(np.log(d)))
 
 
 def _vce(lin: Linearization, w: dict, free: set, base: dict, floor: dict):
     """Foerstner's iteration from weights ``w`` (a REML fixed point): the white groups and the
-    effect groups in ``free`` re-estimated, the others held. -> (w, redundancies, -2 log L_REML)."""
-    w, red = dict(w), {}
+    effect groups in ``free`` re-estimated, the others held. -> (w, redundancies, -2 log L_REML).
+    A step to weights whose normal matrix is not positive definite (a component's sigma grown so
+    large that its effects swallow a direction of the fit) ends it at the last weights that
+    solved; LinAlgError if ``w`` itself does not."""
+    w, solved = dict(w), None
     for _ in range(_MAX_VCE_ITERATIONS):
-        stats, _ = lin.solve_and_trace(w)
+        try:
+            stats, _ = lin.solve_and_trace(w)
+        except np.linalg.LinAlgError:
+            if solved is None:
+                raise
+            w, red = solved
+            break
+        red = {g: n - tr for g, (n, _, tr) in stats.items()}
+        solved = (dict(w), red)
         change = 0.0
         for g, (n, q, tr) in stats.items():
-            red[g] = n - tr
             if (g[0] == "effect" and g not in free) or red[g] < _MIN_REDUNDANCY or q <= 0:
                 continue
             w_new = min(w[g] * red[g] / q, (base[g] / floor[g]) ** 2)
@@ -426,7 +446,11 @@ def _vce(lin: Linearization, w: dict, free: set, base: dict, floor: dict):
             w[g] = w_new
         if change < _VCE_TOL:
             break
-    return w, red, lin.solve_and_trace(w)[1]
+    try:
+        return w, red, lin.solve_and_trace(w)[1]
+    except np.linalg.LinAlgError:  # the last step left it
+        w, red = solved
+        return w, red, lin.solve_and_trace(w)[1]
 
 
 def _profile(lin: Linearization, w: dict, g, base: dict, floor: dict) -> float:
@@ -445,9 +469,9 @@ def _profile(lin: Linearization, w: dict, g, base: dict, floor: dict) -> float:
 def _m2l_or_inf(evaluate) -> float:
     """-2 log L_REML from ``evaluate()``, or +inf where the normal matrix at those weights is not
     positive definite (numerically singular: a component's sigma so large that its effects
-    swallow a direction of the fit, which rounding can leave with a negative diagonal, a NaN
-    in the Jacobi scaling; an infinite sigma, whose weight's log is -inf): no likelihood there,
-    so the profile never picks it (a NaN would: argmin takes it)."""
+    swallow a direction of the fit, which rounding can leave with a negative diagonal: _jacobi
+    raises; an infinite sigma, whose weight's log is -inf): no likelihood there, so the profile
+    never picks it (a NaN would: argmin takes it)."""
     try:
         with np.errstate(divide="raise", invalid="raise"):
             return float(evaluate())

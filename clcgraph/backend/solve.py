@@ -373,6 +373,16 @@ def _beyond_max_stdev(problem: Problem, rt_sensor: np.ndarray, C: np.ndarray, op
     return bad
 
 
+def _refuse_non_finite(problem: Problem, cov_rt: np.ndarray) -> None:
+    """SolveError naming the sensors whose covariance is not finite: every check after it compares
+    sigmas (a NaN passes them all), and a pose without its uncertainty is not a result."""
+    idx = [i for i in range(len(problem.sensors)) if i != problem.reference]
+    bad = [problem.sensors[i].topic for a, i in enumerate(idx) if not np.all(np.isfinite(cov_rt[6 * a:6 * a + 6]))]
+    if bad:
+        raise SolveError(f"{', '.join(bad)}: the pose's covariance is not finite (a numerically singular "
+                         "uncertainty computation); no result written")
+
+
 def _refuse_imprecise(problem: Problem, rt_sensor: np.ndarray, cov_rt: np.ndarray, record: dict, options) -> None:
     """DegenerateError where a sensor's 1-sigma with the consider terms (``cov_rt``, rt coordinates;
     ``record``: consider.add_terms') exceeds max_stdev_m / max_stdev_deg, naming the term that
@@ -591,6 +601,7 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
     terms = consider.consider_terms(problem, rebuild, values, options, nominal=(g, lin))
     cov, uncertainty_terms = consider.add_terms(problem, rt_sensor, cov, terms)
     times["consider"] = time.perf_counter() - t
+    _refuse_non_finite(problem, cov)
     _refuse_imprecise(problem, rt_sensor, cov, uncertainty_terms, options)
     final = stages[-1]
     step = _final_step_sigma(problem, final.pop("_last_step"), values, rt_sensor, cov)
