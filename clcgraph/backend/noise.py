@@ -422,23 +422,13 @@ def _logdet(M: np.ndarray) -> float:
 
 def _vce(lin: Linearization, w: dict, free: set, base: dict, floor: dict):
     """Foerstner's iteration from weights ``w`` (a REML fixed point): the white groups and the
-    effect groups in ``free`` re-estimated, the others held. -> (w, redundancies, -2 log L_REML).
-    A step to weights whose normal matrix is not positive definite (a component's sigma grown so
-    large that its effects swallow a direction of the fit) ends it at the last weights that
-    solved; LinAlgError if ``w`` itself does not."""
-    w, solved = dict(w), None
+    effect groups in ``free`` re-estimated, the others held. -> (w, redundancies, -2 log L_REML)."""
+    w, red = dict(w), {}
     for _ in range(_MAX_VCE_ITERATIONS):
-        try:
-            stats, _ = lin.solve_and_trace(w)
-        except np.linalg.LinAlgError:
-            if solved is None:
-                raise
-            w, red = solved
-            break
-        red = {g: n - tr for g, (n, _, tr) in stats.items()}
-        solved = (dict(w), red)
+        stats, _ = lin.solve_and_trace(w)
         change = 0.0
         for g, (n, q, tr) in stats.items():
+            red[g] = n - tr
             if (g[0] == "effect" and g not in free) or red[g] < _MIN_REDUNDANCY or q <= 0:
                 continue
             w_new = min(w[g] * red[g] / q, (base[g] / floor[g]) ** 2)
@@ -446,11 +436,7 @@ def _vce(lin: Linearization, w: dict, free: set, base: dict, floor: dict):
             w[g] = w_new
         if change < _VCE_TOL:
             break
-    try:
-        return w, red, lin.solve_and_trace(w)[1]
-    except np.linalg.LinAlgError:  # the last step left it
-        w, red = solved
-        return w, red, lin.solve_and_trace(w)[1]
+    return w, red, lin.solve_and_trace(w)[1]
 
 
 def _profile(lin: Linearization, w: dict, g, base: dict, floor: dict) -> float:
