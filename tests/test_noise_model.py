@@ -306,23 +306,31 @@ def test_ray_casting_lidar_ring_errors():
     assert np.all(np.sign(z + 2) == -np.sign(el_err[scan.ring[down]])) and 1e-3 < np.abs(z + 2).max() < 0.2
 
 
-def test_profile_point_without_a_positive_definite_matrix_counts_as_infinite(independent):
-    # tails-dark-mixed (stress set) ended in numpy's LinAlgError from _logdet's Cholesky at one
-    # point of a component's profile: such a point has no likelihood and must count as +inf,
-    # the rest of the profile still decides; a profile with no such point is unchanged.
+def _linearization(independent):
+    """(problem, the final Linearization of its solve, base sigma and floor per VCE group)."""
     from clcgraph.backend import graph as G
     from clcgraph.backend import noise as N
 
-    problem, truth, res, _ = independent
+    problem, _, res, _ = independent
     sig = np.array([res.noise["per_sensor"][i] for i in range(4)])
     effects = res.noise["observation_effects"]
     g, v = G.build(problem, G.Active.all(problem), res.rt_lidar0_sensor, res.rt_lidar0_board, lidar="range",
                    sigma_lidar_m=sig, sigma_camera_px=sig, options=Config().solve,
                    effects=N.effect_sigmas(problem, effects))
     lin = N.Linearization(problem, g, v)
-    group = next(gr for gr in lin.groups if gr[0] == "effect")
     base = {gr: (sig[gr[1]] if gr[0] == "white" else effects[gr[1]][gr[2]]) for gr in lin.groups}
     floor = {gr: (N._white_floor(problem, gr) if gr[0] == "white" else N._FLOOR[gr[2]]) for gr in base}
+    return problem, lin, base, floor
+
+
+def test_profile_point_without_a_positive_definite_matrix_counts_as_infinite(independent):
+    # tails-dark-mixed (stress set) ended in numpy's LinAlgError from _logdet's Cholesky at one
+    # point of a component's profile: such a point has no likelihood and must count as +inf,
+    # the rest of the profile still decides; a profile with no such point is unchanged.
+    from clcgraph.backend import noise as N
+
+    problem, lin, base, floor = _linearization(independent)
+    group = next(gr for gr in lin.groups if gr[0] == "effect")
     w = {gr: 1.0 for gr in base}
     # a weight of exactly 0 (an infinite sigma) is a genuinely singular normal matrix: numpy's
     # Cholesky raises, or (rounding) passes and the weight's log gives +inf: +inf either way
@@ -375,7 +383,6 @@ def test_a_normal_matrix_with_a_diagonal_that_is_not_positive_raises_as_its_chol
     # (it does not check for NaN) and every comparison after it: VCE then "converged" to NaN
     # weights without a word (max(0, nan) is 0). It must raise LinAlgError, like any matrix that is
     # not positive definite (the jackknife then holds the weights, the profile counts +inf).
-    from clcgraph.backend import graph as G
     from clcgraph.backend import noise as N
 
     for bad in (np.diag([1.0, -1e-18]), np.diag([1.0, np.nan])):
@@ -384,15 +391,7 @@ def test_a_normal_matrix_with_a_diagonal_that_is_not_positive_raises_as_its_chol
         with pytest.raises(np.linalg.LinAlgError):
             N._logdet(bad)
 
-    problem, truth, res, _ = independent
-    sig = np.array([res.noise["per_sensor"][i] for i in range(4)])
-    effects = res.noise["observation_effects"]
-    g, v = G.build(problem, G.Active.all(problem), res.rt_lidar0_sensor, res.rt_lidar0_board, lidar="range",
-                   sigma_lidar_m=sig, sigma_camera_px=sig, options=Config().solve,
-                   effects=N.effect_sigmas(problem, effects))
-    lin = N.Linearization(problem, g, v)
-    base = {gr: (sig[gr[1]] if gr[0] == "white" else effects[gr[1]][gr[2]]) for gr in lin.groups}
-    floor = {gr: (N._white_floor(problem, gr) if gr[0] == "white" else N._FLOOR[gr[2]]) for gr in base}
+    problem, lin, base, floor = _linearization(independent)
     camera = next(gr for gr in lin.groups if gr[0] == "white" and problem.sensors[gr[1]].is_camera)
     start = {gr: 1.0 for gr in base}
     assert np.isfinite(N._vce(lin, start, set(), base, floor)[2])
