@@ -419,3 +419,19 @@ def test_a_covariance_that_is_not_finite_is_refused_naming_the_sensor(independen
     cov[6 * 1 + 2, 6 * 1 + 2] = np.nan  # the second variable sensor's
     with pytest.raises(SolveError, match=f"^{problem.sensors[2].topic}: the pose's covariance is not finite"):
         _refuse_non_finite(problem, cov)
+
+
+def test_a_singular_variance_component_estimate_is_one_line_not_an_internal_error(independent, monkeypatch):
+    # the jackknife and the profile hold their weights where VCE meets a singular system; the
+    # solve's own estimate has nothing to hold: a SolveError (exit 2) saying what to do
+    from clcgraph.backend import noise as N
+    from clcgraph.errors import SolveError
+
+    def singular(*args, **kwargs):
+        raise np.linalg.LinAlgError("Matrix is not positive definite")
+
+    monkeypatch.setattr(N, "estimate_components", singular)
+    with pytest.raises(SolveError, match=r"variance components \(round 0\) met a numerically singular system.*"
+                                         r"--set solve.observation_effects=false"):
+        _solve(independent[0])
+    assert _solve(independent[0], observation_effects=False).covariance_rt.size  # the way out it names
