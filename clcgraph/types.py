@@ -258,6 +258,12 @@ class Problem:
                 return i
         raise ValueError("a problem needs at least one LIDAR")
 
+    def variable_sensors(self) -> list[int]:
+        """Sensor indices the solve estimates (all but the reference), in the order of their
+        6-blocks in covariances and tangent vectors."""
+        ref = self.reference
+        return [i for i in range(len(self.sensors)) if i != ref]
+
     @property
     def n_snapshots(self) -> int:
         return len(self.snapshot_stamps_ns)
@@ -350,7 +356,7 @@ class Result:
 
     def variable_sensors(self) -> list[int]:
         """Sensor indices that have a block in covariance_rt, in block order."""
-        return [i for i in range(len(self.problem.sensors)) if i != self.problem.reference]
+        return self.problem.variable_sensors()
 
     def covariance_block(self, sensor: int | str) -> np.ndarray:
         """(6,6) marginal covariance of rt_lidar0_sensor of a sensor (index or topic); zeros for the reference."""

@@ -527,7 +527,7 @@ def add_terms(problem: Problem, rt_lidar0_sensor: np.ndarray, covariance_rt: np.
     ``position`` / ``orientation`` variance shares (trace of each term's 3x3 block over the
     total's): how much of the final sigma each term is.
     """
-    idx = [i for i in range(len(problem.sensors)) if i != problem.reference]
+    idx = problem.variable_sensors()
     J = np.zeros((6 * len(idx), 6 * len(idx)))
     for a, i in enumerate(idx):
         J[6 * a:6 * a + 6, 6 * a:6 * a + 6] = drt_dxi(rt_lidar0_sensor[i])

@@ -134,7 +134,7 @@ def linearize(problem: Problem, graph, values, known=None) -> Linearized:
     (consider.known_columns), or None."""
     import gtsam
 
-    sensors = [i for i in range(len(problem.sensors)) if i != problem.reference]
+    sensors = problem.variable_sensors()
     n = 6 * len(sensors)
     col = {i: 6 * k for k, i in enumerate(sensors)}
     lin = graph.linearize(values)

@@ -123,7 +123,7 @@ class Linearization:
     """
 
     def __init__(self, problem, g, values):
-        self.variable_sensors = [i for i in range(len(problem.sensors)) if i != problem.reference]
+        self.variable_sensors = problem.variable_sensors()
         self.ns = 6 * len(self.variable_sensors)
         obs = {G.effect_key("lidar", j): o for j, o in enumerate(problem.lidar_observations)}
         obs.update({G.effect_key("camera", j): o for j, o in enumerate(problem.camera_observations)})

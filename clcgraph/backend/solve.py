@@ -253,7 +253,7 @@ def _unit_errors(problem, rebuild, values, nominal, rt_sensor, options) -> dict:
     from ..geometry import drt_dxi
 
     errors, J = consider.unit_error_sensitivities(problem, rebuild, values, nominal)
-    idx = [i for i in range(len(problem.sensors)) if i != problem.reference]
+    idx = problem.variable_sensors()
     for a, i in enumerate(idx):
         J[6 * a:6 * a + 6] = drt_dxi(rt_sensor[i]) @ J[6 * a:6 * a + 6]
     return {"errors": errors, "sensitivity_rt": J,
@@ -265,7 +265,7 @@ def _unit_errors(problem, rebuild, values, nominal, rt_sensor, options) -> dict:
 
 def _final_step_sigma(problem, prev, values, rt_sensor, cov_rt) -> float:
     """How far the final LM's last iteration moved the sensor poses, in sigmas (see convergence.step_sigma)."""
-    idx = [i for i in range(len(problem.sensors)) if i != problem.reference]
+    idx = problem.variable_sensors()
     cov_xi = tangent_covariance_from_rt(np.asarray(rt_sensor)[idx], cov_rt) if idx else np.zeros((0, 0))
     return step_sigma(prev, values, [G.sensor_key(i) for i in idx], cov_xi)
 
@@ -328,7 +328,7 @@ def _covariance(problem: Problem, g, values, rt_sensor, options) -> np.ndarray:
     """Joint covariance of the non-reference sensors in rt coordinates; DegenerateError if undetermined."""
     import gtsam
 
-    idx = [i for i in range(len(problem.sensors)) if i != problem.reference]
+    idx = problem.variable_sensors()
     if not idx:
         return np.zeros((0, 0))
     keys = [G.sensor_key(i) for i in idx]
@@ -358,7 +358,7 @@ def _beyond_max_stdev(problem: Problem, rt_sensor: np.ndarray, C: np.ndarray, op
     sensor's 1-sigma (C: GTSAM's tangent, per-axis angles and metres, the variable sensors in
     order) exceeds ``max_stdev_deg`` / ``max_stdev_m``: the worst direction of each part, turned
     from the sensor's axes into lidar0's."""
-    idx = [i for i in range(len(problem.sensors)) if i != problem.reference]
+    idx = problem.variable_sensors()
     bad = []
     for a, i in enumerate(idx):
         blk = C[6 * a:6 * a + 6, 6 * a:6 * a + 6]
@@ -381,7 +381,7 @@ def _beyond_max_stdev(problem: Problem, rt_sensor: np.ndarray, C: np.ndarray, op
 def _refuse_non_finite(problem: Problem, cov_rt: np.ndarray) -> None:
     """SolveError naming the sensors whose covariance is not finite: every check after it compares
     sigmas (a NaN passes them all), and a pose without its uncertainty is not a result."""
-    idx = [i for i in range(len(problem.sensors)) if i != problem.reference]
+    idx = problem.variable_sensors()
     bad = [problem.sensors[i].topic for a, i in enumerate(idx) if not np.all(np.isfinite(cov_rt[6 * a:6 * a + 6]))]
     if bad:
         raise SolveError(f"{', '.join(bad)}: the pose's covariance is not finite (a numerically singular "
@@ -392,7 +392,7 @@ def _refuse_imprecise(problem: Problem, rt_sensor: np.ndarray, cov_rt: np.ndarra
     """DegenerateError where a sensor's 1-sigma with the consider terms (``cov_rt``, rt coordinates;
     ``record``: consider.add_terms') exceeds max_stdev_m / max_stdev_deg, naming the term that
     makes most of it: the capture does not determine the pose to a usable accuracy."""
-    idx = [i for i in range(len(problem.sensors)) if i != problem.reference]
+    idx = problem.variable_sensors()
     Jinv = np.zeros_like(cov_rt)
     for a, i in enumerate(idx):
         Jinv[6 * a:6 * a + 6, 6 * a:6 * a + 6] = np.linalg.inv(drt_dxi(rt_sensor[i]))
