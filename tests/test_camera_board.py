@@ -171,3 +171,60 @@ def test_detector_follows_the_board(monkeypatch):
         camera_board.choose_detector(DetectionOptions(detector="mrgingham"), nonsquare)
     monkeypatch.setattr(camera_board.shutil, "which", lambda name: None)
     assert camera_board.choose_detector(DetectionOptions(), BOARD) == "opencv"
+
+
+def _cut_off_board():
+    """A simulated image (clcgraph.sim) of a bordered 10x10 board whose last column of squares lies
+    beyond the image's right edge (stress capture noisy-lidars, seed 8, snapshot 0), its truth corners."""
+    from clcgraph.geometry import T_from_rt
+    from clcgraph.sim.camera import render as sim_render
+    from clcgraph.sim.scene import make_scene
+    from clcgraph.types import Sensor
+
+    camera = Sensor(topic="/cam", kind="camera", lensmodel="LENSMODEL_OPENCV8", imagersize=(1024, 768),
+                    intrinsics=np.array([1000, 1000, 511.5, 383.5, -0.05, 0.01, 1e-4, -1e-4, 1e-3, 0, 0, 0]))
+    T_lidar0_camera = T_from_rt(np.array([-1.2158, 1.3268, -1.2373, 0.6, -0.2, -0.4]))
+    T_lidar0_board = T_from_rt(np.array([-0.9137, 1.6249, -1.2273, 3.6809, -1.2279, -0.4162]))
+    rng = np.random.default_rng(1)
+    scene = make_scene(BOARD, T_lidar0_board, rng, clutter=False, person=False)
+    image, q = sim_render(camera, T_lidar0_camera, scene, BOARD, T_lidar0_board, rng)
+    return image, q
+
+
+def test_board_cut_off_by_the_image_edge_is_not_read_as_whole():
+    """OpenCV's sector-based detector reads this board as whole, one square off: its left column
+    of corners on the pattern's edge against the white border. That grid is rejected (by either
+    detector setting), naming why; the squares' alternation along a side is what tells it."""
+    from clcgraph.frontend.camera_board import off_board_side
+
+    image, q = _cut_off_board()
+    assert q[:, 0].max() > 1023  # the true last column is beyond the image
+    found, c = cv2.findChessboardCornersSB(image.pixels, (10, 10))
+    assert found  # what this test guards against: a grid where there is none whole
+    grid = canonicalize(c.reshape(-1, 2).astype(float), 10, 10)
+    off = grid.reshape(10, 10, 2) - q.reshape(10, 10, 2)[:, [0, *range(9)]]  # truth shifted one column
+    assert np.sqrt(np.mean(np.sum((grid - q) ** 2, axis=1))) > 30 and np.abs(off[:, 1:]).max() < 1.0
+    assert off_board_side(image.pixels, grid, 10, 10) == "left column"
+    for detector in ("opencv", "auto"):
+        out = detect_corners([image], DetectionOptions(detector=detector), BOARD)[0]
+        assert not isinstance(out, np.ndarray), (detector, out)
+    out = detect_corners([image], DetectionOptions(detector="opencv"), BOARD)[0]
+    assert "cut off by the image's edge" in out.reason and "left column" in out.reason
+
+
+def test_a_side_hidden_in_view_keeps_its_board(clean):
+    """The same lack of alternation along a side, made by something in front of the board's edge,
+    keeps a board whose other side's outer squares are in the image (the pattern cannot go on
+    past the image there); cropped so they are not, it is the cut-off board above."""
+    from clcgraph.frontend.camera_board import off_board_side
+
+    px, q = clean[0]
+    assert off_board_side(px, q, 10, 10) is None
+    g = q.reshape(10, 10, 2)
+    step = g[:, 0] - g[:, 1]  # outward, per row
+    hidden = px.copy()
+    polygon = np.r_[g[3:, 0] + 0.3 * step[3:], (g[3:, 0] + 1.6 * step[3:])[::-1]].astype(np.int32)
+    cv2.fillPoly(hidden, [polygon], 160)  # a grey arm over 7 of the 11 outer squares on the left
+    assert off_board_side(hidden, q, 10, 10) is None
+    right = int(np.ceil(g[:, -1, 0].max())) + 3  # the image ends just past the right column of corners
+    assert off_board_side(hidden[:, :right], q, 10, 10) == "left column"

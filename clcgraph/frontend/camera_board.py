@@ -143,6 +143,49 @@ def check_grid(corners: np.ndarray, nx: int, ny: int, imagersize: tuple[int, int
     return None
 
 
+def off_board_side(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int) -> str | None:
+    """The side ("left column", ...) of a canonical (ny*nx, 2) grid that is one square off the
+    chessboard, or None.
+
+    A detector can read a board cut off by the image's edge as whole: OpenCV's sector-based one
+    took the pattern's outer edge, where the squares meet the white border, for a row of corners,
+    and the grid came out one square off (34 px; the last row lay beyond the image). A true
+    corner has light squares on one diagonal and dark on the other: per corner, from the
+    intensities at the centres of its four squares (the outer squares' centres one step beyond
+    the grid), the saddle contrast |(a + c) - (b + d)| / 2 - (|a - c| + |b - d|) / 2 is the square
+    contrast at a true corner and ~0 where two of its squares are the border. A side whose median
+    is under half the interior corners' is not on the pattern, but that alone is also what
+    something in front of the board's edge does: the grid is off only where the pattern can go
+    on past the image's edge, on the opposite side (one of its outer squares is not in the image)."""
+    from scipy.ndimage import map_coordinates
+
+    if nx < 3 or ny < 3:
+        return None
+    c = corners.reshape(ny, nx, 2)
+    g = np.pad(c, ((1, 1), (1, 1), (0, 0)))  # the grid extended one step on every side
+    g[0, 1:-1], g[-1, 1:-1] = 2 * c[0] - c[1], 2 * c[-1] - c[-2]
+    g[:, 0], g[:, -1] = 2 * g[:, 1] - g[:, 2], 2 * g[:, -2] - g[:, -3]
+    centres = 0.25 * (g[:-1, :-1] + g[1:, :-1] + g[:-1, 1:] + g[1:, 1:])  # (ny+1, nx+1, 2): the squares'
+    h, w = gray.shape
+    inside = np.all((centres >= 0) & (centres <= [w - 1, h - 1]), axis=-1)
+    v = map_coordinates(gray.astype(np.float32), [centres[..., 1].ravel(), centres[..., 0].ravel()],
+                        order=1, mode="nearest").reshape(ny + 1, nx + 1)
+    v[~inside] = np.nan
+    a, b, cc, d = v[:-1, :-1], v[:-1, 1:], v[1:, 1:], v[1:, :-1]  # (ny, nx): each corner's four squares
+    score = np.abs(a + cc - b - d) / 2 - (np.abs(a - cc) + np.abs(b - d)) / 2
+    interior = score[1:-1, 1:-1]
+    if not np.any(np.isfinite(interior)) or not np.nanmedian(interior) > 0:
+        return None
+    sides = {"top row": (score[0], inside[-1]), "bottom row": (score[-1], inside[0]),
+             "left column": (score[:, 0], inside[:, -1]), "right column": (score[:, -1], inside[:, 0])}
+    for name, (side, opposite_outer_squares_seen) in sides.items():
+        judged = side[np.isfinite(side)]
+        if len(judged) and np.median(judged) < 0.5 * np.nanmedian(interior) \
+                and not np.all(opposite_outer_squares_seen):
+            return name
+    return None
+
+
 def blur_sigma_px(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int) -> float:
     """Median Gaussian-blur sigma (px) of the board's edges, from intensity profiles.
 
@@ -192,6 +235,10 @@ def _validate(corners: np.ndarray | None, gray: np.ndarray, nx: int, ny: int, op
     why = check_grid(c, nx, ny, (w, h), max_irregularity=options.max_grid_irregularity)
     if why is not None:
         return Rejected(why, "detection")
+    side = off_board_side(gray, c, nx, ny)
+    if side is not None:
+        return Rejected(f"a board cut off by the image's edge, read as whole: the grid's {side} of corners is "
+                        "not on the chessboard (one square off)", "detection")
     sigma = blur_sigma_px(gray, c, nx, ny)
     if sigma > options.max_blur_sigma_px:
         return Rejected(f"blurred board (edge sigma {sigma:.2f} px > {options.max_blur_sigma_px})",
