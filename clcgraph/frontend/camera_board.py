@@ -174,13 +174,16 @@ def off_board_side(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int) -> s
     a, b, cc, d = v[:-1, :-1], v[:-1, 1:], v[1:, 1:], v[1:, :-1]  # (ny, nx): each corner's four squares
     score = np.abs(a + cc - b - d) / 2 - (np.abs(a - cc) + np.abs(b - d)) / 2
     interior = score[1:-1, 1:-1]
-    if not np.any(np.isfinite(interior)) or not np.nanmedian(interior) > 0:
+    if not np.any(np.isfinite(interior)):
+        return None
+    typical = np.nanmedian(interior)
+    if not typical > 0:
         return None
     sides = {"top row": (score[0], inside[-1]), "bottom row": (score[-1], inside[0]),
              "left column": (score[:, 0], inside[:, -1]), "right column": (score[:, -1], inside[:, 0])}
     for name, (side, opposite_outer_squares_seen) in sides.items():
         judged = side[np.isfinite(side)]
-        if len(judged) and np.median(judged) < 0.5 * np.nanmedian(interior) \
+        if len(judged) and np.median(judged) < 0.5 * typical \
                 and not np.all(opposite_outer_squares_seen):
             return name
     return None
