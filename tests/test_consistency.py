@@ -221,32 +221,6 @@ def test_a_disagreeing_snapshot_is_left_out_and_the_rest_answered():
         calibrate(_range_bias(p, 2, rear[:3], 0.04), white)
 
 
-def test_a_gross_board_the_noise_components_absorb_is_left_out(monkeypatch):
-    """A camera that saw 6 boards, one of its grids 30 px off (read a square off): with every
-    board in, VCE gives the camera's per-board translation ~2 cm and that board passes its
-    leave-one-out test under it, the answer ~17 mm off. Tested under the components the other
-    boards give (the jackknife's refit), it disagrees by tens of sigma and is left out; the
-    rest answers within 3 sigma and a few mm, the components back at their floor."""
-    from clcgraph.backend import solve as S
-
-    p, truth = simulate_problem(rig=make_rig(1, 1), n_snapshots=6, seed=2)
-    j, o = next((j, o) for j, o in enumerate(p.camera_observations))
-    obs = list(p.camera_observations)
-    obs[j] = dataclasses.replace(o, corners_px=o.corners_px + np.array([30.0, 0.0]))
-    bad = dataclasses.replace(p, camera_observations=tuple(obs))
-    r = calibrate(bad, REFUSING)
-    assert [x["snapshot"] for x in r.stats["consistency"]["left_out"]] == [o.snapshot]
-    err = _errors(r, truth.rt_lidar0_sensor)
-    assert all(z < 3 for _, _, z in err.values()) and err["/cam0"][1] < 6, err
-    assert r.noise["observation_effects"][1]["translation_m"] < 0.001
-    # the same test under the components every board gave: the board passes, the answer is off
-    jackknife = S.jackknife
-    monkeypatch.setattr(S, "jackknife", lambda *a, **k: {**jackknife(*a, **k), "refit_parts": None})
-    r = calibrate(bad, REFUSING)
-    assert "left_out" not in r.stats["consistency"] and r.noise["observation_effects"][1]["translation_m"] > 0.01
-    assert _errors(r, truth.rt_lidar0_sensor)["/cam0"][1] > 10
-
-
 def test_a_refusal_after_a_snapshot_was_left_out_is_one_line_naming_it(monkeypatch, caplog):
     """Leaving a snapshot out may leave a sensor unconnected or unobservable: the refusal keeps its
     kind and says what was left out before it, and the left-out warning (logged only once a result
@@ -271,9 +245,7 @@ def test_a_refusal_after_a_snapshot_was_left_out_is_one_line_naming_it(monkeypat
 def test_link_resting_on_one_board_is_refused():
     """4 front boards, one of them 4 cm long: the solve moves /roof ~60 mm (10 sigma) and, with
     planes alone, no leave-one-out test can see it (that board alone fixes the direction):
-    refused. With the boards' outlines the other boards fix it too: under the noise components
-    they give, the long board disagrees and is left out; the three left then rest on one board
-    for /roof's tilt: refused, naming both."""
+    refused. With the boards' outlines the other boards fix it too: answered, within 3 sigma."""
     p, truth = _three_lidar_problem(1, n_front=4)
     front = sorted({o.snapshot for o in p.lidar_observations if o.sensor == 0})
     bad = _range_bias(p, 0, front[:1], 0.04)
@@ -284,9 +256,8 @@ def test_link_resting_on_one_board_is_refused():
     with pytest.raises(DegenerateError, match=r"not verifiable.*snapshot \d alone carries \d+% of the information "
                                               r"on /(roof|rear) (translation along|rotation about) lidar0"):
         calibrate(bad, PLANES)
-    with pytest.raises(DegenerateError, match=rf"not verifiable.*/roof rotation about .*\(after leaving out "
-                                              rf"snapshot {front[0]} that disagreed with the others\)$"):
-        calibrate(bad, dataclasses.replace(REFUSING, lidar_edges=True))
+    r = calibrate(bad, dataclasses.replace(REFUSING, lidar_edges=True))
+    assert all(z < 3 for _, _, z in _errors(r, truth).values()), _errors(r, truth)
 
 
 # ---------------------------------------------------------------- the leverage bound

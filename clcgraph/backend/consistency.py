@@ -7,8 +7,7 @@ two agree within their own uncertainty (a chi-square test):
 
 - **leave one snapshot out**: every snapshot against all the others (a wrong plane, a board
   segmented on a wall, a mis-ordered detection: anything one snapshot says that the rest
-  contradicts), weighed by the per-observation noise components the others give where the
-  solve estimates them (``refit``: a gross error must not pass under the component it inflated);
+  contradicts);
 - **per sensor pair**: the boards two sensors saw together against everything else (a
   second spanning tree: the pair's link as the other sensors' chains predict it). A pair
   whose link nothing else checks (a bridge of the graph) is reported, not failed.
@@ -116,17 +115,17 @@ class _Unsupported(Exception):
 
 
 def verify(problem: Problem, graph, values, *, alpha: float = FAMILY_ALPHA, refuse: bool = True,
-           known=None, refit: dict | None = None) -> dict:
+           known=None) -> dict:
     """linearize + check: the solve's hook. A graph the checks cannot split (an extension
     factor linking boards) is reported as unchecked, with a warning, not refused. ``refuse``
     False: a failed verdict is returned (and logged), not raised. ``known``: the consider terms'
-    errors (consider.known_columns), counted in every comparison. ``refit``: see check."""
+    errors (consider.known_columns), counted in every comparison."""
     try:
         lin = linearize(problem, graph, values, known)
     except _Unsupported as e:
         log.warning("consistency checks skipped: %s", e)
         return {"passed": None, "skipped": str(e)}
-    return check(problem, lin, alpha=alpha, refuse=refuse, refit=refit)
+    return check(problem, lin, alpha=alpha, refuse=refuse)
 
 
 def linearize(problem: Problem, graph, values, known=None) -> Linearized:
@@ -436,14 +435,9 @@ def unobservable_error(problem: Problem, lin: Linearized) -> DegenerateError:
 # ---------------------------------------------------------------- the checks
 
 
-def check(problem: Problem, lin: Linearized, *, alpha: float = FAMILY_ALPHA, refuse: bool = True,
-          refit: dict | None = None) -> dict:
+def check(problem: Problem, lin: Linearized, *, alpha: float = FAMILY_ALPHA, refuse: bool = True) -> dict:
     """Run every check (module docstring); the verdict as a plain dict, or SolveError
-    (``alpha`` <= 0: the verdict only, with a warning, never an error). ``refit``: {snapshot:
-    (H_k, g_k, H_rest, g_rest)}, the sensors' reduced information and gradients of the snapshot
-    and of the rest with the noise's variance components re-estimated without it (the
-    jackknife's ``refit_parts``): its leave-one-out test is taken on those, so that a gross
-    error the components absorbed is judged by what the other snapshots show.
+    (``alpha`` <= 0: the verdict only, with a warning, never an error).
 
     The dict: ``passed``, ``alpha``, ``n_checks``, ``p_limit``, ``snapshots`` (the worst
     leave-one-out test, the largest single-snapshot share of the information), ``pairs``
@@ -458,7 +452,7 @@ def check(problem: Problem, lin: Linearized, *, alpha: float = FAMILY_ALPHA, ref
     snap_tests = {}
     H_pinv = _pinv_psd(H)
     for k, (Hk, gk) in sorted(per.items()):
-        c = compare(lin, *refit[k]) if refit and k in refit else compare(lin, Hk, gk, H - Hk, g - gk, sum_pinv=H_pinv)
+        c = compare(lin, Hk, gk, H - Hk, g - gk, sum_pinv=H_pinv)
         if c is not None:
             snap_tests[k] = c
     pair_tests, bridges = {}, []

@@ -94,14 +94,7 @@ def jackknife(problem, lin, rt_lidar0_sensor: np.ndarray, covariance_rt: np.ndar
     ``components``: (white sigmas, D's sigmas, the linearization VCE estimates them on) to
     re-estimate them without each snapshot; None: the weights held. The expected ratio is the
     fixed-weight model's either way: a ratio above its range says the model, the components'
-    own uncertainty included, is short along that axis.
-
-    With ``components``, ``refit_parts`` holds per snapshot k (the indispensable aside) the
-    sensors' reduced information and gradients of k and of the rest under the components
-    re-estimated without k: consistency.check's leave-one-out test of k on them. A gross error
-    in one board that the per-observation components absorb (a camera's D estimated at 28 mm
-    from 5 boards, one of them a grid read one square off) passes the test under the
-    components it inflated; under the rest's, it stands out."""
+    own uncertainty included, is short along that axis."""
     S, r, parts = lin.reduced()
     if lin.ns == 0 or len(parts) < _MIN_SNAPSHOTS:
         return {}
@@ -110,8 +103,7 @@ def jackknife(problem, lin, rt_lidar0_sensor: np.ndarray, covariance_rt: np.ndar
     for a, i in enumerate(lin.variable_sensors):
         J[6 * a:6 * a + 6, 6 * a:6 * a + 6] = drt_dxi(rt_lidar0_sensor[i])
     Si = np.linalg.inv(S)
-    moves, A, indispensable, refit = {}, {}, [], {}
-    ns = lin.ns
+    moves, A, indispensable = {}, {}, []
     for k in sorted(parts):
         S_k, r_k = parts[k]
         try:
@@ -122,14 +114,8 @@ def jackknife(problem, lin, rt_lidar0_sensor: np.ndarray, covariance_rt: np.ndar
         if components is None:
             moves[k] = J @ (np.linalg.solve(S - S_k, r - r_k) - x_full)
         else:  # the variance components re-estimated without the snapshot, as a re-solve would
-            # (with the known errors' columns: the sensors' block is lin's, the rest is for the test)
-            Sw, rw, pw = (lin if known is None else known).reduced(_refit_weights(problem, lin, k, components))
-            Hk, Hr = pw[k][0][:ns, :ns], Sw[:ns, :ns] - pw[k][0][:ns, :ns]
-            moves[k] = J @ (np.linalg.solve(Hr, rw[:ns] - pw[k][1][:ns]) - x_full)
-            # snapshot k against the rest, both weighed by the components the rest alone gives
-            # (consistency.check's leave-one-out test): gradients, then their change per unit known error
-            refit[k] = (Hk, np.c_[pw[k][1][:ns], pw[k][0][:ns, ns:]],
-                        Hr, np.c_[rw[:ns] - pw[k][1][:ns], Sw[:ns, ns:] - pw[k][0][:ns, ns:]])
+            Sw, rw, pw = lin.reduced(_refit_weights(problem, lin, k, components))
+            moves[k] = J @ (np.linalg.solve(Sw - pw[k][0], rw - pw[k][1]) - x_full)
         A[k] = np.linalg.inv(S - S_k) - Si
     ks = sorted(moves)
     X = np.array([moves[k] for k in ks])
@@ -207,8 +193,7 @@ def jackknife(problem, lin, rt_lidar0_sensor: np.ndarray, covariance_rt: np.ndar
         "" if components is None else ", the variance components re-estimated without it")
     return {"method": method,
             "n_snapshots": n, "indispensable_snapshots": indispensable, "covariance_rt": C_jk,
-            "moves_rt": {int(k): moves[k] for k in ks}, "sensors": sensors, "largest_influence": worst,
-            "refit_parts": refit}
+            "moves_rt": {int(k): moves[k] for k in ks}, "sensors": sensors, "largest_influence": worst}
 
 
 def raise_where_rejected(covariance_rt: np.ndarray, jk: dict) -> np.ndarray:

@@ -626,7 +626,7 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
     t = time.perf_counter()
     verdict = consistency.verify(problem, g, values, alpha=options.consistency_alpha,
                                  refuse=options.refuse_inconsistent,
-                                 known=known, refit=jk.pop("refit_parts", None))
+                                 known=known)
     times["consistency"] = time.perf_counter() - t
     t = time.perf_counter()  # after the verdict: a refused capture needs none
     unit_errors = _unit_errors(problem, rebuild, values, (g, lin), rt_sensor, options)
