@@ -435,3 +435,25 @@ def test_a_singular_variance_component_estimate_is_one_line_not_an_internal_erro
                                          r"--set solve.observation_effects=false"):
         _solve(independent[0])
     assert _solve(independent[0], observation_effects=False).covariance_rt.size  # the way out it names
+
+
+def test_a_singular_estimate_of_kept_components_names_them(monkeypatch):
+    # where the joint estimate of the kept components meets a singular system, the line names
+    # those components (sensor and kind): the user sees which sensor's boards to look at
+    from clcgraph.backend import noise as N
+    from clcgraph.errors import SolveError
+
+    problem, truth = simulate_problem(rig=make_rig(2, 1), n_snapshots=24, seed=8)
+    shifted = _shift_lidar_boards(problem, truth, 0.006, np.random.default_rng(7))  # plane offsets kept on both
+    vce = N._vce
+
+    def singular_when_estimating(lin, w, free, base, floor):
+        if free:
+            raise np.linalg.LinAlgError("Matrix is not positive definite")
+        return vce(lin, w, free, base, floor)
+
+    monkeypatch.setattr(N, "_vce", singular_when_estimating)
+    with pytest.raises(SolveError, match=r"round 0\) met a numerically singular system: one of the per-observation "
+                                         r"components (/\w+ \w+, )*/lidar0 offset_m, (/\w+ \w+, )*/lidar1 offset_m"
+                                         r"(, /\w+ \w+)* swallows a direction of the fit; --set "):
+        _solve(shifted)

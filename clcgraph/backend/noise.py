@@ -500,7 +500,12 @@ def estimate_components(problem, lin: Linearization, sig: np.ndarray, effects: d
     else:
         w = {g: 1.0 for g in base}
         free = {g for g in at_floor if base[g] > floor[g] * (1 + 1e-9)}
-    w, red, _ = _vce(lin, w, free, base, floor)
+    try:
+        w, red, _ = _vce(lin, w, free, base, floor)
+    except np.linalg.LinAlgError:
+        if not free:
+            raise
+        raise SingularComponents(sorted(f"{problem.sensors[g[1]].topic} {g[2]}" for g in free)) from None
     sig = np.array(sig, float).copy()
     effects = {i: dict(e) for i, e in effects.items()}
     for g, b in base.items():
@@ -510,6 +515,15 @@ def estimate_components(problem, lin: Linearization, sig: np.ndarray, effects: d
         else:
             effects[g[1]][g[2]] = s
     return sig, effects, {"redundancy": red, "lr": {g: x for g, x in lr.items() if g in free}}
+
+
+class SingularComponents(np.linalg.LinAlgError):
+    """VCE met a numerically singular system while estimating the components ``kept`` (their
+    names, e.g. "/lidar1 tilt_rad"): one of them swallows a direction of the fit."""
+
+    def __init__(self, kept: list):
+        super().__init__(f"a singular system estimating {', '.join(kept)}")
+        self.kept = kept
 
 
 def _white_floor(problem, group) -> float:

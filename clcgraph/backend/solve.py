@@ -301,10 +301,12 @@ def _solve_with_effects(problem, active, rt_sensor, rt_board, sig, options, nomi
         try:
             new_sig, new_effects, _ = N.estimate_components(problem, at.with_known(*known) if known else at, sig,
                                                             effects, select=rnd == 0)
-        except np.linalg.LinAlgError:
+        except np.linalg.LinAlgError as e:
+            cause = (f"one of the per-observation components {', '.join(e.kept)} swallows a direction of the fit"
+                     if isinstance(e, N.SingularComponents) else "with every per-observation component at its floor")
             raise SolveError(f"the noise model's variance components (round {rnd}) met a numerically singular "
-                             "system: a per-observation component swallows a direction of the fit; "
-                             "--set solve.observation_effects=false solves with independent noise") from None
+                             f"system: {cause}; --set solve.observation_effects=false solves with independent "
+                             "noise") from None
         change = max([float(np.max(np.abs(new_sig / sig - 1)))]
                      + [abs(new_effects[i][c] / effects[i][c] - 1) for i in effects for c in effects[i]])
         if change < 0.03 and values is not None:  # weights within 3 %: the estimate stands; the graph
