@@ -525,8 +525,7 @@ def calibrate_bags(bags, topics: Sequence[str], models: Sequence[str | Path] = (
         check_out_dir(out, force=force)
     timings: dict[str, float] = {}
     material: dict = {}
-    if out is not None:
-        _import_in_background("clcgraph.outputs.report", "clcgraph.outputs.plots")
+    importing = _import_in_background("clcgraph.outputs.report", "clcgraph.outputs.plots") if out is not None else None
     problem = read_problem(bags, topics, models, config=cfg, timings=timings, report_material=material)
     call = (f"clcgraph.calibrate_bags({[str(b) for b in bags]!r}, {list(topics)!r}, "
             f"{[str(m) for m in models]!r}, out={str(out)!r})")
@@ -537,6 +536,7 @@ def calibrate_bags(bags, topics: Sequence[str], models: Sequence[str | Path] = (
 
         if report.get("figures") is not None:  # an estimate of before a snapshot was left out (solve.calibrate)
             report["figures"].close(wait=False)
+        importing.join()  # the drawing child is forked: not while another thread may hold an import lock
         with StageClock(timings)("report"):  # (inside the solve's clock, which counts it too)
             report["inputs"] = gather_report_inputs(estimate, cfg, bags=bags, models=models, call=call,
                                                     material=material)
@@ -546,6 +546,7 @@ def calibrate_bags(bags, topics: Sequence[str], models: Sequence[str | Path] = (
         result = calibrate(problem, cfg, timings=timings, on_estimate=start_report if out is not None else None)
         result = dataclasses.replace(result, stats={**result.stats, "stage_time_s": timings})
         if out is not None:
+            importing.join()
             with StageClock(timings)("report"):
                 inputs = report.get("inputs") or gather_report_inputs(result, cfg, bags=bags, models=models, call=call,
                                                                       material=material)
@@ -556,10 +557,11 @@ def calibrate_bags(bags, topics: Sequence[str], models: Sequence[str | Path] = (
     return result
 
 
-def _import_in_background(*modules: str) -> None:
-    """Import modules in a daemon thread: the report's matplotlib import overlaps reading and
-    detection instead of following the solve. A later import of the same module waits for this
-    one (Python's per-module import lock)."""
+def _import_in_background(*modules: str):
+    """The started daemon thread importing ``modules``: the report's matplotlib import overlaps
+    reading and detection instead of following the solve. A later import of the same module waits
+    for this one (Python's per-module import lock); join it before forking (a child forked while
+    the thread holds an import lock inherits the lock held, and its own imports hang)."""
     import importlib
     import threading
 
@@ -570,7 +572,9 @@ def _import_in_background(*modules: str) -> None:
             except Exception:  # noqa: BLE001 - the real import, later, reports it
                 return
 
-    threading.Thread(target=run, name="clcgraph-import", daemon=True).start()
+    thread = threading.Thread(target=run, name="clcgraph-import", daemon=True)
+    thread.start()
+    return thread
 
 
 def gather_report_inputs(result: Result, config=None, *, bags=None, models=(), call: str | None = None,

@@ -244,3 +244,35 @@ def test_a_solve_failing_after_its_estimate_stops_the_drawing(tmp_path, monkeypa
         api.calibrate_bags([str(tmp_path / "a.bag")], [s.topic for s in problem.sensors], out=tmp_path / "out")
     assert len(drawings) == 1 and drawings[0].child is None
     assert not multiprocessing.active_children() and not (tmp_path / "out").exists()
+
+
+def test_the_drawing_process_is_forked_after_the_background_import_ended(tmp_path, monkeypatch):
+    # a child forked while the import thread holds an import lock inherits it held: its imports hang
+    import importlib
+    import threading
+
+    from clcgraph import api
+    from clcgraph.outputs import report
+    from clcgraph.sim.observations import make_rig, simulate_problem
+
+    problem, _ = simulate_problem(rig=make_rig(n_lidars=2, n_cameras=1), n_snapshots=10, seed=1, planned_tilts=True)
+    monkeypatch.setattr(api, "read_problem", lambda *a, **k: problem)
+    real_import = importlib.import_module
+
+    def slow_in_the_thread(name, *a):  # the import still running when the solve has its estimate
+        if threading.current_thread().name == "clcgraph-import":
+            time.sleep(3.0)
+        return real_import(name, *a)
+
+    monkeypatch.setattr(importlib, "import_module", slow_in_the_thread)
+    importing_at_fork = []
+    real = report.start_estimate_figures
+
+    def start(*a):
+        importing_at_fork.append(any(t.name == "clcgraph-import" and t.is_alive() for t in threading.enumerate()))
+        return real(*a)
+
+    monkeypatch.setattr(report, "start_estimate_figures", start)
+    (tmp_path / "a.bag").write_bytes(b"")
+    api.calibrate_bags([str(tmp_path / "a.bag")], [s.topic for s in problem.sensors], out=tmp_path / "out")
+    assert importing_at_fork == [False] and (tmp_path / "out" / "report.html").exists()
