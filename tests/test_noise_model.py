@@ -457,3 +457,22 @@ def test_a_singular_estimate_of_kept_components_names_them(monkeypatch):
                                          r"components (/\w+ \w+, )*/lidar0 offset_m, (/\w+ \w+, )*/lidar1 offset_m"
                                          r"(, /\w+ \w+)* swallows a direction of the fit; --set "):
         _solve(shifted)
+
+
+def test_the_checks_assume_only_the_components_shown_at_the_stricter_level(monkeypatch):
+    # components between the two levels widen the sigmas but are not assumed by the checks: here
+    # (the assumed level raised past every statistic) the checks see the plane offsets as the
+    # white model does and refuse, while the covariance stays the full model's
+    from clcgraph.backend import noise as N
+    from clcgraph.errors import ClcgraphError
+
+    problem, truth = simulate_problem(rig=make_rig(2, 1), n_snapshots=24, seed=8)
+    shifted = _shift_lidar_boards(problem, truth, 0.006, np.random.default_rng(7))
+    full = _solve(shifted)
+    assert full.stats["consistency"]["passed"] and not full.stats["consistency"]["components_not_assumed"]
+    monkeypatch.setattr(N, "_LR_ASSUMED", np.inf)
+    with pytest.raises(ClcgraphError, match="not self-consistent"):  # after leaving snapshots out
+        _solve(shifted)
+    written = _solve(shifted, refuse_inconsistent=False)
+    assert {"/lidar0 offset_m", "/lidar1 offset_m"} <= set(written.stats["consistency"]["components_not_assumed"])
+    np.testing.assert_allclose(written.covariance_rt, full.covariance_rt, rtol=1e-9, atol=1e-15)

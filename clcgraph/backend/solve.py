@@ -275,11 +275,12 @@ def _solve_with_effects(problem, active, rt_sensor, rt_board, sig, options, nomi
     (white sigmas, D's sigmas) by VCE on the linearization at the current solution, then LM
     with them; again from there until they are stable. Returns (rt_sensor, rt_board, sig,
     effects, (g, values), the LMs' convergence records, the noise.Linearization at (g, values) or
-    None if the last round moved the values)."""
+    None if the last round moved the values, {kept component group: its likelihood-ratio statistic}
+    (noise.estimate_components' "lr", decided in the first round))."""
     import gtsam
 
     effects = N.initial_effects(problem)
-    values, iters, lin = None, [], None
+    values, iters, lin, lr = None, [], None, {}
     for rnd in range(_MAX_EFFECT_ROUNDS):
         edges = G.lidar_edge_factors(problem, active, rt_sensor, rt_board, options)  # (rebuild remakes the moved)
         g, v = G.build(problem, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig, sigma_camera_px=sig,
@@ -299,14 +300,15 @@ def _solve_with_effects(problem, active, rt_sensor, rt_board, sig, options, nomi
         # the consider terms' errors are in the data too: D and the white noise get what they leave
         known = consider.known_columns(problem, at, g, rebuild, options)
         try:
-            new_sig, new_effects, _ = N.estimate_components(problem, at.with_known(*known) if known else at, sig,
-                                                            effects, select=rnd == 0)
+            new_sig, new_effects, info = N.estimate_components(problem, at.with_known(*known) if known else at, sig,
+                                                               effects, select=rnd == 0)
         except np.linalg.LinAlgError as e:
             cause = (f"one of the per-observation components {', '.join(e.kept)} swallows a direction of the fit"
                      if isinstance(e, N.SingularComponents) else "with every per-observation component at its floor")
             raise SolveError(f"the noise model's variance components (round {rnd}) met a numerically singular "
                              f"system: {cause}; --set solve.observation_effects=false solves with independent "
                              "noise") from None
+        lr = info["lr"] if rnd == 0 else lr
         change = max([float(np.max(np.abs(new_sig / sig - 1)))]
                      + [abs(new_effects[i][c] / effects[i][c] - 1) for i in effects for c in effects[i]])
         if change < 0.03 and values is not None:  # weights within 3 %: the estimate stands; the graph
@@ -323,7 +325,7 @@ def _solve_with_effects(problem, active, rt_sensor, rt_board, sig, options, nomi
                                                    N.effect_sigmas(problem, effects), values, _EFFECT_TOL)
         iters.append(rec)
     log.debug("observation effects: %s", effects)
-    return rt_sensor, rt_board, sig, effects, (g, values), iters, lin
+    return rt_sensor, rt_board, sig, effects, (g, values), iters, lin, lr
 
 
 def _covariance(problem: Problem, g, values, rt_sensor, options) -> np.ndarray:
@@ -524,10 +526,10 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
         warnings.append(f"the noise re-estimation / outlier rounds did not settle in {_MAX_ROUNDS} rounds "
                         "(the last round's noise and rejections are used)")
 
-    effects, lin = None, None
+    effects, lin, lr = None, None, {}
     if options.observation_effects:
         t = time.perf_counter()
-        rt_sensor, rt_board, sig, effects, (g, values), recs, lin = _solve_with_effects(
+        rt_sensor, rt_board, sig, effects, (g, values), recs, lin, lr = _solve_with_effects(
             problem, active, rt_sensor, rt_board, sig, options, nominal)
         stages += recs
         iters["effects"] = [r["iterations"] for r in recs]
@@ -585,11 +587,15 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
     # elevation's, of one LIDAR)
     edges = G.lidar_edge_factors(problem, active, rt_sensor, rt_board, options)
 
-    def rebuild(p, only=None):  # the final graph of p: the same masks, sigmas and D, other measurements
-        return G.build(p, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig, sigma_camera_px=sig,
-                       options=options, board_nominal=nominal, effects=effect_sig, effect_values=values,
-                       edge_factors=G.lidar_edge_factors(p, active, rt_sensor, rt_board, options,
-                                                         reuse=(problem, edges)), only=only)[0]
+    def rebuilder(sig, effect_sig):
+        def rebuild(p, only=None):  # the final graph of p: the same masks, sigmas and D, other measurements
+            return G.build(p, active, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig, sigma_camera_px=sig,
+                           options=options, board_nominal=nominal, effects=effect_sig, effect_values=values,
+                           edge_factors=G.lidar_edge_factors(p, active, rt_sensor, rt_board, options,
+                                                             reuse=(problem, edges)), only=only)[0]
+        return rebuild
+
+    rebuild = rebuilder(sig, effect_sig)
 
     # the consider terms' errors as columns of the final linearization: the jackknife's expected
     # ratio and the consistency checks count them in
@@ -626,9 +632,19 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
     convergence = {"converged": not warnings, "final_step_sigma": step, "rounds": rounds,
                    "stages": [public(r) for r in stages], "warnings": warnings}
     t = time.perf_counter()
-    verdict = consistency.verify(problem, g, values, alpha=options.consistency_alpha,
-                                 refuse=options.refuse_inconsistent,
-                                 known=known)
+    # the checks assume only the components shown at p = 1e-3: one kept at 0.01 widens the sigmas,
+    # but a refusal needs the stronger evidence (noise._LR_ASSUMED)
+    weak = {grp: x for grp, x in lr.items() if x < N._LR_ASSUMED}
+    g_c, known_c = g, known
+    if weak:
+        sig_c, effects_c = N.without_components(problem, lin, sig, effects, set(weak))
+        rebuild_c = rebuilder(sig_c, N.effect_sigmas(problem, effects_c))
+        g_c = rebuild_c(problem)
+        known_c = consider.known_columns(problem, N.Linearization(problem, g_c, values), g_c, rebuild_c, options)
+    verdict = consistency.verify(problem, g_c, values, alpha=options.consistency_alpha,
+                                 refuse=options.refuse_inconsistent, known=known_c)
+    verdict["components_not_assumed"] = {f"{problem.sensors[grp[1]].topic} {grp[2]}": round(float(x), 2)
+                                         for grp, x in sorted(weak.items())}
     times["consistency"] = time.perf_counter() - t
     t = time.perf_counter()  # after the verdict: a refused capture needs none
     unit_errors = _unit_errors(problem, rebuild, values, (g, lin), rt_sensor, options)

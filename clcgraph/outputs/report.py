@@ -281,6 +281,11 @@ def _consistency(result: Result) -> str:
                  f"<th>1-sigma (deg)</th></tr>{rows}</table>")
     for why in v.get("unverified", [])[:5]:
         parts.append(f"<p>Unverified: {html.escape(why)}</p>")
+    if v.get("components_not_assumed"):  # backend/solve.py: in the sigmas, not in these checks
+        parts.append("<p>Per-observation noise components in the sigmas but not assumed by these checks (their "
+                     "likelihood-ratio statistic under 9.55, p = 1e-3; the checks' sigmas and the table above are "
+                     "without them): " + ", ".join(f"{html.escape(k)} ({_fmt(x)})"
+                                                   for k, x in v["components_not_assumed"].items()) + ".</p>")
     parts.append("<p class='howto'>Each check splits the data in two independent parts (one snapshot against the "
                  "others; the boards two sensors saw together against the rest) and asks whether both give the same "
                  "poses within their uncertainty. A disagreement of many sigma means a wrong board association, a "
