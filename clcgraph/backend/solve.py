@@ -303,11 +303,7 @@ def _solve_with_effects(problem, active, rt_sensor, rt_board, sig, options, nomi
             new_sig, new_effects, info = N.estimate_components(problem, at.with_known(*known) if known else at, sig,
                                                                effects, select=rnd == 0)
         except np.linalg.LinAlgError as e:
-            cause = (f"one of the per-observation components {', '.join(e.kept)} swallows a direction of the fit"
-                     if isinstance(e, N.SingularComponents) else "with every per-observation component at its floor")
-            raise SolveError(f"the noise model's variance components (round {rnd}) met a numerically singular "
-                             f"system: {cause}; --set solve.observation_effects=false solves with independent "
-                             "noise") from None
+            raise _singular(e, f"round {rnd}") from None
         lr = info["lr"] if rnd == 0 else lr
         change = max([float(np.max(np.abs(new_sig / sig - 1)))]
                      + [abs(new_effects[i][c] / effects[i][c] - 1) for i in effects for c in effects[i]])
@@ -326,6 +322,14 @@ def _solve_with_effects(problem, active, rt_sensor, rt_board, sig, options, nomi
         iters.append(rec)
     log.debug("observation effects: %s", effects)
     return rt_sensor, rt_board, sig, effects, (g, values), iters, lin, lr
+
+
+def _singular(e: np.linalg.LinAlgError, where: str) -> SolveError:
+    """The one-line refusal for a variance-component estimate that met a singular system."""
+    cause = (f"one of the per-observation components {', '.join(e.kept)} swallows a direction of the fit"
+             if isinstance(e, N.SingularComponents) else "with every per-observation component at its floor")
+    return SolveError(f"the noise model's variance components ({where}) met a numerically singular system: "
+                      f"{cause}; --set solve.observation_effects=false solves with independent noise")
 
 
 def _covariance(problem: Problem, g, values, rt_sensor, options) -> np.ndarray:
@@ -637,7 +641,10 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
     weak = {grp: x for grp, x in lr.items() if x < N._LR_ASSUMED}
     g_c, known_c = g, known
     if weak:
-        sig_c, effects_c = N.without_components(problem, lin, sig, effects, set(weak))
+        try:
+            sig_c, effects_c = N.without_components(problem, lin, sig, effects, set(weak))
+        except np.linalg.LinAlgError as e:
+            raise _singular(e, "without those under the checks' level") from None
         rebuild_c = rebuilder(sig_c, N.effect_sigmas(problem, effects_c))
         g_c = rebuild_c(problem)
         known_c = consider.known_columns(problem, N.Linearization(problem, g_c, values), g_c, rebuild_c, options)
