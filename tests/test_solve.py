@@ -151,7 +151,11 @@ def test_the_estimate_when_the_last_noise_round_moved_the_poses(monkeypatch):
     problem, truth = simulate_problem(n_snapshots=12, seed=3)
     settled = calibrate(problem, SolveOptions())
     real = S._solve_with_effects
-    monkeypatch.setattr(S, "_solve_with_effects", lambda *a, **k: (*real(*a, **k)[:-1], None))
+    def without_lin(*a, **k):  # (..., lin, lr): no linearization handed back
+        *head, _, lr = real(*a, **k)
+        return (*head, None, lr)
+
+    monkeypatch.setattr(S, "_solve_with_effects", without_lin)
     moved = calibrate(problem, SolveOptions())
     assert moved.rms["normalized"] == pytest.approx(settled.rms["normalized"], rel=1e-6)
     np.testing.assert_allclose(moved.covariance_rt, settled.covariance_rt, rtol=1e-6, atol=1e-14)
