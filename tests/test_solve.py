@@ -151,6 +151,7 @@ def test_the_estimate_when_the_last_noise_round_moved_the_poses(monkeypatch):
     problem, truth = simulate_problem(n_snapshots=12, seed=3)
     settled = calibrate(problem, SolveOptions())
     real = S._solve_with_effects
+
     def without_lin(*a, **k):  # (..., lin, lr): no linearization handed back
         *head, _, lr = real(*a, **k)
         return (*head, None, lr)

@@ -477,10 +477,7 @@ def estimate_components(problem, lin: Linearization, sig: np.ndarray, effects: d
     new (sig (Nsensors,), effects {sensor: {component: sigma}}, info {"redundancy": {group: r},
     "lr": {group: likelihood-ratio statistic of the components kept}}). ``select=False``:
     re-estimate the components above their floor, keep the others there (no tests)."""
-    base = {}
-    for group in lin.groups:
-        base[group] = sig[group[1]] if group[0] == "white" else effects[group[1]][group[2]]
-    floor = {g: (_white_floor(problem, g) if g[0] == "white" else _FLOOR[g[2]]) for g in base}
+    base, floor = _base_and_floor(problem, lin, sig, effects)
     at_floor = {g: (base[g] / floor[g]) ** 2 for g in base if g[0] == "effect"}
     # A component is kept only if the data show it: its restricted likelihood-ratio statistic
     # against the model with every D at its floor (the white sigmas re-estimated, the other
@@ -500,7 +497,7 @@ def estimate_components(problem, lin: Linearization, sig: np.ndarray, effects: d
             lr[g] = m2l0 - _profile(lin, w0, g, base, floor) if q > n - tr else 0.0
         free = {g for g in at_floor if lr[g] >= _LR_CRITICAL}
         log.debug("variance components' likelihood-ratio statistics (kept at >= %g): %s", _LR_CRITICAL,
-                  {f"{problem.sensors[g[1]].topic} {g[2]}": round(x, 2) for g, x in lr.items()})
+                  {group_name(problem, g): round(x, 2) for g, x in lr.items()})
         w = {**w0, **{g: (base[g] / max(base[g], _START[g[2]])) ** 2 for g in free}}
     else:
         w = {g: 1.0 for g in base}
@@ -514,8 +511,7 @@ def without_components(problem, lin: Linearization, sig: np.ndarray, effects: di
     """(sig, effects) of the model without the components ``drop`` (groups ("effect", sensor,
     component)): those held at their floor, the white sigmas and the other kept components
     re-estimated on ``lin`` (built with ``sig``, ``effects``)."""
-    base = {g: sig[g[1]] if g[0] == "white" else effects[g[1]][g[2]] for g in lin.groups}
-    floor = {g: (_white_floor(problem, g) if g[0] == "white" else _FLOOR[g[2]]) for g in base}
+    base, floor = _base_and_floor(problem, lin, sig, effects)
     w = {g: (base[g] / floor[g]) ** 2 if g in drop else 1.0 for g in base}
     free = {g for g in base if g[0] == "effect" and g not in drop and base[g] > floor[g] * (1 + 1e-9)}
     w, _ = _estimate(problem, lin, w, free, base, floor)
@@ -529,8 +525,19 @@ def _estimate(problem, lin: Linearization, w: dict, free: set, base: dict, floor
     except np.linalg.LinAlgError:
         if not free:
             raise
-        raise SingularComponents(sorted(f"{problem.sensors[g[1]].topic} {g[2]}" for g in free)) from None
+        raise SingularComponents(sorted(group_name(problem, g) for g in free)) from None
     return w, red
+
+
+def _base_and_floor(problem, lin: Linearization, sig: np.ndarray, effects: dict) -> tuple[dict, dict]:
+    """({group: the sigma ``lin`` was built with}, {group: its floor})."""
+    base = {g: sig[g[1]] if g[0] == "white" else effects[g[1]][g[2]] for g in lin.groups}
+    return base, {g: (_white_floor(problem, g) if g[0] == "white" else _FLOOR[g[2]]) for g in base}
+
+
+def group_name(problem, group) -> str:
+    """A component group ("effect", sensor, component) in words: "/lidar1 tilt_rad"."""
+    return f"{problem.sensors[group[1]].topic} {group[2]}"
 
 
 def _sigmas(base: dict, w: dict, sig: np.ndarray, effects: dict) -> tuple:

@@ -650,7 +650,7 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
         known_c = consider.known_columns(problem, N.Linearization(problem, g_c, values), g_c, rebuild_c, options)
     verdict = consistency.verify(problem, g_c, values, alpha=options.consistency_alpha,
                                  refuse=options.refuse_inconsistent, known=known_c)
-    verdict["components_not_assumed"] = {f"{problem.sensors[grp[1]].topic} {grp[2]}": round(float(x), 2)
+    verdict["components_not_assumed"] = {N.group_name(problem, grp): round(float(x), 2)
                                          for grp, x in sorted(weak.items())}
     times["consistency"] = time.perf_counter() - t
     t = time.perf_counter()  # after the verdict: a refused capture needs none
