@@ -470,9 +470,19 @@ def test_the_checks_assume_only_the_components_shown_at_the_stricter_level(monke
     shifted = _shift_lidar_boards(problem, truth, 0.006, np.random.default_rng(7))
     full = _solve(shifted)
     assert full.stats["consistency"]["passed"] and not full.stats["consistency"]["components_not_assumed"]
-    monkeypatch.setattr(N, "_LR_ASSUMED", np.inf)
+    monkeypatch.setattr(N, "LR_ASSUMED", np.inf)
     with pytest.raises(ClcgraphError, match="not self-consistent"):  # after leaving snapshots out
         _solve(shifted)
     written = _solve(shifted, refuse_inconsistent=False)
     assert {"/lidar0 offset_m", "/lidar1 offset_m"} <= set(written.stats["consistency"]["components_not_assumed"])
     np.testing.assert_allclose(written.covariance_rt, full.covariance_rt, rtol=1e-9, atol=1e-15)
+
+
+def test_the_levels_stated_are_those_of_the_statistics():
+    # a variance on its boundary: -2 log LR ~ 0.5 chi2_0 + 0.5 chi2_1 (the report states the p)
+    from scipy.stats import chi2
+
+    from clcgraph.backend import noise as N
+
+    assert 0.5 * chi2.sf(N.LR_ASSUMED, 1) == pytest.approx(N.LR_ASSUMED_P, rel=0.01)
+    assert 0.5 * chi2.sf(N._LR_CRITICAL, 1) == pytest.approx(0.01, rel=0.01)

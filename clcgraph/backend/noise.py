@@ -28,7 +28,7 @@ keeps the independent model's sigmas.
 SYNOPSIS
     lin = Linearization(problem, g, values)          # per-factor Jacobians, grouped
     sig, effects, info = estimate_components(problem, lin, sig, effects)
-    sig_c, effects_c = without_components(problem, lin, sig, effects, drop)  # e.g. those under _LR_ASSUMED
+    sig_c, effects_c = without_components(problem, lin, sig, effects, drop)  # e.g. those under LR_ASSUMED
     S, r = lin.reduced()                              # sensor-only information (Schur)
 """
 
@@ -60,10 +60,11 @@ _MIN_REDUNDANCY = 0.5  # a component the data hardly see keeps its value
 # per component. A real component dropped leaves the sigmas short (stress tails-dark-mixed: LR
 # 9.1, dropped at p = 1e-3, 3.9 sigma off); one kept by chance makes them larger (1 of 94
 # independent-noise trials at this level, 1.3x on its axes). The consistency checks assume only
-# the components at _LR_ASSUMED (p = 1e-3): one kept by chance can make a good capture look
+# the components at LR_ASSUMED (p = 1e-3): one kept by chance can make a good capture look
 # unverifiable, and a refusal needs the stronger evidence (docs/uncertainty.md, "The test's level").
 _LR_CRITICAL = 5.41
-_LR_ASSUMED = 9.55
+LR_ASSUMED = 9.55
+LR_ASSUMED_P = 1e-3  # LR_ASSUMED's level, as the report states it
 _MAX_VCE_ITERATIONS = 40
 _VCE_TOL = 0.003  # relative change of every sigma
 

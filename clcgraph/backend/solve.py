@@ -637,8 +637,8 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
                    "stages": [public(r) for r in stages], "warnings": warnings}
     t = time.perf_counter()
     # the checks assume only the components shown at p = 1e-3: one kept at 0.01 widens the sigmas,
-    # but a refusal needs the stronger evidence (noise._LR_ASSUMED)
-    weak = {grp: x for grp, x in lr.items() if x < N._LR_ASSUMED}
+    # but a refusal needs the stronger evidence (noise.LR_ASSUMED)
+    weak = {grp: x for grp, x in lr.items() if x < N.LR_ASSUMED}
     g_c, known_c = g, known
     if weak:
         try:

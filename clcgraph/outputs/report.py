@@ -282,9 +282,11 @@ def _consistency(result: Result) -> str:
     for why in v.get("unverified", [])[:5]:
         parts.append(f"<p>Unverified: {html.escape(why)}</p>")
     if v.get("components_not_assumed"):  # backend/solve.py: in the sigmas, not in these checks
+        from ..backend import noise
+
         parts.append("<p>Per-observation noise components in the sigmas but not assumed by these checks (their "
-                     "likelihood-ratio statistic under 9.55, p = 1e-3; the checks' sigmas and the table above are "
-                     "without them): " + ", ".join(f"{html.escape(k)} ({_fmt(x)})"
+                     f"likelihood-ratio statistic under {noise.LR_ASSUMED:g}, p = {noise.LR_ASSUMED_P:g}; the checks' "
+                     "sigmas and the table above are without them): " + ", ".join(f"{html.escape(k)} ({_fmt(x)})"
                                                    for k, x in v["components_not_assumed"].items()) + ".</p>")
     parts.append("<p class='howto'>Each check splits the data in two independent parts (one snapshot against the "
                  "others; the boards two sensors saw together against the rest) and asks whether both give the same "
