@@ -34,6 +34,10 @@ from .lidar_preprocess import Rings, missed_rays, prepare, ring_neighbours, row_
 
 # The fine search grid: cells of half the point spacing, within these bounds (m).
 _CELL_M = (0.01, 0.03)
+# A refit about a previous outline (``fit_outline``'s ``near``): the coarse search within this many
+# angle steps and this fraction of the board's short side of it.
+_NEAR_STEPS = 4
+_NEAR_REACH = 0.5
 
 
 @dataclass(frozen=True)
@@ -360,11 +364,12 @@ def _segment_in_box(p: np.ndarray, v: np.ndarray, half: np.ndarray) -> np.ndarra
 
 
 def fit_outline(points: np.ndarray, others: np.ndarray, n: np.ndarray, d: float, *, size_m, step_rad: float,
-                plane_tol_m: float) -> Outline:
+                plane_tol_m: float, near: Outline | None = None) -> Outline:
     """The board-sized rectangle (``size_m`` = width, height) in the plane n . x = d that holds the
     most of ``points`` (N,3; the plane's returns) less ``others`` (M,3; every other return of the
     scan) that lie behind the plane by more than ``plane_tol_m`` inside it. ``step_rad``: the
-    LIDAR's azimuth step."""
+    LIDAR's azimuth step. ``near``: the outline fitted to the same returns in a plane close to
+    this one (the plane refitted to what that outline kept): only the fine search about it runs."""
     n = np.asarray(n, float)
     origin, basis = plane_basis(n, d)
     xy, _, _ = ray_plane(points, n, d, origin, basis)
@@ -387,13 +392,21 @@ def fit_outline(points: np.ndarray, others: np.ndarray, n: np.ndarray, d: float,
     # grid's boundary cells reach past the board: behind-returns there do not count.
     period = np.pi / 2 if abs(size[0] - size[1]) < 1e-9 else np.pi
     cell_c = min(size) / 24
-    _, th, centre = _search(xy, xy_b, np.arange(0.0, period, cell_c / (diag / 2)), size, cell_c, 1, c0)
+    dth_c = cell_c / (diag / 2)
+    if near is None:
+        _, th, centre = _search(xy, xy_b, np.arange(0.0, period, dth_c), size, cell_c, 1, c0)
+    else:  # about the previous rectangle (its centre along its ray, its side in this plane's basis)
+        hint = ray_plane((near.origin + near.centre @ near.basis)[None], n, d, origin, basis)[0][0]
+        side = basis @ (near.axes[0] @ near.basis)
+        th0 = float(np.arctan2(side[1], side[0]))
+        _, th, centre = _search(xy, xy_b, th0 + np.arange(-_NEAR_STEPS, _NEAR_STEPS + 1) * dth_c, size, cell_c, 1, c0,
+                                hint=hint, reach=_NEAR_REACH * min(size))
     cell = float(np.clip(s_edge / 2, *_CELL_M))
     dth = cell / (diag / 2)
     # the fine grid (at any angle) lies within half a board, the reach and 3 cells of the coarse
     # centre along its axes: returns farther off would only be dropped from it
-    near = lambda q: q[np.hypot(*(q - centre).T) <= np.hypot(*(size / 2 + 2 * cell_c + 4 * cell))]  # noqa: E731
-    score, th, centre = _search(near(xy), near(xy_b), th + np.arange(-cell_c / cell, cell_c / cell + 1) * dth, size,
+    close = lambda q: q[np.hypot(*(q - centre).T) <= np.hypot(*(size / 2 + 2 * cell_c + 4 * cell))]  # noqa: E731
+    score, th, centre = _search(close(xy), close(xy_b), th + np.arange(-cell_c / cell, cell_c / cell + 1) * dth, size,
                                 cell, 0, c0, hint=centre, reach=2 * cell_c)
     axes = np.array([[np.cos(th), np.sin(th)], [-np.sin(th), np.cos(th)]])
     # A plane return is inside the scored cells, or within tol of them along its ring: the edge

@@ -398,7 +398,8 @@ def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: floa
     keep = outline.inside
     if keep.sum() >= 3 and not keep.all():  # again on the plane of what fits: the rest may have tilted it
         n, d, _ = fit_plane(pts[keep])
-        outline = fit_outline(pts, others, n, d, size_m=(sx, sy), step_rad=step, plane_tol_m=o.point_plane_tolerance_m)
+        outline = fit_outline(pts, others, n, d, size_m=(sx, sy), step_rad=step, plane_tol_m=o.point_plane_tolerance_m,
+                              near=outline)
         keep = outline.inside
     # Pieces of ring outside the board's rectangle are dropped (a person beside it, in its plane);
     # a plane whose rings run on past the rectangle is not a board (a wall, a car).
