@@ -476,6 +476,10 @@ def test_the_checks_assume_only_the_components_shown_at_the_stricter_level(monke
     written = _solve(shifted, refuse_inconsistent=False)
     assert {"/lidar0 offset_m", "/lidar1 offset_m"} <= set(written.stats["consistency"]["components_not_assumed"])
     np.testing.assert_allclose(written.covariance_rt, full.covariance_rt, rtol=1e-9, atol=1e-15)
+    from clcgraph.outputs.report import _consistency  # calibration.yaml and the report state the checks' level
+
+    assert written.stats["consistency"]["components_assumed_from"] == {"lr_statistic": np.inf, "p": N.LR_ASSUMED_P}
+    assert "/lidar1 offset_m" in _consistency(written) and "p = 0.001;" in _consistency(written)
 
 
 def test_the_levels_stated_are_those_of_the_statistics():

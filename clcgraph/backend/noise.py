@@ -64,7 +64,7 @@ _MIN_REDUNDANCY = 0.5  # a component the data hardly see keeps its value
 # unverifiable, and a refusal needs the stronger evidence (docs/uncertainty.md, "The test's level").
 _LR_CRITICAL = 5.41
 LR_ASSUMED = 9.55
-LR_ASSUMED_P = 1e-3  # LR_ASSUMED's level, as the report states it
+LR_ASSUMED_P = 1e-3  # LR_ASSUMED's level (calibration.yaml and the report state both)
 _MAX_VCE_ITERATIONS = 40
 _VCE_TOL = 0.003  # relative change of every sigma
 

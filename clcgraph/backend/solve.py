@@ -652,6 +652,7 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
                                  refuse=options.refuse_inconsistent, known=known_c)
     verdict["components_not_assumed"] = {N.group_name(problem, grp): round(float(x), 2)
                                          for grp, x in sorted(weak.items())}
+    verdict["components_assumed_from"] = {"lr_statistic": N.LR_ASSUMED, "p": N.LR_ASSUMED_P}
     times["consistency"] = time.perf_counter() - t
     t = time.perf_counter()  # after the verdict: a refused capture needs none
     unit_errors = _unit_errors(problem, rebuild, values, (g, lin), rt_sensor, options)

@@ -369,7 +369,8 @@ def fit_outline(points: np.ndarray, others: np.ndarray, n: np.ndarray, d: float,
     most of ``points`` (N,3; the plane's returns) less ``others`` (M,3; every other return of the
     scan) that lie behind the plane by more than ``plane_tol_m`` inside it. ``step_rad``: the
     LIDAR's azimuth step. ``near``: the outline fitted to the same returns in a plane close to
-    this one (the plane refitted to what that outline kept): only the fine search about it runs."""
+    this one (the plane refitted to what that outline kept): the search is about it, not over
+    every rotation and the whole plane."""
     n = np.asarray(n, float)
     origin, basis = plane_basis(n, d)
     xy, _, _ = ray_plane(points, n, d, origin, basis)

@@ -282,12 +282,11 @@ def _consistency(result: Result) -> str:
     for why in v.get("unverified", [])[:5]:
         parts.append(f"<p>Unverified: {html.escape(why)}</p>")
     if v.get("components_not_assumed"):  # backend/solve.py: in the sigmas, not in these checks
-        from ..backend import noise
-
+        level = v.get("components_assumed_from", {})
+        names = ", ".join(f"{html.escape(k)} ({_fmt(x)})" for k, x in v["components_not_assumed"].items())
         parts.append("<p>Per-observation noise components in the sigmas but not assumed by these checks (their "
-                     f"likelihood-ratio statistic under {noise.LR_ASSUMED:g}, p = {noise.LR_ASSUMED_P:g}; the checks' "
-                     "sigmas and the table above are without them): " + ", ".join(f"{html.escape(k)} ({_fmt(x)})"
-                                                   for k, x in v["components_not_assumed"].items()) + ".</p>")
+                     f"likelihood-ratio statistic under {_fmt(level.get('lr_statistic'))}, p = {_fmt(level.get('p'))}; "
+                     f"the checks' sigmas and the table above are without them): {names}.</p>")
     parts.append("<p class='howto'>Each check splits the data in two independent parts (one snapshot against the "
                  "others; the boards two sensors saw together against the rest) and asks whether both give the same "
                  "poses within their uncertainty. A disagreement of many sigma means a wrong board association, a "
