@@ -14,6 +14,9 @@ a result off by more than 5 sigma or 5 cm is a *silent wrong answer*, the worst 
     python -m bench stress                 # the same, as one of the benchmarks
 
 Captures are simulated once into build/stress/<name>/ (kept while the recipe is unchanged).
+The CLI runs the code of the checkout this file is in (PYTHONPATH), as it is when each capture
+starts: to keep editing during a run, run it from a worktree of the commit to judge
+(``git worktree add --detach /tmp/st HEAD; cd /tmp/st; /path/to/.venv/bin/python -m bench.stress``).
 """
 
 from __future__ import annotations
