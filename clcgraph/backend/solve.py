@@ -641,13 +641,14 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
     weak = {grp: x for grp, x in lr.items() if x < N.LR_ASSUMED}
     g_c, known_c = g, known
     if weak:
-        try:
-            sig_c, effects_c = N.without_components(problem, lin, sig, effects, set(weak))
+        try:  # estimated as the noise rounds estimated the model's: the consider terms' errors in the data
+            sig_c, effects_c = N.without_components(problem, with_known or lin, sig, effects, set(weak))
         except np.linalg.LinAlgError as e:
             raise _singular(e, "without those under the checks' level") from None
         rebuild_c = rebuilder(sig_c, N.effect_sigmas(problem, effects_c))
         g_c = rebuild_c(problem)
-        known_c = consider.known_columns(problem, N.Linearization(problem, g_c, values), g_c, rebuild_c, options)
+        lin_c = lin.reweighted(N.group_weights(lin.groups, sig, effects, sig_c, effects_c))  # the same values
+        known_c = consider.known_columns(problem, lin_c, g_c, rebuild_c, options)
     verdict = consistency.verify(problem, g_c, values, alpha=options.consistency_alpha,
                                  refuse=options.refuse_inconsistent, known=known_c)
     verdict["components_not_assumed"] = {N.group_name(problem, grp): round(float(x), 2)
