@@ -9,10 +9,11 @@ def _simulate(args) -> int:
     from .. import api
 
     in_range(args.poses, "--poses", 1, 10000)
+    in_range(args.pair_boards, "--pair-boards", 0, args.poses)
     truth = api.simulate(args.rig, args.out, n_poses=args.poses, format=args.format,
                          continuous=args.continuous, seed=args.seed, compress=args.compress,
                          camera_hz=args.camera_hz, log_delays=not args.no_log_delays,
-                         planned_tilts=args.planned_tilts, force=args.force)
+                         planned_tilts=args.planned_tilts, pair_boards=args.pair_boards, force=args.force)
     print(f"wrote {len(truth['snapshots'])} board poses of {len(truth['sensors'])} sensors into {args.out} "
           f"(truth in {args.out}/truth.yaml)")
     b = truth["board"]
@@ -37,6 +38,10 @@ def add_simulate(sub):
     p.add_argument("--planned-tilts", action="store_true",
                    help="boards tilted as a careful person plans them: pitched up and down, turned left and right "
                         "in turn (default: each about a random axis)")
+    p.add_argument("--pair-boards", type=int, default=0, metavar="N",
+                   help="hold the board so that every pair of sensors sees it together on >= N poses, as a careful "
+                        "capture does (pairs that can never see it together left out; default 0: wherever any two "
+                        "sensors see it)")
     p.add_argument("--seed", type=int, default=0)
 
 

@@ -14,7 +14,9 @@ Board poses are drawn 2.5-9 m from a sensor (a board smaller than 1.3 m proporti
 closer; half of them in front of a camera), tilted up to ``tilt_max_deg`` (about random axes, or
 with ``planned_tilts`` as a careful person plans: pitched up and down, turned left and right in
 turn), and kept if >= 2 sensors see the board (>= 3 rings / the whole corner
-grid). /tf_static holds base_link -> every sensor frame, off the truth by ``tf_error``
+grid); with ``pair_boards`` = N, as the README asks of a capture, each pair of sensors sees it
+together on >= N poses (where the rig lets them: a pair no draw puts the board before is
+left out). /tf_static holds base_link -> every sensor frame, off the truth by ``tf_error``
 (deg, m) like a CAD drawing. ``truth.yaml`` next to the bags has the true poses.
 
 SYNOPSIS
@@ -43,13 +45,15 @@ from .scene import make_scene, planned_tilt, random_board_pose, static_meshes
 log = logging.getLogger(__name__)
 
 T0_NS = 1_700_000_000_000_000_000
+_PAIR_ATTEMPTS = 60  # board poses drawn for a pair (pair_boards) before it is judged never to see one together
 DEMO_RIG = Path(__file__).resolve().parents[2] / "data" / "synthetic" / "demo-rig.yaml"
 DEMO_DIR = DEMO_RIG.parent / "demo"
 
 
 def _board_pose(rng, rig: Rig, tilt_max_deg: float, vertical: bool = False, max_distance_m=None,
-                tilt_towards_rad=None) -> np.ndarray:
-    """T_world_board: in front of a random camera (half the time) or anywhere around a LIDAR;
+                tilt_towards_rad=None, aim=None) -> np.ndarray:
+    """T_world_board: in front of a random camera (half the time) or anywhere around a LIDAR
+    (``aim``: in front of this camera, or around this LIDAR);
     2.5-9 m away for a 1.3 m board, a smaller board proportionally closer (as people hold it).
     ``vertical``: the board plane exactly vertical (``random_board_pose``); ``max_distance_m``: at
     most this far (a capture plan for a low-resolution camera); ``tilt_towards_rad``: the planned
@@ -57,14 +61,39 @@ def _board_pose(rng, rig: Rig, tilt_max_deg: float, vertical: bool = False, max_
     far = max(4.0, 9.0 * min(1.0, float(np.hypot(*rig.board.size_m)) / np.hypot(1.3, 1.3)))
     if max_distance_m is not None:
         far = min(far, float(max_distance_m))
-    if rig.cameras and rng.uniform() < 0.5:
-        cam = rig.cameras[rng.integers(len(rig.cameras))]
+    if any(aim is c for c in rig.cameras) or (aim is None and rig.cameras and rng.uniform() < 0.5):
+        cam = aim if aim is not None else rig.cameras[rng.integers(len(rig.cameras))]
         fwd = cam.T_base_sensor[:3, :3] @ R_from_r(rng.normal(0, 0.25, 3)) @ np.array([0.0, 0.0, 1.0])
         return random_board_pose(rng, rig.board, cam.T_base_sensor[:3, 3], tilt_max_deg=tilt_max_deg, forward=fwd,
                                  distance_m=(2.5, far), vertical=vertical, tilt_towards_rad=tilt_towards_rad)
-    L = rig.lidars[rng.integers(len(rig.lidars))]
+    L = aim if aim is not None else rig.lidars[rng.integers(len(rig.lidars))]
     return random_board_pose(rng, rig.board, L.T_base_sensor[:3, 3], tilt_max_deg=tilt_max_deg,
                              distance_m=(2.5, far), vertical=vertical, tilt_towards_rad=tilt_towards_rad)
+
+
+def _pairs(rig: Rig) -> list[tuple[str, str]]:
+    topics = [s.topic for s in (*rig.lidars, *rig.cameras)]
+    return [(a, b) for i, a in enumerate(topics) for b in topics[i + 1:]]
+
+
+def _pair_to_show(shown: dict, wanted: int, rng):
+    """The pair of sensors that has seen the board together least, if fewer than ``wanted`` times
+    (ties drawn at random), else None."""
+    short = [p for p, n in shown.items() if n < wanted]
+    if not short:
+        return None
+    least = min(shown[p] for p in short)
+    short = [p for p in short if shown[p] == least]
+    return short[rng.integers(len(short))]
+
+
+def _aim(rig: Rig, pair, rng):
+    """Where a person shows the board to both sensors of ``pair``: before its camera (one of
+    them, at random, if both are), else around one of its LIDARs."""
+    sensors = [s for s in (*rig.lidars, *rig.cameras) if s.topic in pair]
+    cams = [s for s in sensors if any(s is c for c in rig.cameras)]
+    pick = cams or sensors
+    return pick[rng.integers(len(pick))]
 
 
 def _lowest_z(rig: Rig, T: np.ndarray) -> float:
@@ -74,9 +103,9 @@ def _lowest_z(rig: Rig, T: np.ndarray) -> float:
 
 
 def _observe(rig: Rig, T_board, static, rng, stamps):
-    """Scans and images of one board pose, and how many sensors see the board."""
+    """Scans and images of one board pose, and the topics of the sensors that see the board."""
     scene = make_scene(rig.board, T_board, rng, static=static, person=rig.person, arm=rig.arm)
-    seen = 0
+    seen = set()
     scans = {}
     for i, L in enumerate(rig.lidars):
         scans[L.topic] = []
@@ -84,7 +113,7 @@ def _observe(rig: Rig, T_board, static, rng, stamps):
             scan, hit = simulate_scan(L.model, L.T_base_sensor, scene, rng, stamp_ns=t, topic=L.topic)
             scans[L.topic].append(scan)
             if m == 0 and len(np.unique(scan.ring[hit])) >= 3:
-                seen += 1
+                seen.add(L.topic)
     images, truth_corners = {}, {}
     for j, C in enumerate(rig.cameras):
         img, corners = render(C.sensor, C.T_base_sensor, scene, rig.board, T_board, rng, topic=C.topic,
@@ -92,7 +121,7 @@ def _observe(rig: Rig, T_board, static, rng, stamps):
         w, h = C.sensor.imagersize
         if corners is not None and np.all(np.isfinite(corners)) and np.all((corners >= 3) & (corners <= [w - 4, h - 4])) \
                 and _corners_unoccluded(scene, rig.board, T_board, C.T_base_sensor):
-            seen += 1
+            seen.add(C.topic)
             truth_corners[C.topic] = corners
         images[C.topic] = [_noisy(img, t, rng) for t in stamps["camera"][j]]
     return scans, images, truth_corners, seen
@@ -138,7 +167,7 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
              tilt_max_deg: float = 40.0, tf_error=(1.0, 0.03), hold_s: float = 2.0, move_s: float = 1.0,
              camera_hz: float = 5.0, clutter: bool = True, compress: bool = False, log_delays: bool = True,
              vertical_boards: bool = False, max_distance_m: float | None = None, planned_tilts: bool = False,
-             force: bool = False) -> dict:
+             pair_boards: int = 0, force: bool = False) -> dict:
     """Simulate a capture session of the rig in ``rig_yaml`` into ``out_dir`` (replaced atomically).
     ``compress``: lz4-compressed ROS1 bags (as `rosbag record --lz4` writes them).
     ``log_delays``: drivers' log times (see the module docstring); False: log time = stamp.
@@ -148,6 +177,9 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
     ``planned_tilts``: boards tilted as a careful person plans them (``planned_tilt``: pitched up
     and down, turned left and right in turn, by half to all of ``tilt_max_deg``); False: each
     about a random axis by up to ``tilt_max_deg`` (as the demo and the stress set were simulated).
+    ``pair_boards``: each pose held, while some pair of sensors has seen the board together on
+    fewer poses than this, where that pair (the fewest so far) both see it: before its camera, or
+    around one of its LIDARs (``_pair_to_show``); 0: wherever >= 2 sensors see it.
     ``force``: replace ``out_dir`` even if it is not a previous simulated session.
 
     Returns the truth dict that is also written to ``out_dir/truth.yaml``.
@@ -174,10 +206,16 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
             writer.write_tf_static(tf, stamp_ns=T0_NS)
         poses = []
         t_ns = T0_NS
+        shown = {pair: 0 for pair in _pairs(rig)} if pair_boards > 0 else {}  # poses each pair saw together
         for k in progress(range(n_poses), desc="simulating board poses", unit="pose"):
-            for _ in range(200):
+            pair = _pair_to_show(shown, pair_boards, rng)
+            for attempt in range(200 if pair is None else _PAIR_ATTEMPTS + 200):
+                if pair is not None and attempt == _PAIR_ATTEMPTS:  # the pair never both see it: leave it out
+                    shown.pop(pair)
+                    pair = None
+                aim = None if pair is None else _aim(rig, pair, rng)
                 T_board = _board_pose(rng, rig, tilt_max_deg, vertical_boards, max_distance_m,
-                                      planned_tilt(k) if planned_tilts else None)
+                                      planned_tilt(k) if planned_tilts else None, aim=aim)
                 if _lowest_z(rig, T_board) < 0.15:
                     continue
                 if continuous:
@@ -188,7 +226,7 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
                               "camera": [[t_ns + int(clock.uniform(0, 1e9 / camera_hz)) + int(m * 1e9 / camera_hz)
                                           for m in range(2)] for _ in rig.cameras]}
                 scans, images, corners, seen = _observe(rig, T_board, static, rng, stamps)
-                if seen >= 2:
+                if len(seen) >= 2 and (pair is None or set(pair) <= seen):
                     break
             else:
                 raise InputError(f"{rig.path}: could not place a board that >= 2 sensors see; check the sensor poses")
@@ -200,7 +238,8 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
                                 move_s)
                 _write(writer, rig, scans, images)
                 snapshots.append({"start_ns": int(t_ns), "end_ns": int(t_ns + hold_s * 1e9),
-                                  "rt_lidar0_board": rt_l0_b.tolist(), "seen_by": int(seen)})
+                                  "rt_lidar0_board": rt_l0_b.tolist(), "seen_by": len(seen),
+                                  "seen_by_topics": sorted(seen)})
                 t_ns += int((hold_s + move_s) * 1e9)
             else:
                 name = f"pose{k:03d}{ext}"
@@ -208,9 +247,11 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
                     w.write_tf_static(tf, stamp_ns=t_ns)
                     _write(w, rig, scans, images)
                 snapshots.append({"bag": name, "stamp_ns": int(t_ns), "rt_lidar0_board": rt_l0_b.tolist(),
-                                  "seen_by": int(seen),
+                                  "seen_by": len(seen), "seen_by_topics": sorted(seen),
                                   "corners_px": {t: c.tolist() for t, c in corners.items()}})
             poses.append(T_board)
+            for p in shown:
+                shown[p] += set(p) <= seen
         if continuous:
             writer.__exit__(None, None, None)
         truth = _truth(rig, tf, snapshots, format, continuous, seed)

@@ -138,3 +138,32 @@ def test_planned_tilts_pitch_boards_up_and_down():
     at = [[R_from_r(b[:3]) @ centre + b[3:] for b in t.rt_lidar0_board] for t in (planned, random)]
     np.testing.assert_allclose(at[0][0], at[1][0], atol=1e-9)
     assert not np.allclose(planned.rt_lidar0_board[0], random.rt_lidar0_board[0])
+
+
+def test_pair_boards_shows_the_board_to_every_pair_that_can_see_it(tmp_path):
+    """``pair_boards`` records as the README asks: every pair of sensors sees the board together
+    on that many poses; a pair that can never (cameras back to back) is left out, not a failure."""
+    import itertools
+
+    import mrcal
+
+    mrcal.cameramodel(intrinsics=("LENSMODEL_PINHOLE", np.array([30.0, 30.0, 31.5, 23.5])),
+                      imagersize=np.array([64, 48])).write(str(tmp_path / "tiny.cameramodel"))
+    rig = tmp_path / "rig.yaml"
+    rig.write_text("""
+lidars:
+  - {topic: /l, model: vlp16, frame_id: l, xyz: [0, 0, 1.9], rpy_deg: [0, 0, 0]}
+cameras:
+  - {topic: /front, model: tiny.cameramodel, encoding: mono8, frame_id: f, xyz: [0.5, 0, 1.5], rpy_deg: [0, 0, 0]}
+  - {topic: /left, model: tiny.cameramodel, encoding: mono8, frame_id: s, xyz: [0.5, 0.2, 1.5], rpy_deg: [0, 0, 40]}
+  - {topic: /rear, model: tiny.cameramodel, encoding: mono8, frame_id: r, xyz: [-0.5, 0, 1.5], rpy_deg: [0, 0, 180]}
+board: {corners: [10, 10], square_m: 0.1, size_m: [1.3, 1.3]}
+""")
+    truth = simulate(rig, tmp_path / "s", n_poses=8, seed=2, clutter=False, pair_boards=2)
+    seen = [set(s["seen_by_topics"]) for s in truth["snapshots"]]
+    for s in truth["snapshots"]:  # the record agrees with the corners it keeps
+        assert set(s["corners_px"]) == set(s["seen_by_topics"]) - {"/l"}
+    together = {p: sum(set(p) <= s for s in seen) for p in itertools.combinations(["/l", "/front", "/left", "/rear"], 2)}
+    for p in [("/l", "/front"), ("/l", "/left"), ("/l", "/rear"), ("/front", "/left")]:
+        assert together[p] >= 2, together
+    assert together[("/front", "/rear")] == together[("/left", "/rear")] == 0
