@@ -45,7 +45,7 @@ from .scene import make_scene, planned_tilt, random_board_pose, static_meshes
 log = logging.getLogger(__name__)
 
 T0_NS = 1_700_000_000_000_000_000
-_PAIR_ATTEMPTS = 60  # board poses drawn for a pair (pair_boards) before it is judged never to see one together
+_PAIR_ATTEMPTS = 200  # board poses drawn for a pair (pair_boards) before it is judged never to see one together
 DEMO_RIG = Path(__file__).resolve().parents[2] / "data" / "synthetic" / "demo-rig.yaml"
 DEMO_DIR = DEMO_RIG.parent / "demo"
 
@@ -118,13 +118,44 @@ def _observe(rig: Rig, T_board, static, rng, stamps):
     for j, C in enumerate(rig.cameras):
         img, corners = render(C.sensor, C.T_base_sensor, scene, rig.board, T_board, rng, topic=C.topic,
                               colour=C.encoding == "bgr8", noise_sigma=0.0)
-        w, h = C.sensor.imagersize
-        if corners is not None and np.all(np.isfinite(corners)) and np.all((corners >= 3) & (corners <= [w - 4, h - 4])) \
-                and _corners_unoccluded(scene, rig.board, T_board, C.T_base_sensor):
+        if _in_image(corners, C.sensor) and _corners_unoccluded(scene, rig.board, T_board, C.T_base_sensor):
             seen.add(C.topic)
             truth_corners[C.topic] = corners
         images[C.topic] = [_noisy(img, t, rng) for t in stamps["camera"][j]]
     return scans, images, truth_corners, seen
+
+
+def _in_image(corners, camera) -> bool:
+    """Whether every corner (None: one behind the camera) is at least 3 px inside the image."""
+    w, h = camera.imagersize
+    return corners is not None and bool(np.all(np.isfinite(corners)) and np.all((corners >= 3) & (corners <= [w - 4, h - 4])))
+
+
+def _may_see(rig: Rig, T_board, topics, site) -> bool:
+    """Whether every sensor of ``topics`` may see the board at T_board: its corners project into
+    each camera, and nothing of ``site`` (the static scene, no board) stands between a sensor and
+    the corners (a camera) or the board's centre (a LIDAR). A cheap test before a pose is
+    rendered and scanned (the person and the rings that cross the board are not checked)."""
+    from ..cameras import project
+
+    corners = rig.board.corners() @ T_board[:3, :3].T + T_board[:3, 3]
+    centre = corners.mean(axis=0, keepdims=True)
+    for S in (*rig.lidars, *rig.cameras):
+        if S.topic not in topics:
+            continue
+        camera = any(S is C for C in rig.cameras)
+        if camera:
+            T_cb = np.linalg.inv(S.T_base_sensor) @ T_board
+            pc = rig.board.corners() @ T_cb[:3, :3].T + T_cb[:3, 3]
+            if not (np.all(pc[:, 2] > 0.05) and _in_image(project(pc, S.sensor.lensmodel, S.sensor.intrinsics),
+                                                          S.sensor)):
+                return False
+        d = (corners if camera else centre) - S.T_base_sensor[:3, 3]
+        dist = np.linalg.norm(d, axis=1)
+        t_hit, _ = site.cast(np.c_[np.broadcast_to(S.T_base_sensor[:3, 3], d.shape), d / dist[:, None]])
+        if np.any(t_hit < dist - 0.02):
+            return False
+    return True
 
 
 def _corners_unoccluded(scene, board, T_board, T_camera) -> bool:
@@ -207,6 +238,7 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
         poses = []
         t_ns = T0_NS
         shown = {pair: 0 for pair in _pairs(rig)} if pair_boards > 0 else {}  # poses each pair saw together
+        site = make_scene(rig.board, None, rng, static=static, person=False) if shown else None
         for k in progress(range(n_poses), desc="simulating board poses", unit="pose"):
             pair = _pair_to_show(shown, pair_boards, rng)
             for attempt in range(200 if pair is None else _PAIR_ATTEMPTS + 200):
@@ -216,7 +248,7 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
                 aim = None if pair is None else _aim(rig, pair, rng)
                 T_board = _board_pose(rng, rig, tilt_max_deg, vertical_boards, max_distance_m,
                                       planned_tilt(k) if planned_tilts else None, aim=aim)
-                if _lowest_z(rig, T_board) < 0.15:
+                if _lowest_z(rig, T_board) < 0.15 or (pair is not None and not _may_see(rig, T_board, pair, site)):
                     continue
                 if continuous:
                     stamps = _ticks(phases, t_ns, t_ns + int(hold_s * 1e9), camera_hz)
