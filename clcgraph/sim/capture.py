@@ -138,23 +138,20 @@ def _may_see(rig: Rig, T_board, topics, site) -> bool:
     rendered and scanned (the person and the rings that cross the board are not checked)."""
     from ..cameras import project
 
-    corners = rig.board.corners() @ T_board[:3, :3].T + T_board[:3, 3]
-    centre = corners.mean(axis=0, keepdims=True)
-    for S in (*rig.lidars, *rig.cameras):
-        if S.topic not in topics:
-            continue
-        camera = any(S is C for C in rig.cameras)
-        if camera:
-            T_cb = np.linalg.inv(S.T_base_sensor) @ T_board
+    for C in rig.cameras:
+        if C.topic in topics:
+            T_cb = np.linalg.inv(C.T_base_sensor) @ T_board
             pc = rig.board.corners() @ T_cb[:3, :3].T + T_cb[:3, 3]
-            if not (np.all(pc[:, 2] > 0.05) and _in_image(project(pc, S.sensor.lensmodel, S.sensor.intrinsics),
-                                                          S.sensor)):
+            if not (np.all(pc[:, 2] > 0.05) and _in_image(project(pc, C.sensor.lensmodel, C.sensor.intrinsics), C.sensor)
+                    and _corners_unoccluded(site, rig.board, T_board, C.T_base_sensor)):
                 return False
-        d = (corners if camera else centre) - S.T_base_sensor[:3, 3]
-        dist = np.linalg.norm(d, axis=1)
-        t_hit, _ = site.cast(np.c_[np.broadcast_to(S.T_base_sensor[:3, 3], d.shape), d / dist[:, None]])
-        if np.any(t_hit < dist - 0.02):
-            return False
+    centre = T_board[:3, :3] @ rig.board.corners().mean(axis=0) + T_board[:3, 3]
+    for L in rig.lidars:
+        if L.topic in topics:
+            d = centre - L.T_base_sensor[:3, 3]
+            t_hit, _ = site.cast(np.r_[L.T_base_sensor[:3, 3], d / np.linalg.norm(d)][None])
+            if t_hit[0] < np.linalg.norm(d) - 0.02:
+                return False
     return True
 
 
