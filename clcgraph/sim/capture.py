@@ -45,7 +45,7 @@ from .scene import make_scene, planned_tilt, random_board_pose, static_meshes
 log = logging.getLogger(__name__)
 
 T0_NS = 1_700_000_000_000_000_000
-_PAIR_ATTEMPTS = 200  # board poses drawn for a pair (pair_boards) before it is judged never to see one together
+_PAIR_ATTEMPTS = 1000  # board poses drawn for a pair (pair_boards) before it is judged never to see one together
 DEMO_RIG = Path(__file__).resolve().parents[2] / "data" / "synthetic" / "demo-rig.yaml"
 DEMO_DIR = DEMO_RIG.parent / "demo"
 
