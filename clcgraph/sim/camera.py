@@ -33,6 +33,15 @@ def board_shade(board: BoardGeometry, xy: np.ndarray) -> np.ndarray:
     return np.where(inside & ((i + j) % 2 == 0), BLACK, WHITE)
 
 
+def board_corners_px(camera: Sensor, T_world_camera: np.ndarray, board: BoardGeometry,
+                     T_world_board: np.ndarray) -> np.ndarray | None:
+    """(N,2) pixels of the board's corners in ``camera``, or None if one is behind it (corners
+    behind the camera project to plausible-looking pixels: they are not seen)."""
+    T_cb = np.linalg.inv(T_world_camera) @ T_world_board
+    pc = board.corners() @ T_cb[:3, :3].T + T_cb[:3, 3]
+    return cameras.project(pc, camera.lensmodel, camera.intrinsics) if np.all(pc[:, 2] > 0.05) else None
+
+
 def render(camera: Sensor, T_world_camera: np.ndarray, scene, board: BoardGeometry, T_world_board: np.ndarray | None,
            rng, *, topic: str = "/camera", stamp_ns: int = 0, colour: bool = False, supersample: int = 4,
            noise_sigma: float = 2.0, blur_sigma_px: float = 0.0) -> tuple[Image, np.ndarray | None]:
@@ -57,10 +66,7 @@ def render(camera: Sensor, T_world_camera: np.ndarray, scene, board: BoardGeomet
         if near.any():
             img[near] = _supersampled_board(q[near], grid, T_world_camera, board, T_world_board, supersample,
                                             background=img[near], t_first=t_hit[near])
-        T_cb = np.linalg.inv(T_world_camera) @ T_world_board
-        pc = board.corners() @ T_cb[:3, :3].T + T_cb[:3, 3]
-        # corners behind the camera project to plausible-looking pixels: they are not seen
-        corners = cameras.project(pc, camera.lensmodel, camera.intrinsics) if np.all(pc[:, 2] > 0.05) else None
+        corners = board_corners_px(camera, T_world_camera, board, T_world_board)
     img = img.reshape(h, w)
     if blur_sigma_px > 0:
         import cv2

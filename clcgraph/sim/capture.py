@@ -26,6 +26,7 @@ SYNOPSIS
 
 from __future__ import annotations
 
+import itertools
 import logging
 from pathlib import Path
 
@@ -37,7 +38,7 @@ from ..geometry import R_from_r, rt_from_T
 from ..outputs.atomic import atomic_dir
 from ..progress import progress
 from .bag_writer import FORMATS, BagWriter, LogDelays
-from .camera import render
+from .camera import board_corners_px, render
 from .lidar import simulate_scan
 from .rig import Rig, load_rig
 from .scene import make_scene, planned_tilt, random_board_pose, static_meshes
@@ -69,11 +70,6 @@ def _board_pose(rng, rig: Rig, tilt_max_deg: float, vertical: bool = False, max_
     L = aim if aim is not None else rig.lidars[rng.integers(len(rig.lidars))]
     return random_board_pose(rng, rig.board, L.T_base_sensor[:3, 3], tilt_max_deg=tilt_max_deg,
                              distance_m=(2.5, far), vertical=vertical, tilt_towards_rad=tilt_towards_rad)
-
-
-def _pairs(rig: Rig) -> list[tuple[str, str]]:
-    topics = [s.topic for s in (*rig.lidars, *rig.cameras)]
-    return [(a, b) for i, a in enumerate(topics) for b in topics[i + 1:]]
 
 
 def _pair_to_show(shown: dict, wanted: int, rng):
@@ -136,13 +132,9 @@ def _may_see(rig: Rig, T_board, topics, site) -> bool:
     each camera, and nothing of ``site`` (the static scene, no board) stands between a sensor and
     the corners (a camera) or the board's centre (a LIDAR). A cheap test before a pose is
     rendered and scanned (the person and the rings that cross the board are not checked)."""
-    from ..cameras import project
-
     for C in rig.cameras:
         if C.topic in topics:
-            T_cb = np.linalg.inv(C.T_base_sensor) @ T_board
-            pc = rig.board.corners() @ T_cb[:3, :3].T + T_cb[:3, 3]
-            if not (np.all(pc[:, 2] > 0.05) and _in_image(project(pc, C.sensor.lensmodel, C.sensor.intrinsics), C.sensor)
+            if not (_in_image(board_corners_px(C.sensor, C.T_base_sensor, rig.board, T_board), C.sensor)
                     and _corners_unoccluded(site, rig.board, T_board, C.T_base_sensor)):
                 return False
     centre = T_board[:3, :3] @ rig.board.corners().mean(axis=0) + T_board[:3, 3]
@@ -234,7 +226,7 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
             writer.write_tf_static(tf, stamp_ns=T0_NS)
         poses = []
         t_ns = T0_NS
-        shown = {pair: 0 for pair in _pairs(rig)} if pair_boards > 0 else {}  # poses each pair saw together
+        shown = {pair: 0 for pair in itertools.combinations(rig.topics, 2)} if pair_boards > 0 else {}  # poses each pair saw together
         site = make_scene(rig.board, None, rng, static=static, person=False) if shown else None
         for k in progress(range(n_poses), desc="simulating board poses", unit="pose"):
             pair = _pair_to_show(shown, pair_boards, rng)
