@@ -45,9 +45,10 @@ def prepared(points, *, threads: int, tree=None):
     return cloud, tree
 
 
-def nearest(tree, points: np.ndarray):
-    """(squared distance (N,), index (N,)) of each point's nearest neighbour in ``tree``."""
-    idx, d2 = tree.batch_nearest_neighbor_search(np.ascontiguousarray(points, float), num_threads=1)
+def nearest(tree, points: np.ndarray, *, threads: int = 1):
+    """(squared distance (N,), index (N,)) of each point's nearest neighbour in ``tree`` (each point
+    searched on its own: the same answers whatever ``threads``)."""
+    idx, d2 = tree.batch_nearest_neighbor_search(np.ascontiguousarray(points, float), num_threads=threads)
     return np.asarray(d2), np.asarray(idx, np.int64)
 
 

@@ -95,7 +95,7 @@ class FrameData:
     def nearest(self, points: np.ndarray, max_dist: float):
         """(distance (N,), target index (N,)) of each point's nearest target point; inf and -1
         beyond ``max_dist``."""
-        d2, idx = gicp.nearest(self.tree, points)
+        d2, idx = gicp.nearest(self.tree, points, threads=self.threads)
         far = ~(d2 <= max_dist * max_dist)
         d = np.sqrt(d2)
         d[far], idx[far] = np.inf, -1
@@ -106,7 +106,8 @@ class FrameData:
         target points (computed once per point, where first needed)."""
         new = np.unique(idx[np.isnan(self.normals[idx, 0])])
         if len(new):
-            nb, _ = self.tree.batch_knn_search(self.target_pts[new].astype(float), gicp.NUM_NEIGHBORS, num_threads=1)
+            nb, _ = self.tree.batch_knn_search(self.target_pts[new].astype(float), gicp.NUM_NEIGHBORS,
+                                               num_threads=self.threads)
             q = self.target_pts[nb.astype(np.int64)].astype(float)
             q -= q.mean(axis=1, keepdims=True)
             self.normals[new] = np.linalg.eigh(np.einsum("pki,pkj->pij", q, q))[1][:, :, 0]  # least spread
@@ -279,7 +280,7 @@ def score(frames, T: np.ndarray, o, *, sub: int = 4) -> float:
     tot, n = 0.0, 0
     for fd in frames:
         p = fd.source_pts[::sub] @ T[:3, :3].T + T[:3, 3]
-        d2 = np.minimum(gicp.nearest(fd.tree, p)[0], c2)
+        d2 = np.minimum(gicp.nearest(fd.tree, p, threads=fd.threads)[0], c2)
         tot += d2.sum()
         n += len(d2)
     return tot / max(n, 1)
