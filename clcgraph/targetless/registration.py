@@ -192,7 +192,7 @@ def dense_target(mp, kid: int, T_map_lidar0: np.ndarray, o, *, max_frames: int =
         # and point neighbourhood
         n = max(1, round(0.5 / leaf))
         reach = reach_cells(source[0], source[1], cell=leaf * n, margin_m=o.max_corr_dist_coarse + 0.5)
-    clouds, indices, labels = [], [], []
+    clouds, keys = [], []
     for j, p in zip(ids, pos):  # frame by frame: only the points kept are ever together
         f = mp.frames[j]
         T = Tinv @ f.T_map_lidar
@@ -202,11 +202,9 @@ def dense_target(mp, kid: int, T_map_lidar0: np.ndarray, o, *, max_frames: int =
             keep = _member(pack(index // n), reach)
             q, index = q[keep], index[keep]
         clouds.append(q)
-        indices.append(index)
-        labels.append(np.full(len(q), np.searchsorted(positions, p), np.int64))
-    allp, index, labels = np.concatenate(clouds), np.concatenate(indices), np.concatenate(labels)
-    del clouds, indices
-    key = pack(index) * 64 + labels
+        keys.append(pack(index) * 64 + np.searchsorted(positions, p))  # (voxel, submap label)
+    allp, key = np.concatenate(clouds), np.concatenate(keys)
+    del clouds, keys
     order = np.argsort(key)
     key = key[order]
     first = np.flatnonzero(np.diff(key, prepend=key[:1] - 1))  # of each (voxel, submap) pair
@@ -488,13 +486,15 @@ def refine_per_frame(frames, T0: np.ndarray, o) -> list:
 
     frames = list(frames)
     other = Background(_refine, frames[1::2], T0, o, 1)
+    for fd in frames[1::2]:
+        # the child has them (forked) and frees each after use; this process's copy is not needed
+        # (without fork the child's part runs here at result() and builds them again, the same)
+        fd.release()
     try:
         mine = _refine(frames[0::2], T0, o)
         theirs = other.result()
     finally:
         other.cancel()  # only where an error left it running
-    for fd in frames[1::2]:
-        fd.release()  # refined in the child: this process's covariances and sources are not needed
     return [(theirs if i % 2 else mine)[i // 2] for i in range(len(frames))]
 
 
