@@ -223,7 +223,8 @@ def _alignment_pictures(fds, before: np.ndarray, after: np.ndarray, o) -> dict:
         return pts @ T[:3, :3].T + T[:3, 3]
 
     def distances(T):
-        return np.concatenate([np.sqrt(gicp.nearest(f.tree, moved(T, f.source_pts[::4]), threads=f.threads)[0]) for f in fds])
+        return np.concatenate([np.sqrt(gicp.nearest(f.tree, moved(T, f.source_pts[::4]), threads=f.threads)[0])
+                               for f in fds])
 
     return {"target": near(voxel_down(fd.target_pts, o.calibration_viz_leaf_size / 3)),
             "source_guess": near(moved(before, fd.source_pts)), "source_final": near(moved(after, fd.source_pts)),
