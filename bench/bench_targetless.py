@@ -163,7 +163,6 @@ def run_bag(duration_s: float = 60.0, small: bool = False, seed: int = 0, workdi
         _, status, ru = os.wait4(p.pid, 0)  # the child's own CPU time and peak RSS
     wall = time.perf_counter() - t
     in_use = in_use.stop()
-    wall = time.perf_counter() - t
     if os.waitstatus_to_exitcode(status) != 0:
         raise RuntimeError(f"clcgraph targetless failed: {(tmp / 'stderr.txt').read_text()[-2000:]}")
     stages = yaml.safe_load((out / "timings.yaml").read_text())
