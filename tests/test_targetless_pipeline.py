@@ -219,3 +219,24 @@ def test_frame_plan_follows_the_drive():
     assert (long_.skip_keyframes, long_.spacing_m) == (5, 5.0)  # a long drive: the configured values
     assert mid.skip_keyframes == 5 and mid.spacing_m == pytest.approx(24.0 / 10)
     assert adapt_to_drive(drive(12, 1.0), o).skip_keyframes == 2  # skipping never costs a frame of the budget
+
+
+@pytest.mark.slow
+def test_one_process_and_thread_gives_the_bytes_of_two(drive, monkeypatch):
+    """The same calibration to the bit as two threads and a forked child: small_gicp's per-point
+    steps keep the thread count, its order-dependent reductions run on one thread (gicp.py); a
+    forked child runs the same function on the same data (background.py)."""
+    from clcgraph.targetless import background
+
+    def run(threads):
+        return calibrate_targetless_scans(drive.scans, mapping_topic=TOP, calibration_topics=[SIDE],
+                                          T_base_sensor_guess=drive.T_base_lidar_guess, base_frame="base_link",
+                                          config=_cfg().replace(targetless=dict(mapper_num_threads=threads)))
+
+    assert background._can_fork()  # the default run below forks its children (Linux)
+    two = run(2)
+    monkeypatch.setattr(background, "_can_fork", lambda: False)
+    one = run(1)
+    assert np.array_equal(one.rt_lidar0_sensor, two.rt_lidar0_sensor)
+    assert np.array_equal(one.covariance_block(SIDE), two.covariance_block(SIDE))
+    assert np.array_equal(one.T_base_sensor[TOP], two.T_base_sensor[TOP])
