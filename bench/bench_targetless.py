@@ -159,10 +159,10 @@ def run_bag(duration_s: float = 60.0, small: bool = False, seed: int = 0, workdi
     t = time.perf_counter()
     with open(tmp / "stderr.txt", "w") as err:
         p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err)
-        in_use = _PssSampler(p.pid)
+        sampler = _PssSampler(p.pid)
         _, status, ru = os.wait4(p.pid, 0)  # the child's own CPU time and peak RSS
     wall = time.perf_counter() - t
-    in_use = in_use.stop()
+    in_use = sampler.stop()
     if os.waitstatus_to_exitcode(status) != 0:
         raise RuntimeError(f"clcgraph targetless failed: {(tmp / 'stderr.txt').read_text()[-2000:]}")
     stages = yaml.safe_load((out / "timings.yaml").read_text())
