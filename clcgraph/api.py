@@ -265,8 +265,9 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
     camera_obs: list[CameraBoardObservation] = []
     if detection is not None:
         with clock("detect"):
+            scans = {(s.index, i): s.scans[t] for i, t in enumerate(lidar_topics) for s in snaps if t in s.scans}
             found = detection.retry(_board_regions(sensors, lidar_obs, cam_images, detection, cfg, board,
-                                                   1 + max(s.index for s in snaps)))
+                                                   1 + max(s.index for s in snaps), scans))
         for (i, k, _), r in zip(cam_images, found):
             if isinstance(r, Rejected):
                 rejected.append(dataclasses.replace(r, sensor=i, snapshot=k))
@@ -345,11 +346,13 @@ def _first_detection_pass(images, options, board, timings):
         return BoardDetection(images, options, board)
 
 
-def _board_regions(sensors, lidar_obs, cam_images, detection, cfg, board, n_snapshots) -> list | None:
+def _board_regions(sensors, lidar_obs, cam_images, detection, cfg, board, n_snapshots, scans=None) -> list | None:
     """Per camera image, where its board can be (frontend.camera_board.board_regions): each camera
     with misses is seeded with the LIDARs from the first pass's detections (backend.seed), and the
-    LIDARs' views of each missed board are projected into it. None for a camera the seed cannot
-    place (fewer than min_shared_snapshots boards seen with a LIDAR): its misses are searched whole."""
+    LIDARs' views of each missed board are projected into it, with their whole scans (``scans``:
+    (snapshot, LIDAR index) -> LidarScan) for what stands in front of the board. None for a camera
+    the seed cannot place (fewer than min_shared_snapshots boards seen with a LIDAR): its misses
+    are searched whole."""
     from .backend.seed import seed
     from .errors import ClcgraphError
     from .frontend.camera_board import board_regions
@@ -383,9 +386,14 @@ def _board_regions(sensors, lidar_obs, cam_images, detection, cfg, board, n_snap
             continue
         rt_camera_lidar = {i: compose_rt(invert_rt(rt_lidar0[c]), rt_lidar0[n]) for n, i in enumerate(lidars)}
         views = [[(rt_camera_lidar[o.sensor], o) for o in by_snapshot.get(cam_images[k][1], ())] for k in todo]
-        for k, box in zip(todo, board_regions(sensors[cam], views, board)):
+        scenes = [[_valid_points((scans or {}).get((o.snapshot, o.sensor))) for _, o in v] for v in views]
+        for k, box in zip(todo, board_regions(sensors[cam], views, board, scenes)):
             regions[k] = box
     return regions
+
+
+def _valid_points(scan) -> np.ndarray | None:
+    return None if scan is None else np.asarray(scan.points, float)[scan.valid]
 
 
 def _why_missed(sensors, lidar_obs, camera_obs, rejected) -> str:

@@ -451,7 +451,8 @@ class BoardDetection:
         ``regions``: per image (all of them, in order) None (the board can be anywhere: the whole
         image, upsampled 2x), or a ``Region`` where it can be: that box is searched, upsampled 2x
         only if the predicted squares are small (``_UPSAMPLE_BELOW_PX``); an empty box
-        (``NOWHERE``) means it cannot be in view and the image is not searched again."""
+        (``NOWHERE``) means it cannot be in view and a ``hidden`` one that something in front of
+        the board covers its pattern (that is the image's reason): neither is searched again."""
         import cv2
 
         nx, ny, jobs = self.board.corners_x, self.board.corners_y, self.options.jobs
@@ -459,6 +460,9 @@ class BoardDetection:
         for k in self.missed:
             h, w = self.grays[k].shape
             r = None if regions is None else regions[k]
+            if r is not None and r.hidden:
+                self.results[k] = Rejected(r.hidden, "detection")
+                continue
             box = (0, 0, w, h) if r is None else r[:4]
             f = 2 if r is None or r.square_px is None or r.square_px < _UPSAMPLE_BELOW_PX else 1
             x0, y0 = max(0, int(np.floor(box[0]))), max(0, int(np.floor(box[1])))
@@ -509,30 +513,43 @@ _REGION_MARGIN_RAD = np.radians(2.0)
 _UPSAMPLE_BELOW_PX = 12.0
 
 
+# Something counts as in front of the board this far (m) before it along the camera's ray: beyond
+# a LIDAR's range noise and the seed's error, short of a hand on the board's edge
+_IN_FRONT_M = 0.15
+# ... and as hiding the board when this many of its LIDAR returns cover the board's pattern
+_HIDING_RETURNS = 3
+
+
 class Region(NamedTuple):
-    """Where a board can be in an image (pixels), and its predicted square size (px; None: unknown)."""
+    """Where a board can be in an image (pixels), and its predicted square size (px; None: unknown).
+    ``hidden``: why no detector can find it there (something in front of the board), else None."""
     x0: float
     y0: float
     x1: float
     y1: float
     square_px: float | None = None
+    hidden: str | None = None
 
 
 NOWHERE = Region(0.0, 0.0, 0.0, 0.0)
 
 
-def board_regions(camera, views, board: BoardGeometry) -> list:
+def board_regions(camera, views, board: BoardGeometry, scenes=None) -> list:
     """Where the board can be in each of a camera's images, from LIDAR views of the same boards.
 
     ``camera``: the camera's Sensor; ``views``: per image, a list of (rt_camera_lidar (6,),
-    LidarBoardObservation) of its snapshot (empty: no LIDAR saw that board). Returns per image
-    None (no prediction: the board may be anywhere), a ``Region`` (a box in pixels and the
-    predicted square size), or ``NOWHERE`` when the whole board cannot be in view.
+    LidarBoardObservation) of its snapshot (empty: no LIDAR saw that board); ``scenes``: optional,
+    per image, the same LIDARs' whole scans ((M,3) points in each LIDAR's frame, or None), in the
+    order of its views. Returns per image None (no prediction: the board may be anywhere), a
+    ``Region`` (a box in pixels and the predicted square size), or ``NOWHERE`` when the whole
+    board cannot be in view.
 
     The LIDAR's board points are on the board: when one of them projects outside the image
     (by more than the seed's error, ``_REGION_MARGIN_RAD``) or lies behind the camera, the
     board is not whole in the image and no detector can find it. Otherwise the board lies
-    within its half diagonal of the points' centroid: the box holds that disc, projected.
+    within its half diagonal of the points' centroid: the box holds that disc, projected. A
+    scan's returns in front of the board that cover its pattern in the image (``hidden_by``) make
+    the region ``hidden``: the camera sees them, not the whole pattern.
     """
     from clcgraph import cameras
     from clcgraph.geometry import transform
@@ -582,10 +599,58 @@ def board_regions(camera, views, board: BoardGeometry) -> list:
         qd, okd = project(np.concatenate(discs))
         # the disc's projected diameter is the board's diagonal: squares are that over diagonal / square
         square = float(np.max(np.ptp(qd[okd], axis=0))) * board.square_m / (2 * radius) if okd.sum() > 2 else None
+        hidden = None
+        ends = np.cumsum([len(p) for p in on_board])
+        for (rt_camera_lidar, obs), scan, q_view in zip(image_views, scenes[len(out)] if scenes else (),
+                                                         np.split(q, ends[:-1])):
+            hidden = hidden or hidden_by(camera, rt_camera_lidar, obs, scan, q_view, board)
         q = np.r_[q, qd[okd]]
         lo, hi = q.min(axis=0) - slack, q.max(axis=0) + slack
-        out.append(Region(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]), square))
+        out.append(Region(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]), square, hidden))
     return out
+
+
+def hidden_by(camera, rt_camera_lidar, obs, scan: np.ndarray | None, q_board: np.ndarray,
+              board: BoardGeometry) -> str | None:
+    """Why the camera cannot see the whole pattern of a board a LIDAR saw, or None: that LIDAR's
+    returns ``scan`` ((M,3), its frame) lying in front of the board's plane (``_IN_FRONT_M`` before
+    it along the camera's ray) and projecting onto the board's pattern (``_HIDING_RETURNS`` of
+    them): the board's returns as projected (``q_board``, (N,2) px) shrunk about their centre to
+    the pattern's share of the board. Whatever a LIDAR sees in front of the board is there for
+    the camera too: a pole, an arm across it, the person holding it."""
+    import cv2
+
+    from clcgraph import cameras
+    from clcgraph.geometry import R_from_r, transform
+
+    if scan is None or len(scan) == 0 or len(q_board) < 3:
+        return None
+    rt = np.asarray(rt_camera_lidar, float)
+    p = transform(rt, np.asarray(scan, float))
+    n = R_from_r(rt[:3]) @ np.asarray(obs.plane[:3], float)
+    d = float(obs.plane[3]) + n @ rt[3:]  # the board's plane n . x = d in the camera's frame
+    r = np.linalg.norm(p, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = d * r / (p @ n)  # where each return's camera ray meets the plane
+    front = (p[:, 2] > 0) & (s > 0) & (r < s - _IN_FRONT_M)
+    # ... near the board (no farther from its returns' centre than the board's half diagonal): only
+    # those can cover it, and a lens model is not asked about rays far outside its view
+    centre = transform(rt, np.asarray(obs.points, float)).mean(axis=0)
+    front[front] = np.linalg.norm(p[front] * (s[front] / r[front])[:, None] - centre, axis=1) \
+        <= 0.5 * np.hypot(*board.size_m)
+    if front.sum() < _HIDING_RETURNS:
+        return None
+    q = cameras.project(p[front], camera.lensmodel, camera.intrinsics)
+    share = min(*np.divide(board.pattern_size_m, board.size_m), 1.0)
+    c = q_board.mean(axis=0)
+    hull = cv2.convexHull((c + share * (q_board - c)).astype(np.float32))
+    inside = np.array([np.isfinite(u + v) and cv2.pointPolygonTest(hull, (float(u), float(v)), False) >= 0
+                       for u, v in q], bool)
+    if inside.sum() < _HIDING_RETURNS:
+        return None
+    ahead = float(np.median((s - r)[front][inside]))
+    return (f"board hidden in part: {int(inside.sum())} LIDAR returns {ahead:.1f} m in front of it cover its "
+            "pattern in this image (a pole, an arm, the person?)")
 
 
 # Squares smaller than this (px) are often missed even in the 2x upsampled image (see detect_corners)

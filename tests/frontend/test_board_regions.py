@@ -103,3 +103,40 @@ def test_nowhere_skips_the_retry():
     assert not isinstance(d.retry([NOWHERE])[0], np.ndarray)
     d = BoardDetection([Image("cam", 0, img, "mono8")], DetectionOptions(), BOARD)
     assert isinstance(d.retry([None])[0], np.ndarray)  # the whole image, as without a prediction
+
+
+def _pole(rng, x, z, thick=0.1, n=300):
+    """Returns of a vertical pole ``thick`` m thick at (x, ., z) in the camera's frame, 3 m tall."""
+    e = thick / 2
+    return np.c_[x + rng.uniform(-e, e, n), rng.uniform(-1.5, 1.5, n), z + rng.uniform(-e, e, n)]
+
+
+# 0.3 m before the middle of the board's white border (in-plane x 0.61 of 0.55-0.65), towards the camera
+_BORDER = np.array([0.61 * np.cos(np.radians(20)), 5.0 - 0.61 * np.sin(np.radians(20))])
+_BORDER *= 1 - 0.3 / np.linalg.norm(_BORDER)
+
+
+@pytest.mark.parametrize("pole, hidden", [
+    ((0.0, 3.0), True),     # across the pattern, 2 m before the board
+    ((0.0, 4.9), False),    # touching the board's face: within a hand's reach of it
+    ((0.0, 6.0), False),    # behind the board
+    ((1.2, 3.0), False),    # in front, beside the board in the image
+    ((*_BORDER, 0.04), False),  # in front of the white border only
+])
+def test_something_in_front_of_the_pattern_hides_the_board(pole, hidden):
+    """A LIDAR's returns in front of the board that project onto its pattern make the region hidden
+    (no retry, that reason); near the board's plane, behind it, beside it or over its white border only
+    they do not."""
+    rng = np.random.default_rng(2)
+    R, t = _board((0.0, 0.0, 5.0))
+    view = _lidar_view(R, t, rng)
+    scene = np.r_[view.points, _pole(rng, *pole)]
+    (region,) = board_regions(CAMERA, [[(np.zeros(6), view)]], BOARD, [[scene]])
+    assert isinstance(region, Region) and region != NOWHERE
+    assert (region.hidden is not None) == hidden, region.hidden
+    if hidden:
+        assert "hidden in part" in region.hidden and "2.0 m in front" in region.hidden
+    img, _ = _small_board_image()
+    d = BoardDetection([Image("cam", 0, img, "mono8")], DetectionOptions(), BOARD)
+    if hidden:  # not searched again: the reason is the region's
+        assert d.retry([region])[0].reason == region.hidden
