@@ -226,3 +226,20 @@ def test_a_side_hidden_in_view_keeps_its_board(clean):
     assert off_board_side(hidden, q, 10, 10) is None
     right = int(np.ceil(g[:, -1, 0].max())) + 3  # the image ends just past the right column of corners
     assert off_board_side(hidden[:, :right], q, 10, 10) == "left column"
+
+
+@pytest.mark.parametrize("shift, width, expected", [
+    ((5000, 0), 300, "no board in view"),
+    ((1023, 767), 300, "board partly outside the image (< 1 % of"),   # one point of 400 in
+    ((1024 - 150, 0), 300, "board partly outside the image (50 % of"),
+    ((400, 300), 40, "board 40 px wide: too small (squares ~3.1 px"),
+    ((400, 300), 300, "board in view, 300 px wide (squares ~23 px"),
+])
+def test_why_a_board_was_not_found(shift, width, expected):
+    """The reason a camera found no board, from where the solved poses put it (the 1.3 m board's
+    points, a grid 20 x 20, projected)."""
+    from clcgraph.frontend.camera_board import not_found_reason
+
+    u, v = np.meshgrid(np.linspace(0, width, 20), np.linspace(0, width, 20))
+    q = np.c_[u.ravel(), v.ravel()] + shift
+    assert not_found_reason(q, (W, H), BOARD, what="its LIDAR points").startswith(expected)

@@ -670,8 +670,8 @@ def not_found_reason(q_px: np.ndarray, imagersize: tuple[int, int], board: Board
     if not inside.any():
         return f"no board in view ({what} project outside the image, by the solved poses)"
     if not inside.all():
-        return (f"board partly outside the image ({100 * inside.mean():.0f} % of {what} inside, "
-                "by the solved poses)")
+        share = f"{100 * inside.mean():.0f} %" if inside.mean() >= 0.005 else "< 1 %"
+        return f"board partly outside the image ({share} of {what} inside, by the solved poses)"
     width = float(np.max(np.ptp(q, axis=0)))
     square = width * board.square_m / max(board.width_m, board.height_m)
     if square < SMALL_SQUARE_PX:
