@@ -516,8 +516,11 @@ _UPSAMPLE_BELOW_PX = 12.0
 # Something counts as in front of the board this far (m) before it along the camera's ray: beyond
 # a LIDAR's range noise and the seed's error, short of a hand on the board's edge
 _IN_FRONT_M = 0.15
-# ... and as hiding the board when this many of its LIDAR returns cover the board's pattern
+# ... and as hiding the board when this many of its LIDAR returns cover the board's pattern, each
+# with two others within this distance (m): a surface's returns, not stray ones (a heavy-tailed
+# range error puts a board's own return decimetres short, alone)
 _HIDING_RETURNS = 3
+_NEIGHBOUR_M = 0.15
 
 
 class Region(NamedTuple):
@@ -615,9 +618,10 @@ def hidden_by(camera, rt_camera_lidar, obs, scan: np.ndarray | None, q_board: np
     """Why the camera cannot see the whole pattern of a board a LIDAR saw, or None: that LIDAR's
     returns ``scan`` ((M,3), its frame) lying in front of the board's plane (``_IN_FRONT_M`` before
     it along the camera's ray) and projecting onto the board's pattern (``_HIDING_RETURNS`` of
-    them): the board's returns as projected (``q_board``, (N,2) px) shrunk about their centre to
-    the pattern's share of the board. Whatever a LIDAR sees in front of the board is there for
-    the camera too: a pole, an arm across it, the person holding it."""
+    them, each with two others within ``_NEIGHBOUR_M``): the board's returns as projected
+    (``q_board``, (N,2) px) shrunk about their centre to the pattern's share of the board.
+    Whatever a LIDAR sees in front of the board is there for the camera too: a pole, an arm
+    across it, the person holding it."""
     import cv2
 
     from clcgraph import cameras
@@ -643,13 +647,21 @@ def hidden_by(camera, rt_camera_lidar, obs, scan: np.ndarray | None, q_board: np
     q = cameras.project(p[front], camera.lensmodel, camera.intrinsics)
     share = min(*np.divide(board.pattern_size_m, board.size_m), 1.0)
     c = q_board.mean(axis=0)
-    hull = cv2.convexHull((c + share * (q_board - c)).astype(np.float32))
-    inside = np.array([np.isfinite(u + v) and cv2.pointPolygonTest(hull, (float(u), float(v)), False) >= 0
-                       for u, v in q], bool)
+    pattern = (c + share * (q_board - c)).astype(np.float32)
+    hull = cv2.convexHull(pattern)
+    near = np.all((q >= pattern.min(axis=0)) & (q <= pattern.max(axis=0)), axis=1)  # (NaN: False)
+    inside = near.copy()
+    inside[near] = [cv2.pointPolygonTest(hull, (float(u), float(v)), False) >= 0 for u, v in q[near]]
     if inside.sum() < _HIDING_RETURNS:
         return None
-    ahead = float(np.median((s - r)[front][inside]))
-    return (f"board hidden in part: {int(inside.sum())} LIDAR returns {ahead:.1f} m in front of it cover its "
+    from scipy.spatial import cKDTree
+
+    cover = p[front][inside]
+    solid = cKDTree(cover).query_ball_point(cover, _NEIGHBOUR_M, return_length=True) >= 3
+    if solid.sum() < _HIDING_RETURNS:
+        return None
+    ahead = float(np.median((s - r)[front][inside][solid]))
+    return (f"board hidden in part: {int(solid.sum())} LIDAR returns {ahead:.1f} m in front of it cover its "
             "pattern in this image (a pole, an arm, the person?)")
 
 

@@ -140,3 +140,16 @@ def test_something_in_front_of_the_pattern_hides_the_board(pole, hidden):
     d = BoardDetection([Image("cam", 0, img, "mono8")], DetectionOptions(), BOARD)
     if hidden:  # not searched again: the reason is the region's
         assert d.retry([region])[0].reason == region.hidden
+
+
+def test_stray_short_returns_of_the_board_do_not_hide_it():
+    """Heavy-tailed range errors put some of the board's own returns decimetres short, over its pattern,
+    but each alone: no surface in front of the board."""
+    rng = np.random.default_rng(3)
+    R, t = _board((0.0, 0.0, 5.0))
+    view = _lidar_view(R, t, rng)
+    p = view.points.copy()
+    stray = rng.choice(len(p), 12, replace=False)  # 3 % of them, 0.3-0.6 m short along their rays
+    p[stray] *= (1 - rng.uniform(0.3, 0.6, 12) / np.linalg.norm(p[stray], axis=1))[:, None]
+    (region,) = board_regions(CAMERA, [[(np.zeros(6), view)]], BOARD, [[p]])
+    assert region.hidden is None
