@@ -450,13 +450,14 @@ class BoardDetection:
 
         ``regions``: per image (all of them, in order) None (the board can be anywhere: the whole
         image, upsampled 2x), or a ``Region`` where it can be: that box is searched, upsampled 2x
-        only if the predicted squares are small (``_UPSAMPLE_BELOW_PX``); an empty box
+        if the predicted squares are small (``_UPSAMPLE_BELOW_PX``) or the box is at most a
+        quarter of the image (then at no more cost than the first pass); an empty box
         (``NOWHERE``) means it cannot be in view and a ``hidden`` one that something in front of
         the board covers its pattern (that is the image's reason): neither is searched again."""
         import cv2
 
         nx, ny, jobs = self.board.corners_x, self.board.corners_y, self.options.jobs
-        crops = {}  # image index -> (x0, y0, x1, y1, upsampling factor) searched again
+        crops = {}  # image index -> (x0, y0, x1, y1, upsampling factor for mrgingham, OpenCV's in turn)
         for k in self.missed:
             h, w = self.grays[k].shape
             r = None if regions is None else regions[k]
@@ -464,30 +465,39 @@ class BoardDetection:
                 self.results[k] = Rejected(r.hidden, "detection")
                 continue
             box = (0, 0, w, h) if r is None else r[:4]
-            f = 2 if r is None or r.square_px is None or r.square_px < _UPSAMPLE_BELOW_PX else 1
             x0, y0 = max(0, int(np.floor(box[0]))), max(0, int(np.floor(box[1])))
             x1, y1 = min(w, int(np.ceil(box[2]))), min(h, int(np.ceil(box[3])))
+            # 2x where the squares are small, and wherever that costs no more than the first pass did
+            # (a box of at most a quarter of the image): the first pass missed this board at this
+            # scale, a board hidden in part at its edge among them. OpenCV tries such a box as it is
+            # first: it finds most boards of >= 8 px squares there, at a third of the cost
+            small = r is None or r.square_px is None or r.square_px < _UPSAMPLE_BELOW_PX
+            f = 2 if small or 4 * (x1 - x0) * (y1 - y0) <= w * h else 1
             if x1 - x0 >= 2 * (nx + 1) and y1 - y0 >= 2 * (ny + 1):  # room for squares of >= 2 px
-                crops[k] = (x0, y0, x1, y1, f)
+                crops[k] = (x0, y0, x1, y1, f, (2,) if small else (1, 2)[:f])
         log.debug("retrying %d of the %d missed images (%d of them whole: no prediction)", len(crops), len(self.missed),
                   sum(regions is None or regions[k] is None for k in crops))
         self.missed = []
-        up = {k: cv2.resize(self.grays[k][y0:y1, x0:x1], None, fx=f, fy=f, interpolation=cv2.INTER_CUBIC)
-              if f > 1 else self.grays[k][y0:y1, x0:x1] for k, (x0, y0, x1, y1, f) in crops.items()}
 
-        def back(k, c):  # (upsampled) crop -> image pixels (pixel centres at integers in both)
-            x0, y0, _, _, f = crops[k]
+        @functools.lru_cache(maxsize=None)
+        def crop(k, f):  # the box of image k, upsampled f times
+            x0, y0, x1, y1 = crops[k][:4]
+            g = self.grays[k][y0:y1, x0:x1]
+            return cv2.resize(g, None, fx=f, fy=f, interpolation=cv2.INTER_CUBIC) if f > 1 else g
+
+        def back(k, c, f):  # (upsampled) crop -> image pixels (pixel centres at integers in both)
+            x0, y0 = crops[k][:2]
             return (c + 0.5) / f - 0.5 + (x0, y0)
 
         # mrgingham misses small boards (squares of 5-8 px): it finds them in the image upsampled 2x,
         # and some boards in a crop it misses in the whole image
         keys = list(crops)
         still = []
-        for k, c in zip(keys, _run_mrgingham([up[k] for k in keys], nx, jobs)):
+        for k, c in zip(keys, _run_mrgingham([crop(k, crops[k][4]) for k in keys], nx, jobs)):
             if c is None:
                 still.append(k)
             else:
-                self.results[k] = self._validated(k, back(k, c + _OFFSET_PX["mrgingham"]))
+                self.results[k] = self._validated(k, back(k, c + _OFFSET_PX["mrgingham"], crops[k][4]))
         # ... and where it still finds nothing, OpenCV's sector-based detector may, in the
         # upsampled image too (its grid passes the same checks). The full detector is slow, so
         # it runs only where OpenCV's quick check sees a board, except in low-resolution images
@@ -495,14 +505,18 @@ class BoardDetection:
         # has squares of 3-5 px, which the quick check misses. Its exhaustive search (twice the
         # cost of a miss, the usual outcome here: a board hidden in part) only where the board can
         # be anywhere in the image; a box the LIDARs predicted holds little but the board
-        if still and self.options.fallback_opencv:
-            still = [k for k in still if max(self.grays[k].shape) <= SMALL_IMAGE_PX
-                     or cv2.checkChessboard(up[k], (nx, ny))]
-            anywhere = [regions is None or regions[k] is None for k in still]
-            for k, c in zip(still, _run_opencv([up[k] for k in still], nx, ny, jobs, exhaustive=anywhere,
-                                               quick_first=False)):
+        for turn in range(2 if still and self.options.fallback_opencv else 0):
+            tries = [(k, crops[k][5][turn]) for k in still if turn < len(crops[k][5])]
+            tries = [(k, f) for k, f in tries if max(self.grays[k].shape) <= SMALL_IMAGE_PX
+                     or cv2.checkChessboard(crop(k, f), (nx, ny))]
+            if not tries:
+                continue
+            anywhere = [regions is None or regions[k] is None for k, _ in tries]
+            for (k, f), c in zip(tries, _run_opencv([crop(k, f) for k, f in tries], nx, ny, jobs,
+                                                    exhaustive=anywhere, quick_first=False)):
                 if c is not None:
-                    self.results[k] = self._validated(k, back(k, c + _OFFSET_PX["opencv"]))
+                    self.results[k] = self._validated(k, back(k, c + _OFFSET_PX["opencv"], f))
+                    still.remove(k)
         return self.results
 
 
