@@ -386,14 +386,10 @@ def _board_regions(sensors, lidar_obs, cam_images, detection, cfg, board, n_snap
             continue
         rt_camera_lidar = {i: compose_rt(invert_rt(rt_lidar0[c]), rt_lidar0[n]) for n, i in enumerate(lidars)}
         views = [[(rt_camera_lidar[o.sensor], o) for o in by_snapshot.get(cam_images[k][1], ())] for k in todo]
-        scenes = [[_valid_points((scans or {}).get((o.snapshot, o.sensor))) for _, o in v] for v in views]
+        scenes = [[(scans or {}).get((o.snapshot, o.sensor)) for _, o in v] for v in views]
         for k, box in zip(todo, board_regions(sensors[cam], views, board, scenes)):
             regions[k] = box
     return regions
-
-
-def _valid_points(scan) -> np.ndarray | None:
-    return None if scan is None else np.asarray(scan.points, float)[scan.valid]
 
 
 def _why_missed(sensors, lidar_obs, camera_obs, rejected) -> str:

@@ -556,8 +556,7 @@ def board_regions(camera, views, board: BoardGeometry, scenes=None) -> list:
 
     ``camera``: the camera's Sensor; ``views``: per image, a list of (rt_camera_lidar (6,),
     LidarBoardObservation) of its snapshot (empty: no LIDAR saw that board); ``scenes``: optional,
-    per image, the same LIDARs' whole scans ((M,3) points in each LIDAR's frame, or None), in the
-    order of its views. Returns per image None (no prediction: the board may be anywhere), a
+    per image, the same LIDARs' whole scans (LidarScan, or None), in the order of its views. Returns per image None (no prediction: the board may be anywhere), a
     ``Region`` (a box in pixels and the predicted square size), or ``NOWHERE`` when the whole
     board cannot be in view.
 
@@ -627,10 +626,9 @@ def board_regions(camera, views, board: BoardGeometry, scenes=None) -> list:
     return out
 
 
-def hidden_by(camera, rt_camera_lidar, obs, scan: np.ndarray | None, q_board: np.ndarray,
-              board: BoardGeometry) -> str | None:
+def hidden_by(camera, rt_camera_lidar, obs, scan, q_board: np.ndarray, board: BoardGeometry) -> str | None:
     """Why the camera cannot see the whole pattern of a board a LIDAR saw, or None: that LIDAR's
-    returns ``scan`` ((M,3), its frame) lying in front of the board's plane (``_IN_FRONT_M`` before
+    returns in ``scan`` (its LidarScan of the snapshot, or None) lying in front of the board's plane (``_IN_FRONT_M`` before
     it along the camera's ray) and projecting onto the board's pattern (``_HIDING_RETURNS`` of
     them, each with two others within ``_NEIGHBOUR_M``): the board's returns as projected
     (``q_board``, (N,2) px) shrunk about their centre to the pattern's share of the board.
@@ -641,10 +639,10 @@ def hidden_by(camera, rt_camera_lidar, obs, scan: np.ndarray | None, q_board: np
     from clcgraph import cameras
     from clcgraph.geometry import R_from_r, transform
 
-    if scan is None or len(scan) == 0 or len(q_board) < 3:
+    if scan is None or not scan.valid.any() or len(q_board) < 3:
         return None
     rt = np.asarray(rt_camera_lidar, float)
-    p = transform(rt, np.asarray(scan, float))
+    p = transform(rt, np.asarray(scan.points, float)[scan.valid])
     n = R_from_r(rt[:3]) @ np.asarray(obs.plane[:3], float)
     d = float(obs.plane[3]) + n @ rt[3:]  # the board's plane n . x = d in the camera's frame
     r = np.linalg.norm(p, axis=1)

@@ -11,7 +11,7 @@ import pytest
 
 from clcgraph.config import DetectionOptions
 from clcgraph.frontend.camera_board import NOWHERE, BoardDetection, Region, board_regions
-from clcgraph.types import BoardGeometry, Image, LidarBoardObservation, Sensor
+from clcgraph.types import BoardGeometry, Image, LidarBoardObservation, LidarScan, Sensor
 
 W, H, F = 1024, 768, 700.0
 CAMERA = Sensor("/cam", "camera", "LENSMODEL_PINHOLE", np.array([F, F, (W - 1) / 2, (H - 1) / 2]), (W, H))
@@ -105,6 +105,11 @@ def test_nowhere_skips_the_retry():
     assert isinstance(d.retry([None])[0], np.ndarray)  # the whole image, as without a prediction
 
 
+def _scan(points):
+    """A LIDAR's whole scan of these points (its frame: here the camera's)."""
+    return LidarScan("/lidar", 0, points, np.ones(len(points), bool))
+
+
 def _pole(rng, x, z, thick=0.1, n=300):
     """Returns of a vertical pole ``thick`` m thick at (x, ., z) in the camera's frame, 3 m tall."""
     e = thick / 2
@@ -131,7 +136,7 @@ def test_something_in_front_of_the_pattern_hides_the_board(pole, hidden):
     R, t = _board((0.0, 0.0, 5.0))
     view = _lidar_view(R, t, rng)
     scene = np.r_[view.points, _pole(rng, *pole)]
-    (region,) = board_regions(CAMERA, [[(np.zeros(6), view)]], BOARD, [[scene]])
+    (region,) = board_regions(CAMERA, [[(np.zeros(6), view)]], BOARD, [[_scan(scene)]])
     assert isinstance(region, Region) and region != NOWHERE
     assert (region.hidden is not None) == hidden, region.hidden
     if hidden:
@@ -151,7 +156,7 @@ def test_stray_short_returns_of_the_board_do_not_hide_it():
     p = view.points.copy()
     stray = rng.choice(len(p), 12, replace=False)  # 3 % of them, 0.3-0.6 m short along their rays
     p[stray] *= (1 - rng.uniform(0.3, 0.6, 12) / np.linalg.norm(p[stray], axis=1))[:, None]
-    (region,) = board_regions(CAMERA, [[(np.zeros(6), view)]], BOARD, [[p]])
+    (region,) = board_regions(CAMERA, [[(np.zeros(6), view)]], BOARD, [[_scan(p)]])
     assert region.hidden is None
 
 
