@@ -556,9 +556,9 @@ def board_regions(camera, views, board: BoardGeometry, scenes=None) -> list:
 
     ``camera``: the camera's Sensor; ``views``: per image, a list of (rt_camera_lidar (6,),
     LidarBoardObservation) of its snapshot (empty: no LIDAR saw that board); ``scenes``: optional,
-    per image, the same LIDARs' whole scans (LidarScan, or None), in the order of its views. Returns per image None (no prediction: the board may be anywhere), a
-    ``Region`` (a box in pixels and the predicted square size), or ``NOWHERE`` when the whole
-    board cannot be in view.
+    per image, the same LIDARs' whole scans (LidarScan, or None), in the order of its views.
+    Returns per image None (no prediction: the board may be anywhere), a ``Region`` (a box in
+    pixels and the predicted square size), or ``NOWHERE`` when the whole board cannot be in view.
 
     The LIDAR's board points are on the board: when one of them projects outside the image
     (by more than the seed's error, ``_REGION_MARGIN_RAD``) or lies behind the camera, the
@@ -628,13 +628,14 @@ def board_regions(camera, views, board: BoardGeometry, scenes=None) -> list:
 
 def hidden_by(camera, rt_camera_lidar, obs, scan, q_board: np.ndarray, board: BoardGeometry) -> str | None:
     """Why the camera cannot see the whole pattern of a board a LIDAR saw, or None: that LIDAR's
-    returns in ``scan`` (its LidarScan of the snapshot, or None) lying in front of the board's plane (``_IN_FRONT_M`` before
-    it along the camera's ray) and projecting onto the board's pattern (``_HIDING_RETURNS`` of
-    them, each with two others within ``_NEIGHBOUR_M``): the board's returns as projected
-    (``q_board``, (N,2) px) shrunk about their centre to the pattern's share of the board.
-    Whatever a LIDAR sees in front of the board is there for the camera too: a pole, an arm
-    across it, the person holding it."""
+    returns in ``scan`` (its LidarScan of the snapshot, or None) lying in front of the board's
+    plane (``_IN_FRONT_M`` before it along the camera's ray) and projecting onto the board's
+    pattern (``_HIDING_RETURNS`` of them, each with two others within ``_NEIGHBOUR_M``): the
+    board's returns as projected (``q_board``, (N,2) px) shrunk about their centre to the
+    pattern's share of the board. Whatever a LIDAR sees in front of the board is there for the
+    camera too: a pole, an arm across it, the person holding it."""
     import cv2
+    from scipy.spatial import cKDTree
 
     from clcgraph import cameras
     from clcgraph.geometry import R_from_r, transform
@@ -666,8 +667,6 @@ def hidden_by(camera, rt_camera_lidar, obs, scan, q_board: np.ndarray, board: Bo
     inside[near] = [cv2.pointPolygonTest(hull, (float(u), float(v)), False) >= 0 for u, v in q[near]]
     if inside.sum() < _HIDING_RETURNS:
         return None
-    from scipy.spatial import cKDTree
-
     cover = p[front][inside]
     solid = cKDTree(cover).query_ball_point(cover, _NEIGHBOUR_M, return_length=True) >= 3
     if solid.sum() < _HIDING_RETURNS:
