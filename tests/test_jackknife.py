@@ -118,3 +118,21 @@ def test_covariance_raised_only_where_the_jackknife_rejects_the_model():
     # the sigmas 0.45x the truth: most axes are caught, and raised to about the true variance
     assert raised["too small"] >= 0.6 * axes, (raised, axes)
     assert 0.7 < np.median(back) < 1.5, np.median(back)
+
+
+def test_a_snapshot_holding_all_but_a_rounding_share_of_a_direction_is_indispensable():
+    """Whether the rest's normal matrix still passes Cholesky depends on the machine; the share it keeps
+    does not: under 1e-6 of a direction's information left, the snapshot is indispensable."""
+    from clcgraph.backend.jackknife import _INDISPENSABLE, kept_share
+
+    rng = np.random.default_rng(0)
+    Q = np.linalg.qr(rng.normal(size=(6, 6)))[0]
+    D = np.diag(10.0 ** np.array([3, 3, 3, -1, -1, -2]))  # rad and m: the diagonal over decades
+    S = D @ Q @ np.diag([10.0, 5, 3, 2, 1.5, 1]) @ Q.T @ D
+    u = np.linalg.solve(D, Q[:, 5])  # a direction the snapshot holds all of but a share eps
+    u /= np.sqrt(u @ S @ u)
+    for eps, indispensable in ((1e-9, True), (1e-3, False)):
+        S_k = (1 - eps) * np.outer(S @ u, S @ u)  # its information along u, all of S's but eps
+        share = kept_share(S, S - S_k)
+        assert abs(share - eps) < 1e-3 * eps, share
+        assert (share < _INDISPENSABLE) == indispensable

@@ -49,6 +49,9 @@ import numpy as np
 from ..geometry import drt_dxi
 
 _MIN_SNAPSHOTS = 4  # fewer: the spread says nothing
+# A snapshot is indispensable when the others hold less than this share of the information along
+# some direction (leaving it out, the answer there is over 1000 sigmas loose)
+_INDISPENSABLE = 1e-6
 
 
 def _axes(C_model: np.ndarray, C_jk: np.ndarray, scale: float, expected_var) -> dict:
@@ -61,7 +64,8 @@ def _axes(C_model: np.ndarray, C_jk: np.ndarray, scale: float, expected_var) -> 
     model = np.sqrt(np.maximum(lam, 0.0))
     jk = np.sqrt(np.maximum(np.einsum("ia,ij,ja->a", V, C_jk, V), 0.0))
     E, var = expected_var(V)
-    dof = 2 * E**2 / np.maximum(var, 1e-300)  # Satterthwaite: the jackknife variance ~ E chi2_dof / dof
+    # Satterthwaite: the jackknife variance ~ E chi2_dof / dof (NaN where rounding left var <= 0)
+    dof = np.where(var > 0, 2 * E**2 / np.where(var > 0, var, 1.0), np.nan)
     safe = np.where(model > 0, model, 1.0)
     centre = np.sqrt(np.maximum(E, 0.0)) / safe  # E < 0 is rounding, along a direction one board alone holds
     with np.errstate(invalid="ignore"):  # chi2.ppf's own formula; NaN where dof is not positive
@@ -69,6 +73,15 @@ def _axes(C_model: np.ndarray, C_jk: np.ndarray, scale: float, expected_var) -> 
     return {"axes": V.T, "model": model * scale, "jackknife": jk * scale,
             "ratio": np.where(model > 0, jk / safe, np.nan), "dof": dof,
             "expected": centre, "expected_95": centre[:, None] * np.sqrt(q)}
+
+
+def kept_share(S: np.ndarray, S_rest: np.ndarray) -> float:
+    """The smallest share of the information S that ``S_rest`` holds along any direction: the
+    smallest eigenvalue of S_rest relative to S (both Jacobi-scaled first: rotations and metres
+    put S's diagonal over many decades, and the share is wanted to far below 1e-6)."""
+    d = 1 / np.sqrt(np.diag(S))
+    L_inv = np.linalg.inv(np.linalg.cholesky(d[:, None] * S * d))
+    return float(np.linalg.eigvalsh(L_inv @ (d[:, None] * S_rest * d) @ L_inv.T)[0])
 
 
 def _refit_weights(problem, lin, k, components) -> dict:
@@ -106,9 +119,10 @@ def jackknife(problem, lin, rt_lidar0_sensor: np.ndarray, covariance_rt: np.ndar
     moves, A, indispensable = {}, {}, []
     for k in sorted(parts):
         S_k, r_k = parts[k]
-        try:
-            np.linalg.cholesky(S - S_k)
-        except np.linalg.LinAlgError:  # without this board some sensor is not determined
+        # without this board some sensor is not determined: the rest keep under _INDISPENSABLE of the
+        # information along some direction (there the leave-one-out answer is 1/sqrt(that) sigmas
+        # loose: a rounding-level share, whether Cholesky still passes depends on the machine's BLAS)
+        if kept_share(S, S - S_k) < _INDISPENSABLE:
             indispensable.append(k)
             continue
         if components is None:
