@@ -182,7 +182,7 @@ def frontend_cpu(bags_glob: str, topics, models) -> dict[str, float]:
         snapshots=[s.index for s in snaps if t in s.scans]) if isinstance(o, LidarBoardObservation)])
     sensors = [Sensor(topic=t, kind="lidar") for t in lidar_topics]
     sensors += [cameras.load_camera(t, m) for t, m in zip(camera_topics, models)]
-    scans = {(s.index, i): s.scans[t] for i, t in enumerate(lidar_topics) for s in snaps if t in s.scans}
+    scans = api._scans_by_lidar(snaps, lidar_topics)
     regions = timed("detect: regions", lambda: api._board_regions(sensors, lidar_obs, cam_images, detection, cfg,
                                                                    board, len(snaps), scans))
     timed("detect: retries", lambda: detection.retry(regions))

@@ -265,7 +265,7 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
     camera_obs: list[CameraBoardObservation] = []
     if detection is not None:
         with clock("detect"):
-            scans = {(s.index, i): s.scans[t] for i, t in enumerate(lidar_topics) for s in snaps if t in s.scans}
+            scans = _scans_by_lidar(snaps, lidar_topics)
             found = detection.retry(_board_regions(sensors, lidar_obs, cam_images, detection, cfg, board,
                                                    1 + max(s.index for s in snaps), scans))
         for (i, k, _), r in zip(cam_images, found):
@@ -344,6 +344,11 @@ def _first_detection_pass(images, options, board, timings):
 
     with StageClock(timings)("detect"):
         return BoardDetection(images, options, board)
+
+
+def _scans_by_lidar(snaps, lidar_topics) -> dict:
+    """{(snapshot index, LIDAR index): its LidarScan} of the snapshots (``_board_regions``' ``scans``)."""
+    return {(s.index, i): s.scans[t] for i, t in enumerate(lidar_topics) for s in snaps if t in s.scans}
 
 
 def _board_regions(sensors, lidar_obs, cam_images, detection, cfg, board, n_snapshots, scans=None) -> list | None:

@@ -77,11 +77,12 @@ def _axes(C_model: np.ndarray, C_jk: np.ndarray, scale: float, expected_var) -> 
 
 def kept_share(S: np.ndarray, S_rest: np.ndarray) -> float:
     """The smallest share of the information S that ``S_rest`` holds along any direction: the
-    smallest eigenvalue of S_rest relative to S (both Jacobi-scaled first: rotations and metres
+    smallest generalized eigenvalue of (S_rest, S), both Jacobi-scaled first (rotations and metres
     put S's diagonal over many decades, and the share is wanted to far below 1e-6)."""
+    from scipy.linalg import eigh
+
     d = 1 / np.sqrt(np.diag(S))
-    L_inv = np.linalg.inv(np.linalg.cholesky(d[:, None] * S * d))
-    return float(np.linalg.eigvalsh(L_inv @ (d[:, None] * S_rest * d) @ L_inv.T)[0])
+    return float(eigh(d[:, None] * S_rest * d, d[:, None] * S * d, eigvals_only=True, subset_by_index=[0, 0])[0])
 
 
 def _refit_weights(problem, lin, k, components) -> dict:

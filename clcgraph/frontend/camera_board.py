@@ -617,23 +617,25 @@ def board_regions(camera, views, board: BoardGeometry, scenes=None) -> list:
         square = float(np.max(np.ptp(qd[okd], axis=0))) * board.square_m / (2 * radius) if okd.sum() > 2 else None
         hidden = None
         ends = np.cumsum([len(p) for p in on_board])
-        for (rt_camera_lidar, obs), scan, q_view in zip(image_views, scenes[len(out)] if scenes else (),
-                                                         np.split(q, ends[:-1])):
-            hidden = hidden or hidden_by(camera, rt_camera_lidar, obs, scan, q_view, board)
+        for (rt_camera_lidar, obs), scan, p_view, q_view in zip(image_views, scenes[len(out)] if scenes else (),
+                                                                 on_board, np.split(q, ends[:-1])):
+            hidden = hidden or hidden_by(camera, rt_camera_lidar, obs, scan, p_view, q_view, board)
         q = np.r_[q, qd[okd]]
         lo, hi = q.min(axis=0) - slack, q.max(axis=0) + slack
         out.append(Region(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]), square, hidden))
     return out
 
 
-def hidden_by(camera, rt_camera_lidar, obs, scan, q_board: np.ndarray, board: BoardGeometry) -> str | None:
+def hidden_by(camera, rt_camera_lidar, obs, scan, p_board: np.ndarray, q_board: np.ndarray,
+              board: BoardGeometry) -> str | None:
     """Why the camera cannot see the whole pattern of a board a LIDAR saw, or None: that LIDAR's
     returns in ``scan`` (its LidarScan of the snapshot, or None) lying in front of the board's
     plane (``_IN_FRONT_M`` before it along the camera's ray) and projecting onto the board's
     pattern (``_HIDING_RETURNS`` of them, each with two others within ``_NEIGHBOUR_M``): the
-    board's returns as projected (``q_board``, (N,2) px) shrunk about their centre to the
-    pattern's share of the board. Whatever a LIDAR sees in front of the board is there for the
-    camera too: a pole, an arm across it, the person holding it."""
+    board's returns (``obs.points`` in the camera's frame, ``p_board`` (N,3), and as projected,
+    ``q_board`` (N,2) px) shrunk about their centre to the pattern's share of the board.
+    Whatever a LIDAR sees in front of the board is there for the camera too: a pole, an arm
+    across it, the person holding it."""
     import cv2
     from scipy.spatial import cKDTree
 
@@ -652,7 +654,7 @@ def hidden_by(camera, rt_camera_lidar, obs, scan, q_board: np.ndarray, board: Bo
     front = (p[:, 2] > 0) & (s > 0) & (r < s - _IN_FRONT_M)
     # ... near the board (no farther from its returns' centre than the board's half diagonal): only
     # those can cover it, and a lens model is not asked about rays far outside its view
-    centre = transform(rt, np.asarray(obs.points, float)).mean(axis=0)
+    centre = p_board.mean(axis=0)
     front[front] = np.linalg.norm(p[front] * (s[front] / r[front])[:, None] - centre, axis=1) \
         <= 0.5 * np.hypot(*board.size_m)
     if front.sum() < _HIDING_RETURNS:
