@@ -318,7 +318,7 @@ class TargetlessOptions:
     # Filled in by the targetless calibration; see targetless/ for the meaning of each.
     mapping_max_frames: int = 500
     local_map_num_keyframes: int = 15
-    dense_pointcloud_num_keyframes: int = 10
+    dense_pointcloud_num_keyframes: int = 10  # <= 31: a dense target voxel's submap label has 6 bits
     mapping_min_range: float = 0.5
     mapping_max_range: float = 60.0
     # Scans with fewer points in range are not mapped (partial or blocked scans).
@@ -676,7 +676,7 @@ _RANGES = {
     "sectors.uncertainty_quantification_range_m": "(0, inf)",
     "targetless.mapping_max_frames": "[2, inf)",
     "targetless.local_map_num_keyframes": "[1, inf)",
-    "targetless.dense_pointcloud_num_keyframes": "[1, inf)",
+    "targetless.dense_pointcloud_num_keyframes": "[1, 31]",
     "targetless.mapping_min_range": "[0, inf)",
     "targetless.mapping_max_range": "(0, inf)",
     "targetless.min_mapping_pointcloud_size": "[1, inf)",

@@ -211,3 +211,62 @@ def test_cli_simulate_drive_writes_a_bag_to_try_targetless_on(tmp_path, capsys):
     truth = yaml.safe_load((tmp_path / "drv" / "truth.yaml").read_text())
     assert truth["reference"] == "/top/points" and len(truth["sensors"]) == 2
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary left behind
+
+
+def test_dense_target_is_the_voxel_centroids_of_its_submaps_frames_and_knows_each_voxels_submaps():
+    """DenseMap.target against a direct computation: the centroids of the map-frame voxels of the
+    frames it uses (every step-th of the submaps within
+    +-dense_pointcloud_num_keyframes), in lidar0 at the frame's pose; TargetParts' counts per
+    submap are those voxels' points; the reach keeps only voxels near the source."""
+    from clcgraph.targetless.mapping import Frame, MapResult
+    from clcgraph.targetless.registration import DenseMap
+
+    rng = np.random.default_rng(5)
+    mp = MapResult("/top")
+    for k in range(60):  # a keyframe every 6 frames
+        T = geo.T_from_rt(np.r_[0.0, 0.0, 0.02 * k, 0.1 * k, 0.03 * k, 0.0])
+        mp.frames.append(Frame(int(k * 1e8), rng.uniform(-6, 6, (400, 3)).astype(np.float32), T, np.zeros(6)))
+    mp.keyframe_ids = list(range(0, 60, 6))
+    o = Config().replace(targetless=dict(dense_pointcloud_num_keyframes=2, leaf_size_dense_map=0.5,
+                                         min_calibration_range=0.0, max_calibration_range=100.0)).targetless
+    dense = DenseMap(mp, o, max_frames=10)
+    assert dense.step == 3  # the widest window: 5 submaps of 6 frames
+    kid = 24
+    T_map_lidar0 = geo.T_from_rt(np.r_[0.0, 0.1, 0.0, 1.0, 2.0, 0.5])
+    pts, parts = dense.target(kid, T_map_lidar0)
+
+    positions = list(range(2, 7))  # keyframe 24 is position 4
+    ids = [j for j in range(12, 42) if j % 3 == 0]
+    q = np.concatenate([mp.frames[j].points @ mp.frames[j].T_map_lidar[:3, :3].T + mp.frames[j].T_map_lidar[:3, 3]
+                        for j in ids])
+    label = np.concatenate([np.full(len(mp.frames[j].points), positions.index(j // 6)) for j in ids])
+    vox = np.floor(q / 0.5).astype(np.int64)
+    uniq, inv = np.unique(vox, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    n = np.bincount(inv)
+    want = np.stack([np.bincount(inv, q[:, i]) for i in range(3)], axis=1) / n[:, None]
+    want = want @ np.linalg.inv(T_map_lidar0)[:3, :3].T + np.linalg.inv(T_map_lidar0)[:3, 3]
+    assert len(pts) == len(uniq)
+    order_got, order_want = np.lexsort(pts.T), np.lexsort(want.T)
+    np.testing.assert_allclose(pts[order_got], want[order_want], atol=1e-6)
+    per_submap = np.zeros((len(uniq), len(positions)))
+    np.add.at(per_submap, (inv, label), 1)
+    got = np.zeros((len(pts), len(positions)))
+    rows, at = parts.pairs(np.arange(len(pts)))
+    np.add.at(got, (rows, parts.group[at]), parts.counts[at])
+    np.testing.assert_array_equal(got[order_got], per_submap[order_want])
+    assert list(parts.positions) == positions and parts.anchor == 4
+
+    # with a source: only voxels within reach of its points are kept, and they are the same voxels
+    src = np.array([[20.0, 0.0, 0.0]])  # in lidar0; the map's points lie within ~8 m of its origin
+    near, near_parts = dense.target(kid, T_map_lidar0, reach=dense.reach(T_map_lidar0, src, np.zeros(3)))
+    assert len(near) == 0 and len(near_parts.start) == 1
+    src = pts[:1] + 0.01
+    reach = dense.reach(T_map_lidar0, src, np.zeros(3))
+    near, _ = dense.target(kid, T_map_lidar0, reach=reach)
+    assert 0 < len(near) < len(pts) and np.linalg.norm(near - src, axis=1).max() < 8.0
+    assert np.isin(near.round(6), pts.round(6)).all()
+    # submaps made within the frames' reach only: the same target
+    dense.make_submaps([kid], within=reach)
+    again, _ = dense.target(kid, T_map_lidar0, reach=reach)
+    np.testing.assert_allclose(again, near, atol=1e-6)

@@ -16,6 +16,7 @@ submap moved (``influence``), which is how targetless/keyframe_graph.py ties fra
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 
@@ -30,13 +31,30 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class TargetParts:
-    """Which keyframe submaps made each voxel of a dense target (for the graph's links)."""
-    leaf: float
-    pair_codes: np.ndarray  # sorted unique voxel_code * 64 + group index
-    counts: np.ndarray  # int32 raw points per (voxel, group)
+    """Which keyframe submaps made each point of a dense target (for the graph's links): point i
+    is the centroid of a voxel holding ``counts[start[i]:start[i + 1]]`` raw points of the
+    submaps ``positions[group[start[i]:start[i + 1]]]``."""
+    start: np.ndarray  # (M+1,) int64
+    group: np.ndarray  # (P,) int64 index into positions, per (voxel, submap) pair
+    counts: np.ndarray  # (P,) int32 raw points per (voxel, submap) pair
     positions: np.ndarray  # group index -> keyframe position (index into MapResult.keyframe_ids)
     anchor: int  # keyframe position of the calibration frame's own keyframe
     T_anchor_kf: dict  # keyframe position -> (4,4) pose of its submap in the target's frame
+
+    def pairs(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(row into ``idx`` (P',), pair index (P',)) of every (voxel, submap) pair of points ``idx``."""
+        lo = self.start[idx]
+        cnt = self.start[idx + 1] - lo
+        rows = np.repeat(np.arange(len(idx)), cnt)
+        return rows, np.repeat(lo - (np.cumsum(cnt) - cnt), cnt) + np.arange(cnt.sum())
+
+    def subset(self, keep: np.ndarray) -> "TargetParts":
+        """The parts of the points where ``keep`` (a mask over the target's points) holds."""
+        idx = np.flatnonzero(keep)
+        _, at = self.pairs(idx)
+        cnt = self.start[idx + 1] - self.start[idx]
+        return dataclasses.replace(self, start=np.r_[0, np.cumsum(cnt)], group=self.group[at],
+                                   counts=self.counts[at])
 
 
 @dataclass
@@ -132,11 +150,6 @@ def voxel_codes(points: np.ndarray, leaf: float) -> np.ndarray:
     return pack(voxel_index(points, leaf))
 
 
-def keyframe_position(mp, frame_ids) -> np.ndarray:
-    """Position (in mp.keyframe_ids) of the latest keyframe at or before each frame."""
-    return np.searchsorted(np.asarray(mp.keyframe_ids), np.asarray(frame_ids), side="right") - 1
-
-
 def reach_cells(source_pts: np.ndarray, origin: np.ndarray, *, cell: float = 1.0, margin_m: float = 1.0,
                 margin_per_m: float = np.tan(np.radians(3.0)), max_cells: int = 16) -> np.ndarray:
     """Sorted ``voxel_codes`` at ``cell`` of the cells a registration of ``source_pts`` (placed by
@@ -171,51 +184,117 @@ def _decode(codes: np.ndarray) -> np.ndarray:
     return np.c_[(codes >> 38) & m, (codes >> 19) & m, codes & m] - (1 << 18)
 
 
-def dense_target(mp, kid: int, T_map_lidar0: np.ndarray, o, *, max_frames: int = 40, source=None):
-    """(M,3) mapping points of the frames within +-dense_pointcloud_num_keyframes keyframes, in lidar0
-    at T, and the TargetParts telling which keyframe's submap each voxel came from. ``source``:
-    (points (N,3), sensor origin (3,)) in lidar0 at the guess: only the target within its reach
-    (``reach_cells``) is kept."""
-    kpos = mp.keyframe_ids.index(kid)
-    lo = mp.keyframe_ids[max(0, kpos - o.dense_pointcloud_num_keyframes)]
-    hi = mp.keyframe_ids[min(len(mp.keyframe_ids) - 1, kpos + o.dense_pointcloud_num_keyframes)]
-    ids = np.arange(lo, hi + 1)
-    if len(ids) > max_frames:
-        ids = np.unique(np.r_[np.linspace(lo, hi, max_frames).round().astype(int), kid])
-    Tinv = np.linalg.inv(T_map_lidar0)
-    leaf = max(o.leaf_size_dense_map, 0.02)
-    pos = keyframe_position(mp, ids)
-    positions = np.unique(pos)
-    if source is not None:
-        # cells of whole dense voxels (n leaves: 0.5 m at the default 5 cm), so a voxel is kept or
-        # left out whole; the margin: the coarse correspondence distance and 0.5 m of guess error
-        # and point neighbourhood
-        n = max(1, round(0.5 / leaf))
-        reach = reach_cells(source[0], source[1], cell=leaf * n, margin_m=o.max_corr_dist_coarse + 0.5)
-    clouds, keys = [], []
-    for j, p in zip(ids, pos):  # frame by frame: only the points kept are ever together
-        f = mp.frames[j]
-        T = Tinv @ f.T_map_lidar
-        q = f.points @ T[:3, :3].T + T[:3, 3]
-        index = voxel_index(q, leaf)  # once: the reach's cells, the parts and the centroids group by it
-        if source is not None:
-            keep = _member(pack(index // n), reach)
-            q, index = q[keep], index[keep]
-        clouds.append(q)
-        keys.append(pack(index) * 64 + np.searchsorted(positions, p))  # (voxel, submap label)
-    allp, key = np.concatenate(clouds), np.concatenate(keys)
-    del clouds, keys
-    order = np.argsort(key)
-    key = key[order]
-    first = np.flatnonzero(np.diff(key, prepend=key[:1] - 1))  # of each (voxel, submap) pair
-    pairs, counts = key[first], np.diff(np.r_[first, len(key)])
-    parts = TargetParts(leaf, pairs, counts.astype(np.int32), positions, kpos,
-                        {int(p): Tinv @ mp.frames[mp.keyframe_ids[p]].T_map_lidar for p in positions})
-    voxel = pairs >> 6
-    start = first[np.flatnonzero(np.diff(voxel, prepend=voxel[:1] - 1))]  # of each voxel
-    pts = np.add.reduceat(allp[order], start) / np.diff(np.r_[start, len(key)])[:, None]  # centroids
-    r = np.linalg.norm(pts, axis=1)
-    return pts[(r >= o.min_calibration_range) & (r <= o.max_calibration_range)], parts
+@dataclass
+class _Submap:
+    """One keyframe submap's dense frames as voxels of the map frame (``DenseMap.leaf``), grouped
+    by reach cell (``DenseMap.n`` voxels a side), 24 B a voxel."""
+    codes: np.ndarray  # (V,) int64 voxel_codes
+    offsets: np.ndarray  # (V,3) float32 centroid of the voxel's points, from its corner
+    counts: np.ndarray  # (V,) int32 points in each voxel
+    cells: np.ndarray  # (C,) int64 sorted voxel_codes of the reach cells
+    cell_sizes: np.ndarray  # (C,) voxels of each cell (in order)
+
+
+class DenseMap:
+    """The calibration frames' dense targets of one map. A frame's target is the centroids of
+    the map-frame voxels (``leaf_size_dense_map``) of the mapping frames within
+    +-dense_pointcloud_num_keyframes keyframe submaps of its own, within reach of its source
+    (``reach``), in lidar0 at its stamp. The mapping frames used are every ``step``-th, the
+    same for every target (``step``: at most ``max_frames`` in the widest window), so
+    neighbouring targets share their submaps' voxels, made once for all frames
+    (``make_submaps``) and only where some frame's source reaches."""
+
+    def __init__(self, mp, o, *, max_frames: int = 40):
+        self.mp, self.o = mp, o
+        self.leaf = max(o.leaf_size_dense_map, 0.02)
+        self.n = max(1, round(0.5 / self.leaf))  # reach cells of whole voxels: 0.5 m at 5 cm
+        kf = np.asarray(mp.keyframe_ids, np.int64)
+        self._ends = np.r_[kf[1:], len(mp.frames)]
+        widest = max(self._ends[w[-1]] - kf[w[0]] for w in map(self.window, range(len(kf))))
+        self.step = max(1, -(-int(widest) // max_frames))
+        self._submaps: dict = {}
+        self._within = None
+
+    def window(self, kpos: int) -> range:
+        """Keyframe positions of the submaps in the dense target of a frame at keyframe ``kpos``."""
+        N = self.o.dense_pointcloud_num_keyframes
+        return range(max(0, kpos - N), min(len(self.mp.keyframe_ids), kpos + N + 1))
+
+    def reach(self, T_map_lidar0: np.ndarray, source_pts: np.ndarray, origin: np.ndarray) -> np.ndarray:
+        """Sorted map-frame codes of the reach cells (``reach_cells``) of a source (N,3) placed in
+        lidar0 by the guess, ``origin`` its sensor's position in lidar0; the margin: the coarse
+        correspondence distance and 0.5 m of guess error and point neighbourhood."""
+        R, t = T_map_lidar0[:3, :3], T_map_lidar0[:3, 3]
+        return reach_cells(source_pts @ R.T + t, R @ origin + t, cell=self.leaf * self.n,
+                           margin_m=self.o.max_corr_dist_coarse + 0.5)
+
+    def make_submaps(self, kids, within: np.ndarray | None = None) -> None:
+        """Make the submaps of the targets of frames at keyframes ``kids`` (before a fork: both
+        processes then share them), of the points in the reach cells ``within`` only (sorted codes,
+        e.g. the union of the frames' ``reach``; None: all)."""
+        self._submaps, self._within = {}, within
+        for kid in kids:
+            for pos in self.window(self.mp.keyframe_ids.index(kid)):
+                self.submap(pos)
+
+    def submap(self, pos: int) -> _Submap:
+        if pos not in self._submaps:
+            first = self.mp.keyframe_ids[pos]
+            frames = [self.mp.frames[j] for j in range(first, int(self._ends[pos])) if j % self.step == 0]
+            # none where a submap is shorter than step: its neighbours' frames cover it
+            q = np.concatenate([np.zeros((0, 3))] + [f.points @ f.T_map_lidar[:3, :3].T + f.T_map_lidar[:3, 3]
+                                                     for f in frames])
+            index = voxel_index(q, self.leaf)
+            if self._within is not None:
+                keep = _member(pack(np.floor_divide(index, self.n)), self._within)
+                q, index = q[keep], index[keep]
+            code, order = _sorted(pack(index))
+            start = np.flatnonzero(np.diff(code, prepend=code[:1] - 1))
+            codes, counts = code[start], np.diff(np.r_[start, len(code)]).astype(np.int32)
+            index = index[order[start]]
+            offsets = np.add.reduceat(q[order], start) / counts[:, None] - index * self.leaf
+            cell, by = _sorted(pack(np.floor_divide(index, self.n)))
+            first = np.flatnonzero(np.diff(cell, prepend=cell[:1] - 1))
+            self._submaps[pos] = _Submap(codes[by], offsets[by].astype(np.float32), counts[by], cell[first],
+                                         np.diff(np.r_[first, len(cell)]))
+        return self._submaps[pos]
+
+    def target(self, kid: int, T_map_lidar0: np.ndarray, *, reach: np.ndarray | None = None,
+               z_max: float = np.inf):
+        """(M,3) dense target of a frame at keyframe ``kid`` whose lidar0 pose is T_map_lidar0, in
+        lidar0, and its TargetParts; only the voxels in the cells ``reach`` (sorted codes, see
+        ``reach``; None: all) and up to ``z_max`` (lidar0)."""
+        o = self.o
+        kpos = self.mp.keyframe_ids.index(kid)
+        positions = np.asarray(self.window(kpos))
+        keys, offsets, counts = [], [], []
+        for label, pos in enumerate(positions):
+            s = self.submap(int(pos))
+            keep = np.repeat(_member(s.cells, reach), s.cell_sizes) if reach is not None else slice(None)
+            keys.append(s.codes[keep] * 64 + label)  # (voxel, submap label): unique, a submap's voxels are
+            offsets.append(s.offsets[keep])
+            counts.append(s.counts[keep])
+        key, order = _sorted(np.concatenate(keys))
+        offsets, counts = np.concatenate(offsets)[order], np.concatenate(counts)[order]
+        start = np.flatnonzero(np.diff(key >> 6, prepend=(key[:1] >> 6) - 1))  # of each voxel
+        Tinv = np.linalg.inv(T_map_lidar0)
+        parts = TargetParts(np.r_[start, len(key)], key & 63, counts, positions, kpos,
+                            {int(p): Tinv @ self.mp.frames[self.mp.keyframe_ids[p]].T_map_lidar for p in positions})
+        if len(key) == 0:
+            return np.zeros((0, 3)), parts
+        n = np.add.reduceat(counts, start)
+        corner = _decode(key[start] >> 6) * self.leaf
+        centroids = np.add.reduceat(offsets * counts[:, None], start) / n[:, None] + corner
+        pts = centroids @ Tinv[:3, :3].T + Tinv[:3, 3]
+        r = np.linalg.norm(pts, axis=1)
+        keep = (r >= o.min_calibration_range) & (r <= o.max_calibration_range) & (pts[:, 2] <= z_max)
+        return pts[keep], parts.subset(keep)
+
+
+def _sorted(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(sorted a, the order that sorts it), stable: a merge of sorted runs is fast (timsort)."""
+    order = np.argsort(a, kind="stable")
+    return a[order], order
 
 
 def _adjoint_to_sensor(T_lidar0_sensor: np.ndarray, xi: np.ndarray) -> np.ndarray:
@@ -224,40 +303,43 @@ def _adjoint_to_sensor(T_lidar0_sensor: np.ndarray, xi: np.ndarray) -> np.ndarra
     return gtsam.Pose3(np.linalg.inv(T_lidar0_sensor)).AdjointMap() @ xi
 
 
-def _frame_problem(cf, mp, T_guess: np.ndarray, o, deskew_on: bool):
-    """(cropped raw source, its times, deskewed source, dense target, TargetParts) of one calibration frame."""
+def _source(cf, T_guess: np.ndarray, o, deskew_on: bool):
+    """(cropped raw source, its times, deskewed source, the same in lidar0 at the guess) of one calibration frame."""
     s = cf.scan
     m = crop_range(s.points, s.valid, o.min_calibration_range, o.max_calibration_range)
     raw, tau = s.points[m], (s.time_s[m] if (deskew_on and s.time_s is not None) else None)
     src = deskew(raw, tau, _adjoint_to_sensor(T_guess, cf.twist_lidar0))
-    src0 = src @ T_guess[:3, :3].T + T_guess[:3, 3]  # in lidar0, at the guess
-    tgt, parts = dense_target(mp, cf.keyframe_id, cf.T_map_lidar0, o, source=(src0, T_guess[:3, 3]))
-    if o.crop_z_calibration_pointclouds:
-        zmax = src0[:, 2].max() + o.crop_z_calibration_pointclouds_value
-        tgt = tgt[tgt[:, 2] <= zmax]
-    return raw, tau, src, tgt, parts
+    return raw, tau, src, src @ T_guess[:3, :3].T + T_guess[:3, 3]
 
 
 def prepare_frames(chosen, mp, T_guess: np.ndarray, o, *, deskew_on: bool = True, progress=None) -> list:
-    """Dense targets and deskewed, cropped sources for the selected calibration frames: every
-    other frame's in a forked child (the other core; background.py), the same function on the
-    same data, so the same frames as one process would make."""
+    """Dense targets and deskewed, cropped sources for the selected calibration frames. The
+    submaps are made once, within reach of some frame's source; every other frame's target is
+    then made in a forked child (the other core; background.py), the same function on the same
+    data, so the same frames as one process would make. The submaps are freed on return."""
     from .background import Background
 
     chosen = list(chosen)
+    sources = [_source(cf, T_guess, o, deskew_on) for cf in chosen]
+    dense = DenseMap(mp, o)
+    reach = [dense.reach(cf.T_map_lidar0, src0, T_guess[:3, 3]) for cf, (*_, src0) in zip(chosen, sources)]
+    dense.make_submaps([cf.keyframe_id for cf in chosen], within=np.unique(np.concatenate(reach)))
 
-    def problems(cfs):
-        return [_frame_problem(cf, mp, T_guess, o, deskew_on) for cf in cfs]
+    def targets(frames):
+        z_top = [src0[:, 2].max() + o.crop_z_calibration_pointclouds_value if o.crop_z_calibration_pointclouds
+                 else np.inf for *_, src0 in (sources[i] for i in frames)]
+        return [dense.target(chosen[i].keyframe_id, chosen[i].T_map_lidar0, reach=reach[i], z_max=z)
+                for i, z in zip(frames, z_top)]
 
-    other = Background(problems, chosen[1::2])
+    other = Background(targets, range(1, len(chosen), 2))
     try:
-        mine = problems(chosen[0::2])
+        mine = targets(range(0, len(chosen), 2))
         theirs = other.result()
     finally:
         other.cancel()  # only where an error left it running
     out = []
     for i, cf in enumerate(chosen):
-        raw, tau, src, tgt, parts = (theirs if i % 2 else mine)[i // 2]
+        (raw, tau, src, _), (tgt, parts) = sources[i], (theirs if i % 2 else mine)[i // 2]
         out.append(FrameData.make(cf, tgt, src, threads=o.mapper_num_threads, parts=parts, raw_pts=raw, raw_time=tau))
         log.debug("frame at keyframe %d: dense target of %d points, source of %d", cf.keyframe_id, len(tgt), len(src))
         if progress is not None:
@@ -435,17 +517,9 @@ def influence(fd: FrameData, T: np.ndarray, o) -> dict:
     pa = fd.parts
     J, _, idx = plane_residuals(fd, T, o.max_corr_dist_fine)
     # share of each submap in each corresponding target voxel
-    code = voxel_codes(fd.target_pts[idx].astype(float), pa.leaf) * 64
-    lo = np.searchsorted(pa.pair_codes, code)
-    hi = np.searchsorted(pa.pair_codes, code + 64)
-    G = len(pa.positions)
-    frac = np.zeros((len(idx), G))
-    anchor_g = int(np.searchsorted(pa.positions, pa.anchor))
-    frac[hi == lo, anchor_g] = 1.0  # a voxel not found (should not happen): the anchor's own
-    cnt = hi - lo
-    rows = np.repeat(np.arange(len(idx)), cnt)
-    at = np.repeat(lo - (np.cumsum(cnt) - cnt), cnt) + np.arange(cnt.sum())
-    np.add.at(frac, (rows, pa.pair_codes[at] % 64), pa.counts[at])
+    frac = np.zeros((len(idx), len(pa.positions)))
+    rows, at = pa.pairs(idx)
+    np.add.at(frac, (rows, pa.group[at]), pa.counts[at])
     frac /= frac.sum(axis=1, keepdims=True)
     Hj = np.einsum("pg,pi,pk->gik", frac, J, J)
     H = Hj.sum(axis=0)
