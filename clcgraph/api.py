@@ -832,7 +832,7 @@ def lidar_scans(bags, topic: str, *, every: bool = False, limit: int | None = No
     paths = expand_bags(bags)[:limit]
     if every:
         msgs = list(read_messages(paths, [topic]))
-        scans, where = [m.data for m in msgs], [m.path for m in msgs]
+        scans, where = [m.data for m in msgs], [m.bag for m in msgs]
     else:
         n = snapshot_options.max_scans_averaged if snapshot_options is not None else 1
         lead = [leading_messages(b, [topic], {topic: n}).get(topic) for b in paths]

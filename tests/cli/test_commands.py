@@ -60,3 +60,14 @@ def test_old_board_keys_are_one_line_errors(capsys, good):
     assert main(["segment", str(good), "--topic", "/lidar0", "--set", "detection.margin_m=0.1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "'detection.margin_m' moved to the 'board' section" in err[0], err
+
+
+def test_segment_every_scan_of_each_bag(capsys, tmp_path, bag_factory):
+    """--every segments each scan of each bag alone and names the bag it came from."""
+    d = tmp_path / "capture"
+    d.mkdir()
+    for name in ("b.bag", "a.bag"):
+        bag_factory(d / name)
+    assert main(["segment", str(d), "--topic", "/lidar0", "--every"]) == 0
+    out = capsys.readouterr().out
+    assert "/2 scans with a board" in out and "a.bag" in out and "b.bag" in out, out
