@@ -353,12 +353,12 @@ def _scans_by_lidar(snaps, lidar_topics) -> dict:
 
 def _board_regions(sensors, lidar_obs, cam_images, detection, cfg, board, n_snapshots, scans=None) -> list | None:
     """Per camera image, where its board can be (frontend.camera_board.board_regions): each camera
-    with misses is seeded with the LIDARs from the first pass's detections (backend.seed), and the
-    LIDARs' views of each missed board are projected into it, with their whole scans (``scans``:
-    (snapshot, LIDAR index) -> LidarScan) for what stands in front of the board. None for a camera
-    the seed cannot place (fewer than min_shared_snapshots boards seen with a LIDAR): its misses
-    are searched whole."""
-    from .backend.seed import seed
+    with misses is placed with the LIDARs from the first pass's detections (backend.seed's
+    sensor_poses), and the LIDARs' views of each missed board are projected into it, with their
+    whole scans (``scans``: (snapshot, LIDAR index) -> LidarScan) for what stands in front of the
+    board. None for a camera the seed cannot place (fewer than min_shared_snapshots boards seen
+    with a LIDAR): its misses are searched whole."""
+    from .backend.seed import sensor_poses
     from .errors import ClcgraphError
     from .frontend.camera_board import board_regions
     from .geometry import compose_rt, invert_rt
@@ -384,7 +384,7 @@ def _board_regions(sensors, lidar_obs, cam_images, detection, cfg, board, n_snap
                           lidar_observations=tuple(lidar_obs), camera_observations=obs,
                           snapshot_stamps_ns=np.zeros(n_snapshots, np.int64))
         try:
-            rt_lidar0 = seed(problem, cfg.solve).rt_lidar0_sensor
+            rt_lidar0 = sensor_poses(problem, cfg.solve)
         except (ClcgraphError, np.linalg.LinAlgError, ValueError) as e:  # a prediction only: search whole
             log.debug("%s: no seed for predicting where its boards are (%s): missed images searched whole",
                       sensors[cam].topic, e)

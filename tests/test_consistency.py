@@ -392,6 +392,9 @@ def test_rolled_camera_is_relabelled_at_seeding(roll_deg, board):
     shared = {o.snapshot for o in p.camera_observations if o.sensor == 1} & \
              {o.snapshot for o in p.camera_observations if o.sensor == 2}
     assert len(shared) >= 10
+    from clcgraph.backend.seed import seed, sensor_poses
+
+    assert np.array_equal(sensor_poses(p, SolveOptions()), seed(p, SolveOptions()).rt_lidar0_sensor)  # what board_regions uses
     r = calibrate(p, SolveOptions())
     whole = [x for x in r.rejected if x.stage == "seed" or (x.stage == "outlier" and "observation" in x.reason)]
     assert not whole, whole

@@ -26,6 +26,7 @@
 SYNOPSIS
     s = seed(problem, options)            # options: config.SolveOptions
     s.rt_lidar0_sensor, s.rt_lidar0_board, s.rejected, s.dropped, s.problem
+    rt = sensor_poses(problem, options)   # steps 1-3 only: s.rt_lidar0_sensor
 """
 
 from __future__ import annotations
@@ -331,6 +332,12 @@ def _disagreements(o: _Obs, cands: np.ndarray, rt_sensor: np.ndarray, problem: P
             why = f"corners {err[j, 0]:.1f} px off the other sensors' board pose (> seed_max_corner_px)"
             out.append((None, turned) if turned is not None else (why, None))
     return out
+
+
+def sensor_poses(problem: Problem, options) -> np.ndarray:
+    """(Nsensors, 6) rt_lidar0_sensor of ``seed`` without the board poses and their vote (steps
+    1-3): enough to predict where the boards are."""
+    return _spanning_tree(problem, _reduce(problem, options)[0], options)
 
 
 def seed(problem: Problem, options) -> Seed:
