@@ -870,8 +870,9 @@ def write_bag_previews(paths, out_dir) -> list[Path]:
     from .outputs.plots import plot_image_preview, plot_scan_preview
     from .types import LidarScan
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    from .outputs.atomic import check_out_folder
+
+    out = check_out_folder(out_dir, flag="--png")
     written = []
     for path in paths:
         topics = [t.topic for t in bag_info(path).topics if t.msgtype in DECODABLE and t.count]
@@ -892,13 +893,18 @@ def segment_bags(bags, topic: str, *, every: bool = False, config=None, dump=Non
 
     cfg = _config(config)
     names: list = []
+    from .outputs.atomic import check_out_file, check_out_folder
+
+    if dump:
+        check_out_file(dump, ".npz", flag="--dump")
+    if png:
+        check_out_folder(png, flag="--png")
     scans = lidar_scans(bags, topic, every=every, names=names, snapshot_options=cfg.snapshots)
     debugs = [Debug() for _ in scans]
     results = segment_many(scans, cfg.segmentation, cfg.lidar, board_geometry(cfg), debug=debugs)
     if dump:
         write_segmentation_dump(dump, debugs)
     if png:
-        Path(png).mkdir(parents=True, exist_ok=True)
         for k, (scan, r, dbg) in enumerate(zip(scans, results, debugs)):
             plot_segmentation(scan, dbg, r, Path(png) / f"{k:05d}_{scan.stamp_ns}.png")
     return list(zip(scans, results, names))
@@ -909,11 +915,13 @@ def detect_bags(bags, topic: str, *, every: bool = False, config=None, png=None)
     bag unless ``every``); ``png``: a directory for an annotated picture of each."""
     from .frontend.camera_board import detect_in_bags, draw_detection
 
+    from .outputs.atomic import check_out_folder
+
     cfg = _config(config)
     if png:
         import cv2
 
-        Path(png).mkdir(parents=True, exist_ok=True)
+        check_out_folder(png, flag="--png")
     out = []
     for k, (im, res, bag) in enumerate(detect_in_bags(expand_bags(bags), topic, cfg.detection, board_geometry(cfg),
                                                       every=every, with_bag=True)):
@@ -980,6 +988,9 @@ def show_aligned(bag, calibration, *, topics=None, png, threshold_range: float |
     cal = load_result(calibration)
     topics = list(topics or [s["topic"] for s in cal["sensors"] if s["kind"] == "lidar"])
     rts = {t: cal.sensor(t)["rt_lidar0_sensor"] for t in topics}
+    camera = next((t for t in topics if cal.sensor(t)["kind"] != "lidar"), None)
+    if camera is not None:
+        raise InputError(f"{camera}: a camera; the PNG draws LIDAR clouds (--mcap FILE.mcap shows the cameras too)")
     first = first_messages(bag, topics)
     clouds = {}
     for t in topics:

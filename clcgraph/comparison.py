@@ -431,9 +431,10 @@ def _is_bag_like(x) -> bool:
 
 
 def write_yaml(d: dict, path) -> Path:
-    """Write ``d`` as YAML to ``path``, whole or not at all."""
+    """Write ``d`` as YAML to ``path``, whole or not at all (its first line says clcgraph wrote it:
+    a later --yaml may replace it)."""
     import yaml
 
     from .outputs.atomic import atomic_file
 
-    return atomic_file(path, yaml.safe_dump(d, sort_keys=False, width=200))
+    return atomic_file(path, "# clcgraph comparison\n" + yaml.safe_dump(d, sort_keys=False, width=200))

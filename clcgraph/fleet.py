@@ -407,6 +407,8 @@ def dask_executor(address: str):
         if cluster is not None:
             cluster.close()
         raise InputError(f"--cluster {address}: cannot reach the Dask scheduler ({e})") from None
+    except ValueError as e:  # Dask's parse of the address
+        raise InputError(f"--cluster {address}: not a scheduler address, e.g. tcp://host:8786 or local:4 ({e})") from None
     try:
         yield client.get_executor()
     finally:

@@ -332,3 +332,36 @@ def test_summary_table_says_its_conventions_and_names_bags():
     assert " ".join(f"{v:.3f}" for v in np.degrees(sd_rot)) in cam
     assert " ".join(f"{v:+.3f}" for v in rpy_deg_from_rt(CAMERA_RT)) in cam
     assert "snapshot 3 (pose003.bag @3.000 s): /lidar/rear/points: board not found" in text
+
+
+def test_an_output_file_never_replaces_what_clcgraph_did_not_write(tmp_path):
+    """--png / --dump / --yaml files (outputs.atomic.check_out_file): a user's file of another kind,
+    a directory, a missing directory or another type's name are one-line InputErrors naming the
+    option; a file clcgraph wrote (its signature) may be replaced; --force replaces anything."""
+    from clcgraph.outputs.atomic import check_out_file, check_out_folder
+
+    notes = tmp_path / "notes.png"
+    notes.write_text("my notes")
+    (tmp_path / "pics").mkdir()
+    cases = {(notes, ".png"): "exists and is not a .png file clcgraph wrote",
+             (tmp_path / "pics", ".png"): "a directory",
+             (tmp_path / "new" / "x.png", ".png"): "does not exist",
+             (tmp_path / "x.txt", ".png"): "name the file *.png",
+             (tmp_path / "x.png", ".npz"): "name the file *.npz"}
+    for (path, suffix), words in cases.items():
+        with pytest.raises(InputError, match="--out-file") as e:
+            check_out_file(path, suffix, flag="--out-file")
+        assert words in str(e.value) and "\n" not in str(e.value)
+    assert notes.read_text() == "my notes"
+    assert check_out_file(notes, ".png", flag="--png", force=True) == notes
+    png = tmp_path / "mine.png"
+    png.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(20))
+    yml = tmp_path / "c.yaml"
+    yml.write_text("# clcgraph comparison\na: 1\n")
+    npz = tmp_path / "d.npz"
+    np.savez(npz, a=np.zeros(2))
+    for path, suffix in ((png, ".png"), (yml, ".yaml"), (npz, ".npz")):
+        assert check_out_file(path, suffix, flag="--x") == path
+    with pytest.raises(InputError, match="a file; name a directory"):
+        check_out_folder(notes, flag="--png")
+    assert check_out_folder(tmp_path / "a" / "b", flag="--png").is_dir()

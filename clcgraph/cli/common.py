@@ -48,7 +48,10 @@ def load_config(args):
             section, dot, key = name.partition(".")
             if not sep or not dot:
                 raise InputError(f"--set {item!r}: expected SECTION.KEY=VALUE, e.g. solve.outlier_sigma=5")
-            overrides.setdefault(section, {})[key] = yaml.safe_load(value)
+            try:
+                overrides.setdefault(section, {})[key] = yaml.safe_load(value)
+            except yaml.YAMLError as e:
+                raise InputError(f"--set {item!r}: the value is not YAML ({getattr(e, 'problem', None) or e})") from None
         return cfg.replace(**overrides) if overrides else cfg
     except ConfigError as e:
         key = getattr(e, "key", None)

@@ -53,9 +53,12 @@ def add_format_for_ros(sub):
 def _show_aligned(args) -> int:
     from .. import api
     from ..errors import InputError
+    from ..outputs.atomic import check_out_file
 
     if args.threshold_range is not None:
         in_range(args.threshold_range, "--threshold-range", 0, 1e5, low_open=True)
+    if args.png or not args.mcap:
+        check_out_file(args.png or "aligned.png", ".png", flag="--png", force=args.force)
     if args.mcap:
         _write_mcap(args)
         if not args.png:
@@ -105,6 +108,7 @@ def add_show_aligned(sub):
 def _show_uncertainty(args) -> int:
     from .. import api
     from ..errors import InputError
+    from ..outputs.atomic import check_out_file
 
     in_range(args.radius, "--radius", 0, 1e5, low_open=True)
     in_range(args.gridn, "--gridn", 2, 2000)
@@ -117,6 +121,7 @@ def _show_uncertainty(args) -> int:
             sensors = ()
         if len(sensors) != 2:
             raise InputError(f"--sensors {args.sensors!r}: expected two indices I,J")
+    check_out_file(args.png, ".png", flag="--png")
     title, stdev = api.uncertainty_grid_png(args.dump, args.png, sensors=sensors, radius=args.radius,
                                             gridn=args.gridn, z=args.z)
     print(f"{title}: worst-direction stdev {1e3 * stdev.min():.2f} .. {1e3 * stdev.max():.2f} mm; wrote {args.png}")
@@ -138,6 +143,10 @@ def _compare(args) -> int:
     from .. import api
     from ..outputs.tables import comparison_table
 
+    from ..outputs.atomic import check_out_file
+
+    if args.yaml:
+        check_out_file(args.yaml, ".yaml", flag="--yaml")
     c = api.compare(args.a, args.b, config=load_config(args))
     print(comparison_table(c))
     if args.yaml:

@@ -718,7 +718,7 @@ def detect_in_bags(bags, topic: str, options, board: BoardGeometry, *, every: bo
     def images():
         if every:
             for m in read_messages(list(bags), [topic]):
-                yield m.path, m.data
+                yield m.bag, m.data
         else:
             for b in bags:
                 first = first_messages(b, [topic])

@@ -246,6 +246,47 @@ def open_out_dir(out_dir, *, kind: str) -> Iterator[Path]:
         yield target
 
 
+# how the files clcgraph writes begin: PNG, NumPy's zip, YAML with its header ("a: " began a
+# `compare --yaml` before the header)
+_SIGNATURES = {".png": (b"\x89PNG\r\n\x1a\n",), ".npz": (b"PK\x03\x04",), ".yaml": (b"# clcgraph", b"a: ")}
+
+
+def check_out_file(path, suffix: str, *, flag: str, force: bool | None = None) -> Path:
+    """``path`` as an output file of type ``suffix`` (".png", ".npz", ".yaml"), named by the
+    option ``flag``: InputError if it is a directory, names another type, sits in a directory that
+    does not exist, or exists and is not a file of its type that clcgraph may have written (how it
+    begins), unless ``force`` (None: the command has no --force)."""
+    path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{flag} {path}: a directory; name a *{suffix} file")
+    if path.suffix.lower() not in ({suffix, ".yml"} if suffix == ".yaml" else {suffix}):
+        raise InputError(f"{flag} {path}: name the file *{suffix}")
+    if not path.parent.is_dir():
+        raise InputError(f"{flag} {path}: its directory {path.parent} does not exist")
+    if path.exists() and not force:
+        try:
+            with open(path, "rb") as f:
+                head = f.read(16)
+        except OSError as e:
+            raise InputError(f"{flag} {path}: cannot read it ({e.strerror})") from None
+        if not head.startswith(_SIGNATURES[suffix]):
+            raise InputError(f"{flag} {path}: exists and is not a {suffix} file clcgraph wrote; choose another name"
+                             + (" (or --force to replace it)" if force is not None else ""))
+    return path
+
+
+def check_out_folder(path, *, flag: str) -> Path:
+    """``path`` as a folder for pictures (made if new): InputError if it is a file or cannot be made."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError(f"{flag} {path}: a file; name a directory for the pictures")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError(f"{flag} {path}: cannot make the directory ({e.strerror})") from None
+    return path
+
+
 def atomic_file(path, content: str | bytes) -> Path:
     """Write one file whole or not at all: a temporary file beside it, renamed over it."""
     path = Path(path)

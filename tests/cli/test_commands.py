@@ -71,3 +71,25 @@ def test_segment_every_scan_of_each_bag(capsys, tmp_path, bag_factory):
     assert main(["segment", str(d), "--topic", "/lidar0", "--every"]) == 0
     out = capsys.readouterr().out
     assert "/2 scans with a board" in out and "a.bag" in out and "b.bag" in out, out
+
+
+def test_detect_every_image_and_outputs_that_are_not_folders_or_yaml(capsys, tmp_path, bag_factory):
+    """detect --every reads every image of each bag; --png naming a user's file, --dump into a
+    missing directory and a --set value that is not YAML are one-line errors, the file intact."""
+    d = tmp_path / "capture"
+    d.mkdir()
+    for name in ("b.bag", "a.bag"):
+        bag_factory(d / name)
+    assert main(["detect", str(d), "--topic", "/cam0", "--every"]) == 0
+    assert "a.bag" in capsys.readouterr().out
+    notes = tmp_path / "notes.txt"
+    notes.write_text("mine")
+    for args, words in ((["show-bag", str(d), "--png", str(notes)], "a file; name a directory"),
+                        (["segment", str(d), "--topic", "/lidar0", "--png", str(notes)], "a file; name a directory"),
+                        (["segment", str(d), "--topic", "/lidar0", "--dump", str(tmp_path / "no" / "d.npz")],
+                         "does not exist"),
+                        (["segment", str(d), "--topic", "/lidar0", "--set", "board.corners=[7,5"], "not YAML")):
+        assert main(args) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and words in err[0], (args, err)
+    assert notes.read_text() == "mine"

@@ -95,3 +95,13 @@ def test_cluster_local_2_and_a_separate_scheduler_with_two_workers_give_the_seri
     with distributed.Client(scheduler_and_two_workers, timeout="30s") as client:
         ran = client.run(lambda dask_worker: dask_worker.state.executed_count)
     assert len(ran) == 2 and sum(ran.values()) >= 3, ran
+
+
+@pytest.mark.parametrize("address", ["bogus", "local:abc"])
+def test_a_cluster_address_dask_cannot_parse_is_a_one_line_input_error(address):
+    from clcgraph.errors import InputError
+    from clcgraph.fleet import dask_executor
+
+    with pytest.raises(InputError, match=f"--cluster {address}: not a scheduler address"):
+        with dask_executor(address):
+            pass
