@@ -801,7 +801,7 @@ def calibrate_fleet(manifest, out, *, cluster: str | None = None, workers: int |
     from .fleet import Manifest, SerialExecutor, calibrate_fleet as _fleet, dask_executor
 
     manifest = Manifest.load(manifest)
-    check_out_dir(out, kind="fleet")
+    check_out_dir(out, kind="fleet", force=None)
     with dask_executor(cluster) if cluster else contextlib.nullcontext() as ex:
         if ex is None and workers == 0:
             ex = SerialExecutor()

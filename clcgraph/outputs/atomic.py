@@ -59,8 +59,9 @@ def marker_kind(directory: Path) -> str | None:
     return m.group(1) if m else None
 
 
-def check_out_dir(out_dir, *, kind: str = "results", force: bool = False) -> Path:
-    """The directory to write for ``out_dir`` (a symlink's target), or InputError saying why not.
+def check_out_dir(out_dir, *, kind: str = "results", force: bool | None = False) -> Path:
+    """The directory to write for ``out_dir`` (a symlink's target), or InputError saying why not
+    (``force`` None: the command has no --force, as `clcgraph fleet`, which never removes).
 
     Call it before long work so a bad ``--out`` fails at once; ``atomic_dir`` checks again.
     """
@@ -86,7 +87,7 @@ def check_out_dir(out_dir, *, kind: str = "results", force: bool = False) -> Pat
     what = (f"clcgraph's {_WHAT.get(found, found)}, not {_WHAT[kind]}" if found
             else f"not a clcgraph output ({len(entries)} entries, e.g. {entries[0]!r})")
     raise InputError(f"{shown}: exists and is {what}; clcgraph replaces only its own outputs: "
-                     "choose a new or empty --out, or pass --force to replace it")
+                     "choose a new or empty --out" + (", or pass --force to replace it" if force is not None else ""))
 
 
 @contextmanager
@@ -231,13 +232,13 @@ def open_out_dir(out_dir, *, kind: str) -> Iterator[Path]:
     piece, as `clcgraph fleet` does: created with its marker, locked against a second writer for
     the duration. Its pieces are written with ``atomic_dir`` / ``atomic_file``; nothing is removed."""
     shown = out_dir
-    target = check_out_dir(out_dir, kind=kind)
+    target = check_out_dir(out_dir, kind=kind, force=None)
     try:
         target.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise _cannot(shown, e) from None
     with _lock(target, shown):
-        target = check_out_dir(out_dir, kind=kind)
+        target = check_out_dir(out_dir, kind=kind, force=None)
         if marker_kind(target) is None:
             try:
                 (target / MARKER).write_text(_MARKER_TEXT.format(kind=kind))

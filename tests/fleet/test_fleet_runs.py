@@ -125,7 +125,8 @@ def test_fleet_out_must_be_ours(tmp_path, capsys):
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "notes.txt").write_text("keep me")
     assert main(["fleet", str(tmp_path / "m.yaml"), "--out", str(tmp_path / "mine")]) == 2
-    assert "not a clcgraph output" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "not a clcgraph output" in err and "--force" not in err  # fleet has none: it never removes
     assert (tmp_path / "mine" / "notes.txt").read_text() == "keep me"
 
 
