@@ -398,22 +398,26 @@ def _board_regions(sensors, lidar_obs, cam_images, detection, cfg, board, n_snap
 
 
 def _why_missed(sensors, lidar_obs, camera_obs, rejected) -> str:
-    """Per sensor, how many boards it found and its most common reason for the rest, e.g. a
-    board size that does not match the config: 'lidar /l: 2 found; 14 x "plane ... larger than the board"'."""
+    """Per sensor, how many boards it found and its most common reason for the rest (reasons
+    that differ only in their numbers counted together, the first one quoted), e.g. a board
+    size that does not match the config: '/l: 2 found, 14 like "plane 1.79 m across, ..."'."""
     import re
     from collections import Counter
 
     found = Counter(o.sensor for o in [*lidar_obs, *camera_obs])
     why: dict[int, Counter] = {}
+    example: dict = {}
     for r in rejected:
         if r.sensor is not None and r.stage in ("segmentation", "detection"):
             text = r.reason.split(": ", 1)[-1] if r.stage == "segmentation" else r.reason
-            why.setdefault(r.sensor, Counter())[re.sub(r"\d+(\.\d+)?", "#", text)[:90]] += 1
+            kind = re.sub(r"\d+(\.\d+)?", "#", text)
+            why.setdefault(r.sensor, Counter())[kind] += 1
+            example.setdefault((r.sensor, kind), text)
     parts = []
     for i, s in enumerate(sensors):
         if i in why:
             reason, n = why[i].most_common(1)[0]
-            parts.append(f'{s.topic}: {found.get(i, 0)} found, {n} x "{reason}"')
+            parts.append(f'{s.topic}: {found.get(i, 0)} found, {n} like "{example[(i, reason)][:90]}"')
     return ("; ".join(parts) + "; ") if parts else ""
 
 

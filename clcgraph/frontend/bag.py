@@ -239,6 +239,8 @@ class _Bag:
         from rosbags.typesys import Stores, get_typestore
 
         ros1 = self.path.is_file()
+        if not ros1 and not (self.path / "metadata.yaml").is_file() and any(self.path.glob("*.bag")):
+            raise InputError(f"{self.path}: a directory of ROS1 bags, not one bag; give one of its .bag files")
         if ros1 not in _DEFAULT_TYPESTORES:  # for bags without message definitions
             _DEFAULT_TYPESTORES[ros1] = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
         try:

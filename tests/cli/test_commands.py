@@ -93,3 +93,28 @@ def test_detect_every_image_and_outputs_that_are_not_folders_or_yaml(capsys, tmp
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and words in err[0], (args, err)
     assert notes.read_text() == "mine"
+
+
+def test_a_directory_of_ros1_bags_where_one_bag_is_wanted(tmp_path, bag_factory):
+    import pytest
+
+    from clcgraph.errors import InputError
+    from clcgraph.frontend.bag import first_messages
+
+    d = tmp_path / "capture"
+    d.mkdir()
+    bag_factory(d / "a.bag")
+    with pytest.raises(InputError, match="a directory of ROS1 bags, not one bag; give one of its .bag files"):
+        first_messages(d, ["/lidar0"])
+
+
+def test_why_boards_were_missed_quotes_the_commonest_reason_with_its_numbers():
+    from types import SimpleNamespace
+
+    from clcgraph.api import _why_missed
+    from clcgraph.types import Rejected
+
+    sensors = [SimpleNamespace(topic="/l"), SimpleNamespace(topic="/c")]
+    rejected = [Rejected(f"scan: plane {1.7 + k / 100:.2f} m across, larger than the board", "segmentation", 0, k)
+                for k in range(3)] + [Rejected("scan: no plane", "segmentation", 0, 9)]
+    assert _why_missed(sensors, [], [], rejected) == '/l: 0 found, 3 like "plane 1.70 m across, larger than the board"; '
