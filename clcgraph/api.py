@@ -116,6 +116,8 @@ def classify_topics(bags: Sequence[Path], topics: Sequence[str]) -> tuple[list[s
     """(lidar topics, camera topics) in the given order, from the message types in the bags."""
     from .frontend.bag import COMPRESSED_IMAGE, IMAGE, POINTCLOUD2, bag_info
 
+    if not topics:
+        raise InputError("no topics given: --topics LIDAR0,OTHER,... (lidar0 first; see `clcgraph show-bag`)")
     types: dict[str, str] = {}
     for b in bags:
         for t in bag_info(b).topics:

@@ -92,8 +92,14 @@ def add_solve(sub):
 def _targetless(args) -> int:
     from .. import api
 
+    from ..errors import InputError
+
+    calibration_topics = topics_list(args.calibration_topics)
+    if args.mapping_topic in calibration_topics:
+        raise InputError(f"--calibration-topics: {args.mapping_topic} is the mapping topic (the reference); "
+                         "name the other LIDARs")
     result = api.calibrate_targetless(args.bag, mapping_topic=args.mapping_topic,
-                                      calibration_topics=topics_list(args.calibration_topics),
+                                      calibration_topics=calibration_topics,
                                       base_frame=args.base_frame, out=args.out, config=load_config(args),
                                       force=args.force)
     return _print_result(result, args.out)

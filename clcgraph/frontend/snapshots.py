@@ -122,8 +122,12 @@ class TimeFilter:
             if b < a:
                 raise InputError(f"exclude_time_periods entry {p!r}: end before start")
             ex.append((a, b))
-        return cls(None if options.after is None else parse_time_ns(options.after),
-                   None if options.before is None else parse_time_ns(options.before), tuple(ex))
+        after = None if options.after is None else parse_time_ns(options.after)
+        before = None if options.before is None else parse_time_ns(options.before)
+        if after is not None and before is not None and before <= after:
+            raise InputError(f"snapshots.after ({options.after}) is not before snapshots.before ({options.before}): "
+                             "no message can be kept")
+        return cls(after, before, tuple(ex))
 
     def why_not(self, stamp_ns: int) -> str | None:
         """None if the stamp is kept, else the reason."""

@@ -118,3 +118,17 @@ def test_why_boards_were_missed_quotes_the_commonest_reason_with_its_numbers():
     rejected = [Rejected(f"scan: plane {1.7 + k / 100:.2f} m across, larger than the board", "segmentation", 0, k)
                 for k in range(3)] + [Rejected("scan: no plane", "segmentation", 0, 9)]
     assert _why_missed(sensors, [], [], rejected) == '/l: 0 found, 3 like "plane 1.70 m across, larger than the board"; '
+
+
+def test_settings_that_can_keep_nothing_are_one_line_errors(capsys, tmp_path, good):
+    """--after not before --before, no topic in --topics, the mapping topic among the
+    calibration topics: each refused before any work, naming what to change."""
+    out = str(tmp_path / "o")
+    for args, words in ((["solve", "--bag", str(good), "--topics", "/lidar0,/lidar1", "--after", "1700000090",
+                          "--before", "1700000010", "--out", out], "is not before snapshots.before"),
+                        (["solve", "--bag", str(good), "--topics", ",", "--out", out], "no topics given"),
+                        (["targetless", "--bag", str(good), "--mapping-topic", "/lidar0",
+                          "--calibration-topics", "/lidar0,/lidar1", "--out", out], "is the mapping topic")):
+        assert main(args) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and words in err[0], (args, err)
