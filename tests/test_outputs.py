@@ -364,4 +364,7 @@ def test_an_output_file_never_replaces_what_clcgraph_did_not_write(tmp_path):
         assert check_out_file(path, suffix, flag="--x") == path
     with pytest.raises(InputError, match="a file; name a directory"):
         check_out_folder(notes, flag="--png")
-    assert check_out_folder(tmp_path / "a" / "b", flag="--png").is_dir()
+    assert check_out_folder(tmp_path / "a" / "b", flag="--png") == tmp_path / "a" / "b"
+    assert not (tmp_path / "a").exists()  # made when the first picture is written
+    with pytest.raises(InputError, match="not a writable directory"):
+        check_out_folder(notes / "sub", flag="--png")
