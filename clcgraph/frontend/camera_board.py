@@ -732,7 +732,8 @@ def detect_in_bags(bags, topic: str, options, board: BoardGeometry, *, every: bo
     buf: list = []
     for b, im in images():
         if not isinstance(im, Image):
-            raise InputError(f"topic {topic} is not an image topic")
+            raise InputError(f"{b}: topic {topic} holds {type(im).__name__}, not images (sensor_msgs/Image or "
+                             "CompressedImage)")
         buf.append((b, im))
         if len(buf) == batch:
             yield from done(buf)

@@ -19,6 +19,9 @@ def test_segment_and_spacing_on_a_non_cloud_topic_are_one_line_errors(capsys, go
         assert main([cmd, str(good), "--topic", "/cam0"]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "good.bag" in err[0] and "/cam0" in err[0] and "PointCloud2" in err[0], err
+    assert main(["detect", str(good), "--topic", "/lidar0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "good.bag" in err[0] and "/lidar0" in err[0] and "not images" in err[0], err
 
 
 def test_segment_dump_and_spacing(capsys, tmp_path, good):
