@@ -873,7 +873,7 @@ def bag_summaries(paths) -> list:
 def write_bag_previews(paths, out_dir) -> list[Path]:
     """Each LIDAR's first scan and each camera's first image of every bag, as PNGs in ``out_dir``."""
     from .frontend.bag import DECODABLE, bag_info, first_messages
-    from .outputs.atomic import check_out_folder
+    from .outputs.atomic import check_out_folder, make_out_folder
     from .outputs.plots import plot_image_preview, plot_scan_preview
     from .types import LidarScan
 
@@ -882,8 +882,7 @@ def write_bag_previews(paths, out_dir) -> list[Path]:
     for path in paths:
         topics = [t.topic for t in bag_info(path).topics if t.msgtype in DECODABLE and t.count]
         for topic, m in first_messages(path, topics).items():
-            out.mkdir(parents=True, exist_ok=True)
-            name = out / f"{Path(path).stem}{topic.replace('/', '_')}.png"
+            name = make_out_folder(out, flag="--png") / f"{Path(path).stem}{topic.replace('/', '_')}.png"
             (plot_scan_preview if isinstance(m, LidarScan) else plot_image_preview)(
                 m, name, title=f"{Path(path).name} {topic}")
             written.append(name)
@@ -894,7 +893,7 @@ def segment_bags(bags, topic: str, *, every: bool = False, config=None, dump=Non
     """`clcgraph segment`: (scan, LidarBoardObservation | Rejected, bag name) per scan; ``dump``: an
     npz of the intermediate stages; ``png``: a directory for a picture of each scan's segmentation."""
     from .frontend.lidar_board import Debug, segment_many
-    from .outputs.atomic import check_out_file, check_out_folder
+    from .outputs.atomic import check_out_file, check_out_folder, make_out_folder
     from .outputs.debug import write_segmentation_dump
     from .outputs.plots import plot_segmentation
 
@@ -910,7 +909,7 @@ def segment_bags(bags, topic: str, *, every: bool = False, config=None, dump=Non
     if dump:
         write_segmentation_dump(dump, debugs)
     if png:
-        Path(png).mkdir(parents=True, exist_ok=True)
+        make_out_folder(png, flag="--png")
         for k, (scan, r, dbg) in enumerate(zip(scans, results, debugs)):
             plot_segmentation(scan, dbg, r, Path(png) / f"{k:05d}_{scan.stamp_ns}.png")
     return list(zip(scans, results, names))
@@ -920,7 +919,7 @@ def detect_bags(bags, topic: str, *, every: bool = False, config=None, png=None)
     """`clcgraph detect`: (image, (N,2) corners | Rejected, bag name) per image (the first of each
     bag unless ``every``); ``png``: a directory for an annotated picture of each."""
     from .frontend.camera_board import detect_in_bags, draw_detection
-    from .outputs.atomic import check_out_folder
+    from .outputs.atomic import check_out_folder, make_out_folder
 
     cfg = _config(config)
     if png:
@@ -932,7 +931,7 @@ def detect_bags(bags, topic: str, *, every: bool = False, config=None, png=None)
                                                       every=every, with_bag=True)):
         out.append((im, res, _bag_name(bag)))
         if png:
-            Path(png).mkdir(parents=True, exist_ok=True)
+            make_out_folder(png, flag="--png")
             cv2.imwrite(str(Path(png) / f"{k:05d}_{im.stamp_ns}.png"), draw_detection(im, res))
     return out
 

@@ -368,3 +368,9 @@ def test_an_output_file_never_replaces_what_clcgraph_did_not_write(tmp_path):
     assert not (tmp_path / "a").exists()  # made when the first picture is written
     with pytest.raises(InputError, match="not a writable directory"):
         check_out_folder(notes / "sub", flag="--png")
+    from clcgraph.outputs.atomic import make_out_folder
+
+    assert make_out_folder(tmp_path / "a" / "b", flag="--png").is_dir()
+    if os.path.isdir("/proc"):  # root may "write" /proc by access(), but no directory can be made there
+        with pytest.raises(InputError, match="--png /proc/nope: cannot make the directory"):
+            make_out_folder("/proc/nope", flag="--png")

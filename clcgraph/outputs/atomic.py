@@ -277,14 +277,26 @@ def check_out_file(path, suffix: str, *, flag: str, force: bool | None = None) -
 
 
 def check_out_folder(path, *, flag: str) -> Path:
-    """``path`` as a folder for pictures, made when the first is written: InputError if it is a
-    file, or if it is new and its nearest existing parent is not a directory this user may write."""
+    """``path`` as a folder for pictures, made when the first is written (``make_out_folder``):
+    InputError if it is a file, or if it is new and its nearest existing parent is not a
+    directory this user may write."""
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise InputError(f"{flag} {path}: a file; name a directory for the pictures")
     parent = next(p for p in (path, *path.absolute().parents) if p.exists())
     if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
         raise InputError(f"{flag} {path}: cannot make the directory ({parent} is not a writable directory)")
+    return path
+
+
+def make_out_folder(path, *, flag: str) -> Path:
+    """Make the folder ``check_out_folder`` accepted (a no-op once made); InputError where the
+    system still refuses (a read-only or virtual file system)."""
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError(f"{flag} {path}: cannot make the directory ({e.strerror})") from None
     return path
 
 
