@@ -791,9 +791,12 @@ def compare(a, b, *, config=None):
 
 
 def write_comparison_yaml(comparison, path) -> Path:
-    """``comparison.to_dict()`` as YAML (what `clcgraph compare --yaml` writes), whole or not at all."""
+    """``comparison.to_dict()`` as YAML (what `clcgraph compare --yaml` writes), whole or not at all:
+    a new file, or one clcgraph may have written."""
     from .comparison import write_yaml
+    from .outputs.atomic import check_out_file
 
+    path = check_out_file(path, ".yaml", flag="--yaml")
     return write_yaml(comparison.to_dict(), path)
 
 
@@ -984,12 +987,16 @@ def write_aligned_mcap(bags, calibration, out, **kwargs) -> dict:
     return _write(bags, calibration, out, **kwargs)
 
 
-def show_aligned(bag, calibration, *, topics=None, png, threshold_range: float | None = None) -> dict:
+def show_aligned(bag, calibration, *, topics=None, png, threshold_range: float | None = None,
+                 force: bool = False) -> dict:
     """`clcgraph show-aligned`: the first scan of each LIDAR topic (default: every LIDAR of the
-    calibration) moved into lidar0 by the calibration, drawn into ``png``; returns the clouds."""
+    calibration) moved into lidar0 by the calibration, drawn into ``png`` (a new PNG, or one
+    clcgraph may have written, unless ``force``); returns the clouds."""
     from .frontend.bag import first_messages
+    from .outputs.atomic import check_out_file
     from .outputs.plots import align_clouds, render_aligned_clouds
 
+    check_out_file(png, ".png", flag="--png", force=force)
     cal = load_result(calibration)
     topics = list(topics or [s["topic"] for s in cal["sensors"] if s["kind"] == "lidar"])
     rts = {t: cal.sensor(t)["rt_lidar0_sensor"] for t in topics}
@@ -1027,10 +1034,12 @@ def uncertainty_grid_png(dump, png, *, sensors: tuple[int, int] | None = None, r
                          gridn: int = 41, z: float = 0.0):
     """`clcgraph show-uncertainty`: the worst-direction stdev of a point moved from sensor i to j
     over a grid around lidar0 (default: lidar0 and the worst other sensor), drawn into ``png``;
-    returns (title, (gridn, gridn) stdev in m)."""
+    returns (title, (gridn, gridn) stdev in m). ``png``: a new PNG, or one clcgraph may have written."""
     from .backend.sectors import uncertainty_grid
+    from .outputs.atomic import check_out_file
     from .outputs.plots import plot_uncertainty_grid
 
+    check_out_file(png, ".png", flag="--png")
     res = replay(dump)
     n = len(res.problem.sensors)
     if sensors is not None:

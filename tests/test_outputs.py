@@ -362,6 +362,15 @@ def test_an_output_file_never_replaces_what_clcgraph_did_not_write(tmp_path):
     np.savez(npz, a=np.zeros(2))
     for path, suffix in ((png, ".png"), (yml, ".yaml"), (npz, ".npz")):
         assert check_out_file(path, suffix, flag="--x") == path
+    # the API functions that write such files check them first (before reading their inputs)
+    from clcgraph import api
+
+    for call in (lambda: api.show_aligned(tmp_path / "no.bag", tmp_path / "no-calib", png=notes),
+                 lambda: api.uncertainty_grid_png(tmp_path / "no-dump", notes),
+                 lambda: api.write_comparison_yaml(None, tmp_path / "notes.png")):
+        with pytest.raises(InputError, match="--(png|yaml) .*notes.png"):
+            call()
+    assert notes.read_text() == "my notes"
     with pytest.raises(InputError, match="a file; name a directory"):
         check_out_folder(notes, flag="--png")
     assert check_out_folder(tmp_path / "a" / "b", flag="--png") == tmp_path / "a" / "b"

@@ -57,9 +57,9 @@ def _show_aligned(args) -> int:
 
     if args.threshold_range is not None:
         in_range(args.threshold_range, "--threshold-range", 0, 1e5, low_open=True)
-    if args.png or not args.mcap:
-        check_out_file(args.png or "aligned.png", ".png", flag="--png", force=args.force)
     if args.mcap:
+        if args.png:  # api.show_aligned checks it too, but after the MCAP: a refused PNG must leave none
+            check_out_file(args.png, ".png", flag="--png", force=args.force)
         _write_mcap(args)
         if not args.png:
             return 0
@@ -69,7 +69,7 @@ def _show_aligned(args) -> int:
         raise InputError(f"the PNG shows one bag, {len(args.bags)} given: give one (or --mcap for several)")
     png = args.png or "aligned.png"
     aligned = api.show_aligned(args.bags[0], args.calibration, topics=topics_list(args.topics) if args.topics else None,
-                               png=png, threshold_range=args.threshold_range)
+                               png=png, threshold_range=args.threshold_range, force=args.force)
     print(f"wrote {png}")
     if args.viewer:  # after the PNG is written and reported: a missing display fails only the viewer
         api.view_clouds(aligned, title="clcgraph show-aligned")
@@ -108,7 +108,6 @@ def add_show_aligned(sub):
 def _show_uncertainty(args) -> int:
     from .. import api
     from ..errors import InputError
-    from ..outputs.atomic import check_out_file
 
     in_range(args.radius, "--radius", 0, 1e5, low_open=True)
     in_range(args.gridn, "--gridn", 2, 2000)
@@ -121,7 +120,6 @@ def _show_uncertainty(args) -> int:
             sensors = ()
         if len(sensors) != 2:
             raise InputError(f"--sensors {args.sensors!r}: expected two indices I,J")
-    check_out_file(args.png, ".png", flag="--png")
     title, stdev = api.uncertainty_grid_png(args.dump, args.png, sensors=sensors, radius=args.radius,
                                             gridn=args.gridn, z=args.z)
     print(f"{title}: worst-direction stdev {1e3 * stdev.min():.2f} .. {1e3 * stdev.max():.2f} mm; wrote {args.png}")
@@ -143,14 +141,10 @@ def _compare(args) -> int:
     from .. import api
     from ..outputs.tables import comparison_table
 
-    from ..outputs.atomic import check_out_file
-
-    if args.yaml:
-        check_out_file(args.yaml, ".yaml", flag="--yaml")
     c = api.compare(args.a, args.b, config=load_config(args))
-    print(comparison_table(c))
-    if args.yaml:
+    if args.yaml:  # first: a refused file is the one line printed
         api.write_comparison_yaml(c, args.yaml)
+    print(comparison_table(c))
     return 3 if args.fail_on_change and c.changed else 0
 
 
