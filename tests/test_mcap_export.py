@@ -149,6 +149,13 @@ def test_mcap_bad_input_is_one_line(capture, capsys, tmp_path):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and why in err[0], err
     assert (tmp_path / "taken.mcap").read_text() == "mine"  # nothing of the user's touched
+    # the PNG shows one bag: refused before the MCAP is written, so neither is left
+    two = [str(tmp / "pose000.bag"), str(tmp / "pose001.bag")]
+    assert main(["-q", "show-aligned", *two, "--calibration", str(tmp / "calib"), "--mcap", str(tmp_path / "y.mcap"),
+                 "--png", str(tmp_path / "y.png")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "the PNG shows one bag, 2 given" in err[0], err
+    assert not (tmp_path / "y.mcap").exists() and not (tmp_path / "y.png").exists()
     assert not list(tmp_path.glob(".*clcgraph-tmp*"))
     # the CLI writes it and says from where /tf_static's base came
     assert main(["-q", "show-aligned", bags, "--calibration", str(tmp / "calib"), "--mcap", str(tmp_path / "c.mcap"),

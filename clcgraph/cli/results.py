@@ -57,16 +57,16 @@ def _show_aligned(args) -> int:
 
     if args.threshold_range is not None:
         in_range(args.threshold_range, "--threshold-range", 0, 1e5, low_open=True)
+    if not args.mcap and args.snapshots:
+        raise InputError("--snapshots chooses what goes into --mcap; give --mcap FILE.mcap")
+    if (args.png or not args.mcap) and len(args.bags) > 1:  # before the MCAP: a refused PNG must leave none
+        raise InputError(f"the PNG shows one bag, {len(args.bags)} given: give one (or --mcap alone for several)")
     if args.mcap:
-        if args.png:  # api.show_aligned checks it too, but after the MCAP: a refused PNG must leave none
+        if args.png:  # api.show_aligned checks it too, but after the MCAP
             check_out_file(args.png, ".png", flag="--png", force=args.force)
         _write_mcap(args)
         if not args.png:
             return 0
-    elif args.snapshots:
-        raise InputError("--snapshots chooses what goes into --mcap; give --mcap FILE.mcap")
-    if len(args.bags) > 1:
-        raise InputError(f"the PNG shows one bag, {len(args.bags)} given: give one (or --mcap for several)")
     png = args.png or "aligned.png"
     aligned = api.show_aligned(args.bags[0], args.calibration, topics=topics_list(args.topics) if args.topics else None,
                                png=png, threshold_range=args.threshold_range, force=args.force)

@@ -29,6 +29,7 @@ line naming the bag, the topic and the message index. No rosbags traceback escap
 from __future__ import annotations
 
 import functools
+import glob
 import heapq
 import logging
 import threading
@@ -186,6 +187,9 @@ def _one_line(e: BaseException) -> str:
 def _bag_root(path) -> Path:
     p = Path(path)
     if not p.exists():
+        if glob.has_magic(str(p)):  # a pattern where one bag is wanted (several go through api.expand_bags)
+            n = len(glob.glob(str(p)))
+            raise InputError(f"{p}: a pattern ({n} match{'es' if n != 1 else ''}), not one bag; give one bag file")
         raise InputError(f"{p}: no such bag file or directory")
     if p.is_file() and p.suffix in (".db3", ".mcap"):
         return p.parent
@@ -273,9 +277,9 @@ class _Bag:
                     f"{self.path}: topic {t} not in bag (available: {', '.join(sorted(have))})"
                 )
             if have[t] not in msgtypes:
-                raise DataError(
-                    f"{self.path}: topic {t} has type {have[t]}, expected one of {', '.join(msgtypes)}"
-                )
+                what = ("not a LIDAR (PointCloud2) or camera (Image, CompressedImage) topic"
+                        if tuple(msgtypes) == DECODABLE else f"expected one of {', '.join(msgtypes)}")
+                raise DataError(f"{self.path}: topic {t} has type {have[t]}: {what}")
             conns += [c for c in self.reader.connections if c.topic == t]
         return conns
 

@@ -91,14 +91,16 @@ def test_detect_every_image_and_outputs_that_are_not_folders_or_yaml(capsys, tmp
                         (["segment", str(d), "--topic", "/lidar0", "--png", str(notes)], "a file; name a directory"),
                         (["segment", str(d), "--topic", "/lidar0", "--dump", str(tmp_path / "no" / "d.npz")],
                          "does not exist"),
-                        (["segment", str(d), "--topic", "/lidar0", "--set", "board.corners=[7,5"], "not YAML")):
+                        (["segment", str(d), "--topic", "/lidar0", "--set", "board.corners=[7,5"], "not YAML"),
+                        (["segment", str(d / "a.bag"), "--topic", "/tf_static"],
+                         "/tf_static has type tf2_msgs/msg/TFMessage: not a LIDAR (PointCloud2) or camera")):
         assert main(args) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and words in err[0], (args, err)
     assert notes.read_text() == "mine"
 
 
-def test_a_directory_of_ros1_bags_where_one_bag_is_wanted(tmp_path, bag_factory):
+def test_a_directory_or_a_glob_of_bags_where_one_bag_is_wanted(tmp_path, bag_factory):
     import pytest
 
     from clcgraph.errors import InputError
@@ -109,6 +111,9 @@ def test_a_directory_of_ros1_bags_where_one_bag_is_wanted(tmp_path, bag_factory)
     bag_factory(d / "a.bag")
     with pytest.raises(InputError, match="a directory of ROS1 bags, not one bag; give one of its .bag files"):
         first_messages(d, ["/lidar0"])
+    bag_factory(d / "b.bag")
+    with pytest.raises(InputError, match=r"\*.bag: a pattern \(2 matches\), not one bag; give one bag file"):
+        first_messages(d / "*.bag", ["/lidar0"])
 
 
 def test_why_boards_were_missed_quotes_the_commonest_reason_with_its_numbers():
