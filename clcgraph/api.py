@@ -829,13 +829,15 @@ def load_result(out_dir):
 
 
 def lidar_scans(bags, topic: str, *, every: bool = False, limit: int | None = None,
-                names: list | None = None, snapshot_options=None) -> list:
+                names: list | None = None, snapshot_options=None, still_intervals: bool = False) -> list:
     """The scans of a PointCloud2 topic: the first of each bag (or every one); InputError if the
     topic holds something else. ``names``: if given, filled with each scan's bag file name.
     ``snapshot_options``: the first of each bag averaged with its next still ones, as the solve's
-    snapshots take it (``snapshots.still_average``)."""
+    snapshots take it (``snapshots.still_average``); with ``still_intervals`` too, a continuous
+    bag gives one scan per still interval, as the solve's snapshots do (judged by this LIDAR alone;
+    named "BAG still START-ENDs")."""
     from .frontend.bag import leading_messages, read_messages
-    from .frontend.snapshots import still_average
+    from .frontend.snapshots import continuous_snapshots, still_average
     from .types import LidarScan
 
     paths = expand_bags(bags)[:limit]
@@ -844,8 +846,16 @@ def lidar_scans(bags, topic: str, *, every: bool = False, limit: int | None = No
         scans, where = [m.data for m in msgs], [m.bag for m in msgs]
     else:
         n = snapshot_options.max_scans_averaged if snapshot_options is not None else 1
-        lead = [leading_messages(b, [topic], {topic: n}).get(topic) for b in paths]
-        scans, where = [None if ms is None else still_average(ms, snapshot_options) for ms in lead], paths
+        scans, where = [], []
+        for b in paths:
+            still = continuous_snapshots(b, [topic], snapshot_options) if still_intervals else None
+            if still:  # the solve's snapshots of a continuous bag
+                scans += [s.scans.get(topic) for s in still]
+                where += [s.source for s in still]
+                continue
+            ms = leading_messages(b, [topic], {topic: n}).get(topic)
+            scans.append(None if ms is None else still_average(ms, snapshot_options))
+            where.append(b)
     if names is not None:
         names[:] = [_bag_name(b) for b in where]
     bad = next((i for i, x in enumerate(scans) if not isinstance(x, LidarScan)), None)
@@ -906,7 +916,7 @@ def segment_bags(bags, topic: str, *, every: bool = False, config=None, dump=Non
         check_out_file(dump, ".npz", flag="--dump")
     if png:
         check_out_folder(png, flag="--png")
-    scans = lidar_scans(bags, topic, every=every, names=names, snapshot_options=cfg.snapshots)
+    scans = lidar_scans(bags, topic, every=every, names=names, snapshot_options=cfg.snapshots, still_intervals=True)
     debugs = [Debug() for _ in scans]
     results = segment_many(scans, cfg.segmentation, cfg.lidar, board_geometry(cfg), debug=debugs)
     if dump:

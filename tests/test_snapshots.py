@@ -323,6 +323,21 @@ def test_single_continuous_bag_without_a_period_is_cut_at_the_motion(continuous_
     assert [s.index for s in snaps] == [0, 1, 2]
 
 
+def test_segment_takes_a_continuous_bags_scans_as_the_solve_does(continuous_bag):
+    """`clcgraph segment` (api.segment_bags) on a continuous bag: one scan per still interval, the
+    scan the solve's snapshot holds, named by its interval; --every still gives every scan."""
+    from clcgraph.api import segment_bags
+
+    snaps, _ = assemble_snapshots([continuous_bag], ["/lidar0"], [], SnapshotOptions())
+    out = segment_bags([continuous_bag], "/lidar0")
+    assert len(out) == len(snaps) == len(STILL)
+    for (scan, _, name), s in zip(out, snaps):
+        assert scan.stamp_ns == s.scans["/lidar0"].stamp_ns
+        np.testing.assert_array_equal(scan.points[scan.valid], s.scans["/lidar0"].points[s.scans["/lidar0"].valid])
+        assert name.startswith("cont.bag still "), name
+    assert len(segment_bags([continuous_bag], "/lidar0", every=True)) == 120
+
+
 def _moving_board_bag(path, n_scans, rng):
     """A bag whose board stands still for ``n_scans // 2`` scans, jumps 1 m, and stands still again."""
     with BagWriter(path) as w:

@@ -52,10 +52,11 @@ def add_segment(sub):
 
     p = add_command(sub, "segment", run=_segment,
                     help="LIDAR board segmentation of a topic: the board's plane or why not, per scan")
-    p.add_argument("bags", nargs="+", metavar="BAG", help=_BAGS_HELP + " (one scan per bag unless --every: its first, "
-                   "averaged with the next still ones as the solve takes it, snapshots.max_scans_averaged)")
+    p.add_argument("bags", nargs="+", metavar="BAG", help=_BAGS_HELP + " (the scans the solve takes unless --every: the "
+                   "first of each bag averaged with the next still ones, snapshots.max_scans_averaged; one per "
+                   "still interval of a continuous bag, judged by this LIDAR)")
     p.add_argument("--topic", required=True, help="the PointCloud2 topic")
-    p.add_argument("--every", action="store_true", help="every scan, each alone, not just the first of each bag")
+    p.add_argument("--every", action="store_true", help="every scan, each alone, not just those the solve takes")
     p.add_argument("--dump", default=None, metavar="FILE.npz",
                    help="intermediate stages: segments, clusters, candidate planes with verdicts, accepted points")
     p.add_argument("--png", default=None, metavar="DIR", help="a picture of each scan's segmentation here")

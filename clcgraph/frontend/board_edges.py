@@ -117,8 +117,10 @@ def edge_rays(rays: ScanRays, rows: np.ndarray, n: np.ndarray, d: float, outline
         # After a lone miss that is the next return: it must have passed the board, else the board
         # went on past a dropout and does not end here.
         m = np.maximum(miss, 0)
-        lone = (miss >= 0) & ((after if way > 0 else before)[m] >= 0)
-        beyond = np.where(lone, (after if way > 0 else before)[m], -1)
+        side = after if way > 0 else before  # empty where the scan missed no ray (then miss < 0 everywhere)
+        past_miss = side[np.minimum(m, len(side) - 1)] if len(side) else np.full(len(m), -1)
+        lone = (miss >= 0) & (past_miss >= 0)
+        beyond = np.where(lone, past_miss, -1)
         ok &= ~lone | (~on[np.maximum(beyond, 0)] & _behind_or_missed(R, beyond, n, d, plane_tol_m))
         # A return behind the plane: the next ray along the ring tells what it was. On the plane:
         # the board went on past a stray return (a heavy tail). Farther behind, or a miss: it lay

@@ -447,6 +447,19 @@ def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
     return snaps, rejected
 
 
+def continuous_snapshots(bag: Path, lidar_topics: Sequence[str], options) -> list[Snapshot]:
+    """The snapshots ``assemble_snapshots`` takes from ``bag`` if it is a continuous recording
+    (the scene still more than once, judged by ``lidar_topics``), one per still interval; else []
+    (a bag per pose: its first messages)."""
+    tfilter = TimeFilter.from_options(options)
+    if not _may_hold_two_still_intervals(bag, lidar_topics):
+        return []
+    still, moving_s = still_intervals(bag, lidar_topics, options, tfilter)
+    if not (moving_s > 0 and len(still) >= 2):
+        return []
+    return _still_snapshots(bag, still, moving_s, lidar_topics, [], options, tfilter, 0)[0]
+
+
 def _may_hold_two_still_intervals(bag: Path, lidar_topics: Sequence[str]) -> bool:
     """Whether ``still_intervals`` can find two still intervals in ``bag``: each needs >= 2 scans of
     every LIDAR seen, so a bag with fewer than 4 scans of each LIDAR (a bag per pose) cannot, and its

@@ -188,6 +188,29 @@ def test_an_edge_hidden_behind_an_arm_is_not_an_edge():
     assert np.all(np.min(np.abs(z[:, None] - z_right[None, :]), axis=1) < 1e-6)
 
 
+def test_a_scan_in_which_every_ray_returns_has_its_edges_too():
+    """A room closed all round (no ray missed, the scan's missed-ray list empty): the same edge
+    intervals as with the rays behind the LIDAR missing (before: an IndexError in the solve)."""
+    step = 2 * np.pi / 2048
+    scan, rows, n, d, _ = _scan_with_arm(False)
+    el = np.radians(np.linspace(-16, 16, 32))[scan.ring]
+    az = np.tile(np.linspace(-np.pi, np.pi, 2048, endpoint=False), 32)
+    u = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1)
+    behind = ~scan.valid  # the rays that missed: now on a wall 6 m behind (or beside) the LIDAR
+    t = 6.0 / np.maximum(np.abs(u[:, 0]), 0.1)
+    closed = dataclasses.replace(scan, points=np.where(behind[:, None], u * t[:, None], scan.points),
+                                 valid=np.ones(len(u), bool))
+    out = []
+    for sc in (scan, closed):
+        every = scan_rays(sc, step)
+        assert (len(every.missed[0]) == 0) == (sc is closed)
+        outline = fit_outline(sc.points[rows], every.points[every.away_from(rows)], n, d, size_m=(0.85, 0.61),
+                              step_rad=step, plane_tol_m=0.05)
+        out.append(edge_rays(every, rows, n, d, outline, plane_tol_m=0.05))
+    assert len(out[0]) >= 20
+    np.testing.assert_allclose(out[1], out[0], atol=1e-12)
+
+
 def _one_pitched_board():
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from test_consistency import upright_boards_and_pitched
