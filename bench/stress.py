@@ -154,6 +154,10 @@ CAPTURES = [
             rig={"lidars": [dict(TOP, heavy_tail_fraction=0.02, dark_range_bias_m=0.015, mixed_pixel_m=0.1),
                             dict(BUMPER, heavy_tail_fraction=0.02, dark_range_bias_m=0.02, mixed_pixel_m=0.1)],
                  "cameras": [CAM_FRONT]}, simulate={"n_poses": 16}),
+    Capture("indoor-hall", "indoors: a hall closed all round, walls 6-9 m away up to a ceiling 3.4-4 m high (every "
+            "LIDAR ray returns: no dropouts either), boards within 5 m",
+            rig={"lidars": [dict(TOP, dropout=0.0), dict(BUMPER, dropout=0.0)], "cameras": [CAM_FRONT]},
+            simulate={"n_poses": 16, "indoor": True, "max_distance_m": 5.0}),
     Capture("drive-long", "targetless: a 30 s drive", drive={"duration": 30.0}),
 ]
 

@@ -187,7 +187,7 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
              tilt_max_deg: float = 40.0, tf_error=(1.0, 0.03), hold_s: float = 2.0, move_s: float = 1.0,
              camera_hz: float = 5.0, clutter: bool = True, compress: bool = False, log_delays: bool = True,
              vertical_boards: bool = False, max_distance_m: float | None = None, planned_tilts: bool = False,
-             pair_boards: int = 0, force: bool = False) -> dict:
+             pair_boards: int = 0, indoor: bool = False, force: bool = False) -> dict:
     """Simulate a capture session of the rig in ``rig_yaml`` into ``out_dir`` (replaced atomically).
     ``compress``: lz4-compressed ROS1 bags (as `rosbag record --lz4` writes them).
     ``log_delays``: drivers' log times (see the module docstring); False: log time = stamp.
@@ -200,6 +200,7 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
     ``pair_boards``: each pose held, while some pair of sensors has seen the board together on
     fewer poses than this, where that pair (the fewest so far) both see it: before its camera, or
     around one of its LIDARs (``_pair_to_show``); 0: wherever >= 2 sensors see it.
+    ``indoor``: in a hall closed all round (``scene.static_meshes``): every LIDAR ray returns.
     ``force``: replace ``out_dir`` even if it is not a previous simulated session.
 
     Returns the truth dict that is also written to ``out_dir/truth.yaml``.
@@ -216,7 +217,7 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
               "camera": [int(clock.uniform(0, 1e9 / camera_hz)) for _ in rig.cameras]}
     delays = LogDelays(seed=seed) if log_delays else None
     with atomic_dir(out_dir, kind="session", force=force) as tmp:
-        static = static_meshes(rng, clutter=clutter)
+        static = static_meshes(rng, clutter=clutter, indoor=indoor)
         tf = _tf_static(rig, rng, tf_error)
         ext = ".bag" if format == "ros1" else ""
         snapshots = []

@@ -40,17 +40,26 @@ def cylinder_mesh(r, h, x, y):
     return m
 
 
-def static_meshes(rng, *, clutter: bool = True, walls_m=(12.0, 25.0)) -> list:
-    """Ground, walls and clutter (legacy open3d meshes) of one calibration site."""
+def static_meshes(rng, *, clutter: bool = True, walls_m=(12.0, 25.0), indoor: bool = False) -> list:
+    """Ground, walls and clutter (legacy open3d meshes) of one calibration site. ``indoor``: a hall
+    closed all round, walls at 6-9 m up to a ceiling 3.4-4 m high: every ray of a LIDAR returns
+    (outdoors the sky and the gaps between walls return nothing)."""
     meshes = [box_mesh(200, 200, 0.1, 0, 0, -0.1)]  # ground, top at z = 0
-    if not clutter:
+    ceiling = rng.uniform(3.4, 4.0) if indoor else None
+    if indoor:
+        meshes.append(box_mesh(200, 200, 0.1, 0, 0, ceiling))
+        walls_m = (6.0, 9.0)
+    if not clutter and not indoor:
         return meshes
     n_walls = 8
-    for k in range(n_walls):  # an irregular room of walls at 12-25 m
+    for k in range(n_walls):  # an irregular room of walls at 12-25 m (indoors: meeting at the corners)
         az = 2 * np.pi * (k + rng.uniform(-0.2, 0.2)) / n_walls
         d = rng.uniform(*walls_m)
-        w = 2 * d * np.tan(np.pi / n_walls) + 2.0
-        meshes.append(box_mesh(0.3, w, rng.uniform(3, 8), d * np.cos(az), d * np.sin(az), 0, az))
+        w = 2 * d * np.tan(np.pi / n_walls) + (2 * walls_m[1] if indoor else 2.0)
+        meshes.append(box_mesh(0.3, w, ceiling + 0.1 if indoor else rng.uniform(3, 8), d * np.cos(az), d * np.sin(az),
+                               0, az))
+    if not clutter:
+        return meshes
     for _ in range(3):  # parked cars: body + cabin, 6-11 m away
         az, d = rng.uniform(0, 2 * np.pi), rng.uniform(6, 11)
         x, y, yaw = d * np.cos(az), d * np.sin(az), rng.uniform(0, np.pi)
