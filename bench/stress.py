@@ -158,6 +158,9 @@ CAPTURES = [
             "LIDAR ray returns: no dropouts either), boards within 5 m",
             rig={"lidars": [dict(TOP, dropout=0.0), dict(BUMPER, dropout=0.0)], "cameras": [CAM_FRONT]},
             simulate={"n_poses": 16, "indoor": True, "max_distance_m": 5.0}),
+    Capture("dual-return", "the roof VLP-16 left in dual-return mode: two returns of every ray in one cloud",
+            rig={"lidars": [dict(TOP, dual_returns=True), BUMPER], "cameras": [CAM_FRONT]},
+            simulate={"n_poses": 16}),
     Capture("drive-long", "targetless: a 30 s drive", drive={"duration": 30.0}),
 ]
 

@@ -133,10 +133,48 @@ def prepare(scan: LidarScan, *, min_range_m: float = 0.0, max_range_m: float = n
     az_by_ring = az[order]
     for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist()):
         order[a:b] = order[a:b][np.argsort(az_by_ring[a:b], kind="stable")]
+    order = _first_returns(order, r, az)
+    if len(order) < len(r):
+        r = ring[idx[order]]
+        starts = np.flatnonzero(np.r_[True, r[1:] != r[:-1]]) if len(r) else np.zeros(0, np.int64)
+        bounds = np.r_[starts, len(r)]
     every = Rings(idx[order], r, az[order], rng[order], pts[order], bounds, r[starts])
     if min_range_m <= 0 and max_range_m == np.inf and exclude is None:
         return every
     return every.within(min_range_m=min_range_m, max_range_m=max_range_m, exclude=exclude)
+
+
+# Two returns of one ray (a LIDAR in dual-return mode: strongest and last in one cloud) share its
+# ring and azimuth to float precision (~1e-7 rad); neighbouring rays are >= 1e-3 rad apart.
+_SAME_RAY_RAD = 1e-5
+
+
+def has_second_returns(scan: LidarScan, ring: np.ndarray, az: np.ndarray) -> bool:
+    """Whether ``scan`` holds rays that returned twice (``_first_returns``), from its fullest ring
+    alone (a dual-return LIDAR reports two for most rays of every ring): cheaper than ``prepare``.
+    ``ring``, ``az``: per row (``ring_of``, ``azimuth``)."""
+    ok = np.asarray(scan.valid, bool) & (ring >= 0) & np.isfinite(az)
+    if not ok.any():
+        return False
+    fullest = np.argmax(np.bincount(ring[ok] - ring[ok].min())) + ring[ok].min()
+    a = np.sort(az[ok & (ring == fullest)])
+    return bool(len(a) > 1 and np.any(np.diff(a) <= _SAME_RAY_RAD))
+
+
+def _first_returns(order: np.ndarray, ring_sorted: np.ndarray, az: np.ndarray) -> np.ndarray:
+    """``order`` (positions of the points, sorted by ring, then azimuth) with one return per ray:
+    where a ray returned twice, the first in the cloud's own order. A second return counted as a
+    second measurement would halve the sigmas; keeping the nearer one would bias a surface's
+    noisy ranges toward the LIDAR (two returns of one surface are both noisy)."""
+    if len(order) < 2:
+        return order
+    same = (np.diff(ring_sorted) == 0) & (np.abs(np.diff(az[order])) <= _SAME_RAY_RAD)
+    if not same.any():
+        return order
+    group = np.cumsum(np.r_[True, ~same])  # one id per ray, in the sorted order
+    by = np.lexsort((order, group))  # per ray, its returns in the cloud's order
+    first = np.r_[True, group[by][1:] != group[by][:-1]]
+    return order[np.sort(by[first])]
 
 
 def ring_neighbours(R: Rings) -> tuple[np.ndarray, np.ndarray]:
@@ -349,6 +387,10 @@ def static_masks(scans, *, npoints_per_rotation: int, quantum_m: float = 0.2, mi
         # only returns in segmentation range take part: one scan of garbage (a false is_bigendian)
         # must not overflow the keys and spoil every other scan's modes
         ok = np.asarray(s.valid, bool) & np.isfinite(r) & (r <= max_range_m) & (ring >= 0)
+        if has_second_returns(s, ring, az):  # each ray counts once in its cell's modes
+            first = np.zeros(len(ok), bool)
+            first[prepare(s).index] = True
+            ok &= first
         col = np.floor((np.where(ok, az, 0.0) + np.pi) / (2 * np.pi) * npoints_per_rotation).astype(np.int64)
         keys.append(np.where(ok, ring * npoints_per_rotation + col % npoints_per_rotation, -1))
         ranges.append(np.where(ok, r, np.nan))

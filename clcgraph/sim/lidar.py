@@ -51,6 +51,9 @@ class LidarModel:
     # a ring's board return next to a miss of the board is up to this much long (part of the
     # beam's footprint hit the background: a mixed pixel).
     mixed_pixel_m: float = 0.0
+    # dual-return mode (velodyne layout): each firing's returns, then a second return of every ray:
+    # with one surface on the ray the same echo again (strongest = last, as Hesai drivers publish it)
+    dual_returns: bool = False
 
     def ring_errors(self) -> tuple[np.ndarray, np.ndarray]:
         """(range bias (rings,) m, elevation error (rings,) deg): this unit's fixed errors."""
@@ -120,6 +123,10 @@ def simulate_scan(model: LidarModel, T_world_lidar: np.ndarray, scene, rng, *, s
     if model.layout == "ouster":
         return LidarScan(topic, stamp_ns, pts, valid, intensity, ring, time_s, (rings, cols)), hit_board
     order = np.arange(rings * cols).reshape(rings, cols).T.ravel()  # firing order: column by column
+    if model.dual_returns:  # each column's second returns right after its first ones
+        pts = np.concatenate([pts, pts])
+        order = np.stack([order.reshape(cols, rings), order.reshape(cols, rings) + rings * cols], axis=1).ravel()
+        valid, intensity, ring, time_s, hit_board = (np.r_[x, x] for x in (valid, intensity, ring, time_s, hit_board))
     order = order[valid[order]]
     scan = LidarScan(topic, stamp_ns, pts[order], np.ones(len(order), bool), intensity[order], ring[order],
                      time_s[order], None)

@@ -16,6 +16,7 @@
         heavy_tail_fraction: 0.02        # optional: share of returns with heavy_tail_scale (10) x the noise
         dark_range_bias_m: 0.015         # optional: the board's dark squares return weak and this long
         mixed_pixel_m: 0.1               # optional: a ring's board-edge return up to this long
+        dual_returns: false              # optional: two returns of every ray (velodyne layout only)
         dropout: 0.005
     cameras:
       - topic: /cam/left/image
@@ -112,7 +113,8 @@ def _pose(d, where, path) -> np.ndarray:
 
 _LIDAR_KEYS = {"topic", "model", "elevations_deg", "npoints_per_rotation", "layout", "frame_id", "xyz", "rpy_deg",
                "range_noise_m", "dropout", "max_range_m", "ring_range_bias_m", "ring_elevation_error_deg",
-               "errors_seed", "heavy_tail_fraction", "heavy_tail_scale", "dark_range_bias_m", "mixed_pixel_m"}
+               "errors_seed", "heavy_tail_fraction", "heavy_tail_scale", "dark_range_bias_m", "mixed_pixel_m",
+               "dual_returns"}
 _CAMERA_KEYS = {"topic", "model", "encoding", "compressed", "frame_id", "xyz", "rpy_deg"}
 
 
@@ -143,9 +145,11 @@ def load_rig(path) -> Rig:
         over = {k2: L[k2] for k2 in ("layout", "range_noise_m", "dropout", "max_range_m", "npoints_per_rotation",
                                      "ring_range_bias_m", "ring_elevation_error_deg", "errors_seed",
                                      "heavy_tail_fraction", "heavy_tail_scale", "dark_range_bias_m",
-                                     "mixed_pixel_m") if k2 in L}
+                                     "mixed_pixel_m", "dual_returns") if k2 in L}
         if over.get("layout", model.layout) not in ("velodyne", "ouster"):
             raise InputError(f"{path}: {where}.layout must be velodyne or ouster")
+        if over.get("dual_returns") and over.get("layout", model.layout) != "velodyne":
+            raise InputError(f"{path}: {where}.dual_returns needs the velodyne layout (an unorganised cloud)")
         model = replace(model, **over)
         lidars.append(RigLidar(topic, str(L.get("frame_id", topic.strip("/").replace("/", "_"))), model,
                                _pose(L, where, path)))

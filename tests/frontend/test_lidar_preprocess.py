@@ -187,3 +187,42 @@ def test_average_scans_of_one_scan_is_that_scan():
     scan = _tilted_board_scan(np.random.default_rng(1), 0.0)[0]
     avg, count = average_scans([scan])
     assert avg is scan and set(np.unique(count)) == {1}
+
+
+def _dual_returns(scan, rng, noise_m=0.01):
+    """``scan`` as a LIDAR in dual-return mode publishes it, unorganised: each ray's return, then
+    (in the next block) a second return of the same ray, the same surface with its own range noise."""
+    ok = np.flatnonzero(scan.valid)
+    p = scan.points[ok]
+    r = np.linalg.norm(p, axis=1)
+    second = p * ((r + rng.normal(0, noise_m, len(r))) / r)[:, None]
+    cat = lambda a, b: np.concatenate([a, b])  # noqa: E731
+    return LidarScan(scan.topic, scan.stamp_ns, cat(p, second), np.ones(2 * len(ok), bool),
+                     ring=cat(scan.ring[ok], scan.ring[ok]), time_s=None)
+
+
+def test_a_dual_return_cloud_keeps_one_return_per_ray_and_finds_the_same_boards():
+    """A second return of each ray is not a second measurement: prepare keeps the first of each
+    ray in the cloud's order (not the nearer: two noisy returns of one surface would bias it toward
+    the LIDAR), and the segmentation then finds the boards of the single-return scans, to the point."""
+    from clcgraph.frontend.lidar_board import segment_many
+    from clcgraph.config import Config
+    from clcgraph.types import LidarBoardObservation
+    from lidar_board_scans import BOARD, board_scans
+
+    scans, _ = board_scans(LidarModel.preset("vlp16"), 6, tilt_max_deg=40.0, distance_m=(2.5, 6.0))
+    rng = np.random.default_rng(1)
+    dual = [_dual_returns(s, rng) for s in scans]
+    single = [LidarScan(s.topic, s.stamp_ns, s.points[s.valid], np.ones(int(s.valid.sum()), bool),
+                        ring=s.ring[s.valid]) for s in scans]
+    R = prepare(dual[0])
+    n = len(single[0].points)
+    assert len(R.index) == n and np.all(R.index < n)  # one per ray, each the first
+    cfg = Config()
+    a = segment_many(single, cfg.segmentation, cfg.lidar, BOARD)
+    b = segment_many(dual, cfg.segmentation, cfg.lidar, BOARD)
+    found = [isinstance(x, LidarBoardObservation) for x in a]
+    assert sum(found) >= 5 and found == [isinstance(x, LidarBoardObservation) for x in b]
+    for x, y in zip(a, b):
+        if isinstance(x, LidarBoardObservation):
+            np.testing.assert_array_equal(x.points, y.points)

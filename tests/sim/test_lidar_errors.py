@@ -47,6 +47,19 @@ def test_dark_squares_return_long_by_the_set_bias():
     assert np.all(_ranges(dark)[~hit] == _ranges(ref)[~hit])
 
 
+def test_dual_returns_report_each_rays_echo_twice_column_by_column():
+    one = replace(EXACT, layout="velodyne", range_noise_m=0.01)
+    single, hit1, _, _ = _scan(one)
+    dual, hit2, _, _ = _scan(replace(one, dual_returns=True))
+    assert len(dual.points) == 2 * len(single.points) and hit2.sum() == 2 * hit1.sum()
+    # per column: the first returns of its rings, then the same echoes again
+    col = np.r_[0, np.flatnonzero(np.diff(dual.time_s) != 0) + 1, len(dual.time_s)]
+    for a, b in zip(col[:-1], col[1:]):
+        half = (b - a) // 2
+        np.testing.assert_array_equal(dual.points[a:a + half], dual.points[a + half:b])
+    np.testing.assert_array_equal(np.unique(dual.points, axis=0), np.unique(single.points, axis=0))
+
+
 def test_mixed_pixels_only_at_each_rings_board_ends():
     ref, hit, _, _ = _scan(EXACT)
     mixed, _, _, _ = _scan(replace(EXACT, mixed_pixel_m=0.1))
