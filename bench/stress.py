@@ -161,6 +161,10 @@ CAPTURES = [
     Capture("dual-return", "the roof VLP-16 left in dual-return mode: two returns of every ray in one cloud",
             rig={"lidars": [dict(TOP, dual_returns=True), BUMPER], "cameras": [CAM_FRONT]},
             simulate={"n_poses": 16}),
+    Capture("continuous-split", "one continuous ROS1 recording split into 7 s files (rosbag record --split "
+            "--duration 7): pauses cut by the file boundaries; /tf_static only in the first file",
+            rig={"lidars": [TOP, BUMPER], "cameras": [CAM_FRONT]},
+            simulate={"n_poses": 12, "continuous": True, "split_s": 7.0}),
     Capture("drive-long", "targetless: a 30 s drive", drive={"duration": 30.0}),
 ]
 

@@ -837,7 +837,7 @@ def lidar_scans(bags, topic: str, *, every: bool = False, limit: int | None = No
     bag gives one scan per still interval, as the solve's snapshots do (judged by this LIDAR alone;
     named "BAG still START-ENDs")."""
     from .frontend.bag import leading_messages, read_messages
-    from .frontend.snapshots import continuous_snapshots, still_average
+    from .frontend.snapshots import continuous_snapshots, recordings, still_average
     from .types import LidarScan
 
     paths = expand_bags(bags)[:limit]
@@ -847,15 +847,16 @@ def lidar_scans(bags, topic: str, *, every: bool = False, limit: int | None = No
     else:
         n = snapshot_options.max_scans_averaged if snapshot_options is not None else 1
         scans, where = [], []
-        for b in paths:
-            still = continuous_snapshots(b, [topic], snapshot_options) if still_intervals else None
-            if still:  # the solve's snapshots of a continuous bag
+        for group in (recordings(paths) if still_intervals else [[b] for b in paths]):
+            still = continuous_snapshots(group, [topic], snapshot_options) if still_intervals else None
+            if still:  # the solve's snapshots of a continuous recording
                 scans += [s.scans.get(topic) for s in still]
                 where += [s.source for s in still]
                 continue
-            ms = leading_messages(b, [topic], {topic: n}).get(topic)
-            scans.append(None if ms is None else still_average(ms, snapshot_options))
-            where.append(b)
+            for b in group:
+                ms = leading_messages(b, [topic], {topic: n}).get(topic)
+                scans.append(None if ms is None else still_average(ms, snapshot_options))
+                where.append(b)
     if names is not None:
         names[:] = [_bag_name(b) for b in where]
     bad = next((i for i, x in enumerate(scans) if not isinstance(x, LidarScan)), None)

@@ -338,6 +338,38 @@ def test_segment_takes_a_continuous_bags_scans_as_the_solve_does(continuous_bag)
     assert len(segment_bags([continuous_bag], "/lidar0", every=True)) == 120
 
 
+def test_a_recording_split_into_files_gives_the_snapshots_of_the_whole(continuous_bag, tmp_path):
+    """`rosbag record --split`: the files of one recording are one time line (a pause cut by a file
+    boundary is one snapshot, not two), and a file without a topic (the camera's last frame fell in
+    the file before) is no error; the snapshots are those of the unsplit bag."""
+    import shutil
+
+    from clcgraph.frontend.snapshots import recordings
+    from clcgraph.sim.bag_writer import split_ros1_bag
+
+    from clcgraph.frontend.bag import bag_info
+
+    whole, _ = assemble_snapshots([continuous_bag], ["/lidar0"], ["/cam0"], SnapshotOptions())
+    # files of 3.3 s: boundaries inside the first two still intervals; of 3.966 s: the last file holds
+    # the LIDAR's last scan alone (at 11.913 s, after the camera's last frame at 11.907 s)
+    for every_s, names in ((3.3, ["rec_0.bag", "rec_1.bag", "rec_2.bag", "rec_3.bag"]),
+                           (3.96567, ["rec_0.bag", "rec_1.bag", "rec_2.bag", "rec_3.bag"])):
+        copy = tmp_path / str(every_s) / "rec.bag"
+        copy.parent.mkdir()
+        shutil.copy(continuous_bag, copy)
+        parts = split_ros1_bag(copy, every_s)
+        assert [p.name for p in parts] == names and not copy.exists()
+        if every_s > 3.5:
+            assert [t.topic for t in bag_info(parts[-1]).topics] == ["/lidar0"]
+        shuffled = [parts[2], parts[0], parts[3], parts[1]]
+        assert recordings(shuffled) == [parts]
+        split, _ = assemble_snapshots(shuffled, ["/lidar0"], ["/cam0"], SnapshotOptions())
+        assert [s.stamp_ns for s in split] == [s.stamp_ns for s in whole] and len(split) == len(STILL)
+        assert [s.source.split(" still ")[1] for s in split] == [s.source.split(" still ")[1] for s in whole]
+    # bags of separate recordings (here two copies of one: the same times) stay apart
+    assert recordings([continuous_bag, parts[0]]) == [[continuous_bag], [parts[0]]]
+
+
 def _moving_board_bag(path, n_scans, rng):
     """A bag whose board stands still for ``n_scans // 2`` scans, jumps 1 m, and stands still again."""
     with BagWriter(path) as w:
@@ -362,7 +394,8 @@ def test_a_bag_too_short_for_two_still_intervals_is_not_decoded_for_them(tmp_pat
     o = SnapshotOptions(motion_window_s=0.05)
     calls = []
     search = snapshots.still_intervals
-    monkeypatch.setattr(snapshots, "still_intervals", lambda b, *a, **k: calls.append(Path(b).name) or search(b, *a, **k))
+    monkeypatch.setattr(snapshots, "still_intervals",  # given a recording's files
+                        lambda bags, *a, **k: calls.append(",".join(Path(b).name for b in bags)) or search(bags, *a, **k))
     snaps, _ = assemble_snapshots([short, long], ["/lidar0"], ["/cam0"], o)
     assert calls == ["long.bag"]
     assert [s.source.split(" ")[0] for s in snaps] == [str(short), str(long), str(long)]

@@ -268,11 +268,16 @@ class _Bag:
     def topics(self) -> dict[str, str]:
         return {c.topic: c.msgtype for c in self.reader.connections}
 
-    def connections(self, topics: Iterable[str], *, msgtypes: Sequence[str] = DECODABLE):
+    def connections(self, topics: Iterable[str], *, msgtypes: Sequence[str] = DECODABLE, missing_ok: bool = False):
+        """The connections of ``topics``; a topic the bag lacks is an InputError unless ``missing_ok``
+        (a capture's bags: one without a sensor's messages holds none of them, as a recording split
+        into files may leave a short last file)."""
         have = self.topics()
         conns = []
         for t in topics:
             if t not in have:
+                if missing_ok:
+                    continue
                 raise InputError(
                     f"{self.path}: topic {t} not in bag (available: {', '.join(sorted(have))})"
                 )
@@ -343,6 +348,12 @@ def bag_info(path) -> BagInfo:
         return BagInfo(b.path, topics, min(first.values(), default=None), max(last.values(), default=None))
 
 
+def log_span(path) -> tuple[int, int]:
+    """(first, last) log time (ns) of the bag at ``path``, from its index (nothing is read)."""
+    with _Bag(path) as b:
+        return int(b.reader.start_time), int(b.reader.end_time)
+
+
 def _stamp(msg, logtime: int) -> int:
     header = getattr(msg, "header", None)
     return stamp_ns_of(header) if header is not None else int(logtime)
@@ -379,9 +390,9 @@ def stamp_ordered(items: Iterable[tuple], *, max_delay_ns: int = MAX_LOG_DELAY_N
                        f"{where}: " if where else "", topic, len(delays), max_delay_ns * 1e-9, max(delays) * 1e-9)
 
 
-def _iter_bag(path, topics, start_ns, stop_ns) -> Iterator[Message]:
+def _iter_bag(path, topics, start_ns, stop_ns, missing_ok: bool = False) -> Iterator[Message]:
     with _Bag(path) as b:
-        conns = b.connections(topics)
+        conns = b.connections(topics, missing_ok=missing_ok)
         lo = None if start_ns is None else max(0, start_ns - _LOG_TIME_SLACK_NS)
         hi = None if stop_ns is None else stop_ns + _LOG_TIME_SLACK_NS
 
@@ -397,7 +408,7 @@ def _iter_bag(path, topics, start_ns, stop_ns) -> Iterator[Message]:
 
 
 def read_messages(paths, topics: Sequence[str], *, start_ns: int | None = None,
-                  stop_ns: int | None = None) -> Iterator[Message]:
+                  stop_ns: int | None = None, missing_ok: bool = False) -> Iterator[Message]:
     """Decoded messages of ``topics`` from all ``paths``, merged in header-stamp order.
 
     paths: one path or a sequence. Only messages with start_ns <= stamp < stop_ns are
@@ -405,15 +416,15 @@ def read_messages(paths, topics: Sequence[str], *, start_ns: int | None = None,
     order (``stamp_ordered``), and the bags are merged.
     ``index`` is counted over all of the topic's messages in that bag, so it names the
     message in errors even with a time window. Every bag is opened (and checked for
-    the topics) before the first message is yielded.
+    the topics, unless ``missing_ok``: ``_Bag.connections``) before the first message is yielded.
     """
     if isinstance(paths, (str, Path)):
         paths = [paths]
     topics = list(topics)
     for p in paths:  # fail early, before any message is produced
         with _Bag(p) as b:
-            b.connections(topics)
-    streams = [_iter_bag(p, topics, start_ns, stop_ns) for p in paths]
+            b.connections(topics, missing_ok=missing_ok)
+    streams = [_iter_bag(p, topics, start_ns, stop_ns, missing_ok) for p in paths]
     yield from heapq.merge(*streams, key=lambda m: m.stamp_ns)
 
 
@@ -433,12 +444,13 @@ def first_messages(path, topics: Sequence[str]) -> dict[str, LidarScan | Image]:
     return {t: ms[0] for t, ms in leading_messages(path, topics, {}).items()}
 
 
-def leading_messages(path, topics: Sequence[str], counts: dict[str, int]) -> dict[str, list[LidarScan | Image]]:
+def leading_messages(path, topics: Sequence[str], counts: dict[str, int], *,
+                     missing_ok: bool = False) -> dict[str, list[LidarScan | Image]]:
     """{topic: the first ``counts.get(topic, 1)`` decoded messages of that topic in this bag}, in
-    stamp order (topics without messages left out)."""
+    stamp order (topics without messages left out; ``missing_ok``: ``_Bag.connections``)."""
     out: dict[str, list] = {}
     with _Bag(path) as b:
-        conns = b.connections(topics)
+        conns = b.connections(topics, missing_ok=missing_ok)
         for conn in conns:
             if conn.topic in out:
                 continue

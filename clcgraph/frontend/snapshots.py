@@ -386,7 +386,7 @@ def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
     it, one per period of the (continuous) bags, streamed. Snapshot indices count the kept snapshots from 0.
     ``progress``: optional wrapper of the iteration over bags (the API's progress bar).
     """
-    from clcgraph.frontend.bag import leading_messages, read_messages
+    from clcgraph.frontend.bag import read_messages
 
     tfilter = TimeFilter.from_options(options)
     lidar_topics, camera_topics = list(lidar_topics), list(camera_topics)
@@ -400,42 +400,31 @@ def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
         else:
             kept_bags.append(b)
     snaps: list[Snapshot] = []
-    bag_iter = progress(kept_bags) if progress else kept_bags
     if options.decimation_period_s is None:
         # each bag's LIDAR scans are averaged (still_average) in worker threads while the next bags
         # are read: numpy releases the GIL there, and reading is mostly Python
         with ThreadPoolExecutor(max_workers=min(2, os.cpu_count() or 1), thread_name_prefix="clcgraph-average") as pool:
-            for b in bag_iter:
-                still, moving_s = (still_intervals(b, lidar_topics, options, tfilter)
-                                   if _may_hold_two_still_intervals(b, lidar_topics) else ([], 0.0))
-                # the board stopped more than once: a continuous bag, a snapshot per still interval (a
-                # bag per pose in which something moved, e.g. a passer-by, keeps its first messages)
+            for group in (progress(recordings(kept_bags)) if progress else recordings(kept_bags)):
+                still, moving_s = (still_intervals(group, lidar_topics, options, tfilter)
+                                   if _may_hold_two_still_intervals(group, lidar_topics) else ([], 0.0))
+                # the board stopped more than once: a continuous recording (one bag, or a recording
+                # split into files), a snapshot per still interval (a bag per pose in which something
+                # moved, e.g. a passer-by, keeps its first messages)
                 if moving_s > 0 and len(still) >= 2:
-                    s_new, r_new = _still_snapshots(b, still, moving_s, lidar_topics, camera_topics, options,
+                    s_new, r_new = _still_snapshots(group, still, moving_s, lidar_topics, camera_topics, options,
                                                     tfilter, len(snaps))
                     snaps += s_new
                     rejected += r_new
                     continue
-                lead = leading_messages(b, topics, {t: options.max_scans_averaged for t in lidar_topics})
-                if not lead:
-                    rejected.append(Rejected(f"{b}: none of the topics present", "snapshot"))
-                    continue
-                why = next((w for w in (tfilter.why_not(ms[0].stamp_ns) for ms in lead.values()) if w), None)
-                if why:
-                    rejected.append(Rejected(f"{b}: {why}", "snapshot"))
-                    continue
-                spread = _spread_rejection([ms[0] for ms in lead.values()], options)
-                if spread:
-                    rejected.append(Rejected(f"{b}: {spread}", "snapshot"))
-                    continue
-                snaps.append(_PendingSnapshot(len(snaps), str(b), {t: ms[0].stamp_ns for t, ms in lead.items()},
-                                              {t: pool.submit(still_average, ms, options) for t, ms in lead.items()}))
+                for b in group:
+                    r_new = _first_messages_snapshot(b, snaps, pool, lidar_topics, camera_topics, options, tfilter)
+                    rejected += r_new
             snaps = [s.result(lidar_topics, camera_topics) if isinstance(s, _PendingSnapshot) else s for s in snaps]
     else:
         if options.decimation_period_s <= 0:
             raise InputError(f"decimation_period_s must be > 0, got {options.decimation_period_s}")
-        for b in bag_iter:  # each continuous bag on its own time line
-            msgs = read_messages([b], topics, start_ns=tfilter.after_ns, stop_ns=tfilter.before_ns)
+        for b in (progress(kept_bags) if progress else kept_bags):  # each continuous bag on its own time line
+            msgs = read_messages([b], topics, start_ns=tfilter.after_ns, stop_ns=tfilter.before_ns, missing_ok=True)
             for per in group_periods(msgs, topics, period_s=options.decimation_period_s,
                                      window_s=options.motion_window_s, tfilter=tfilter):
                 r = _finish_period(per, lidar_topics, camera_topics, options, str(b), len(snaps),
@@ -447,10 +436,56 @@ def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
     return snaps, rejected
 
 
-def continuous_snapshots(bag: Path, lidar_topics: Sequence[str], options) -> list[Snapshot]:
-    """The snapshots ``assemble_snapshots`` takes from ``bag`` if it is a continuous recording
-    (the scene still more than once, judged by ``lidar_topics``), one per still interval; else []
-    (a bag per pose: its first messages)."""
+# Files of one recording split by `rosbag record --split` follow each other without a gap; separate
+# recordings (a bag per pose) are seconds apart (the board is moved and the recording restarted)
+_SPLIT_GAP_NS = 1_000_000_000
+
+
+def recordings(bags: Sequence[Path]) -> list[list[Path]]:
+    """The bags grouped into recordings: a bag alone, or the files of one recording split into
+    consecutive files (each starting within 1 s of the previous one's end, by the bags' indexes),
+    in time order; the groups in the order of their first bag in ``bags``."""
+    from clcgraph.frontend.bag import log_span
+
+    if len(bags) < 2:
+        return [list(bags)]
+    spans = [log_span(b) for b in bags]
+    by_time = sorted(range(len(bags)), key=lambda i: (spans[i][0], i))
+    groups: list[list[int]] = []
+    for i in by_time:
+        prev = groups[-1][-1] if groups else None
+        if prev is not None and 0 <= spans[i][0] - spans[prev][1] <= _SPLIT_GAP_NS:
+            groups[-1].append(i)
+        else:
+            groups.append([i])
+    return [[bags[i] for i in g] for g in sorted(groups, key=min)]
+
+
+def _first_messages_snapshot(b: Path, snaps: list, pool, lidar_topics, camera_topics, options,
+                             tfilter: TimeFilter) -> list[Rejected]:
+    """A bag per pose: its snapshot from the first messages of each topic appended to ``snaps``
+    (pending: its LIDAR scans averaged in ``pool``), or why not."""
+    from clcgraph.frontend.bag import leading_messages
+
+    topics = list(lidar_topics) + list(camera_topics)
+    lead = leading_messages(b, topics, {t: options.max_scans_averaged for t in lidar_topics}, missing_ok=True)
+    if not lead:
+        return [Rejected(f"{b}: none of the topics present", "snapshot")]
+    why = next((w for w in (tfilter.why_not(ms[0].stamp_ns) for ms in lead.values()) if w), None)
+    if why:
+        return [Rejected(f"{b}: {why}", "snapshot")]
+    spread = _spread_rejection([ms[0] for ms in lead.values()], options)
+    if spread:
+        return [Rejected(f"{b}: {spread}", "snapshot")]
+    snaps.append(_PendingSnapshot(len(snaps), str(b), {t: ms[0].stamp_ns for t, ms in lead.items()},
+                                  {t: pool.submit(still_average, ms, options) for t, ms in lead.items()}))
+    return []
+
+
+def continuous_snapshots(bag: Path | Sequence[Path], lidar_topics: Sequence[str], options) -> list[Snapshot]:
+    """The snapshots ``assemble_snapshots`` takes from ``bag`` (or the files of one recording,
+    ``recordings``) if it is a continuous recording (the scene still more than once, judged by
+    ``lidar_topics``), one per still interval; else [] (a bag per pose: its first messages)."""
     tfilter = TimeFilter.from_options(options)
     if not _may_hold_two_still_intervals(bag, lidar_topics):
         return []
@@ -469,9 +504,10 @@ def _may_hold_two_still_intervals(bag: Path, lidar_topics: Sequence[str]) -> boo
     return any(message_count(bag, t) >= 4 for t in lidar_topics)
 
 
-def still_intervals(bag: Path, lidar_topics: Sequence[str], options,
+def still_intervals(bag: Path | Sequence[Path], lidar_topics: Sequence[str], options,
                     tfilter: TimeFilter = TimeFilter()) -> tuple[list[tuple[int, int, dict]], float]:
-    """Where the scene in ``bag`` was still, judged by motion, and how long it moved (s).
+    """Where the scene in ``bag`` (or the files of one recording, ``recordings``) was still, judged
+    by motion, and how long it moved (s).
 
     Every LIDAR's scans are compared (``scene_motion``, ``options.max_board_motion_m``,
     ``min_moving_cells``) with the first scan of the current still run, so slow motion adds
@@ -484,12 +520,13 @@ def still_intervals(bag: Path, lidar_topics: Sequence[str], options,
     """
     from clcgraph.frontend.bag import message_count, read_messages
 
-    if all(message_count(bag, t) <= 1 for t in lidar_topics):
+    bags = [bag] if isinstance(bag, (str, Path)) else list(bag)
+    if all(message_count(bags, t) <= 1 for t in lidar_topics):
         return [], 0.0
     runs: list[dict] = []  # {"anchor": {topic: scan}, "n": {topic: count}, "start", "end"}
     cur = None
     moving_ns = 0
-    for m in read_messages([bag], lidar_topics, start_ns=tfilter.after_ns, stop_ns=tfilter.before_ns):
+    for m in read_messages(bags, lidar_topics, start_ns=tfilter.after_ns, stop_ns=tfilter.before_ns, missing_ok=True):
         if tfilter.why_not(m.stamp_ns) is not None:
             continue
         t = m.data.time_s
@@ -520,15 +557,19 @@ def still_intervals(bag: Path, lidar_topics: Sequence[str], options,
     return still, moving_ns * 1e-9
 
 
-def _still_snapshots(bag: Path, still, moving_s: float, lidar_topics, camera_topics, options,
+def _still_snapshots(bag: Path | Sequence[Path], still, moving_s: float, lidar_topics, camera_topics, options,
                      tfilter: TimeFilter, first_index: int) -> tuple[list[Snapshot], list[Rejected]]:
-    """One snapshot per still interval of a continuous ``bag`` (``still_intervals``): per topic the
-    message nearest the interval's centre among those inside it (streamed: one message per
-    topic held)."""
-    from clcgraph.frontend.bag import read_messages
+    """One snapshot per still interval of a continuous ``bag`` or split recording (``still_intervals``):
+    per topic the message nearest the interval's centre among those inside it (streamed: one
+    message per topic held); named by the file the interval starts in."""
+    from clcgraph.frontend.bag import log_span, read_messages
+
+    bags = [Path(bag)] if isinstance(bag, (str, Path)) else list(bag)
+    starts_of_files = [log_span(b)[0] for b in bags] if len(bags) > 1 else [0]
 
     snaps: list[Snapshot] = []
-    rejected = [Rejected(f"{bag}: the scene moved for {moving_s:.1f} s in all (not used); "
+    name = bags[0] if len(bags) == 1 else f"{bags[0]} (+ {len(bags) - 1} more file(s) of the recording)"
+    rejected = [Rejected(f"{name}: the scene moved for {moving_s:.1f} s in all (not used); "
                          f"{len(still)} still interval(s) judged by motion", "snapshot")]
     if not still:
         return snaps, rejected
@@ -538,7 +579,8 @@ def _still_snapshots(bag: Path, still, moving_s: float, lidar_topics, camera_top
 
     def close(k):
         a, b, _ = still[k]
-        where = f"{bag} still {a * 1e-9:.3f}-{b * 1e-9:.3f}s"
+        where = f"{bags[max(0, int(np.searchsorted(starts_of_files, a, side='right')) - 1)]} still " \
+                f"{a * 1e-9:.3f}-{b * 1e-9:.3f}s"
         chosen = {t: _Msg(t, ms[0][1].stamp_ns, still_average([m.data for _, m in ms])) for t, ms in picks.items()}
         spread = _spread_rejection(chosen.values(), options)
         if spread:
@@ -546,7 +588,7 @@ def _still_snapshots(bag: Path, still, moving_s: float, lidar_topics, camera_top
         elif chosen:
             snaps.append(_snapshot(first_index + len(snaps), chosen, where, lidar_topics, camera_topics))
 
-    for m in read_messages([bag], list(lidar_topics) + list(camera_topics), start_ns=int(starts[0]),
+    for m in read_messages(bags, list(lidar_topics) + list(camera_topics), missing_ok=True, start_ns=int(starts[0]),
                            stop_ns=int(still[-1][1]) + 1):
         k = int(np.searchsorted(starts, m.stamp_ns, side="right")) - 1
         if k < 0 or m.stamp_ns > still[k][1] or tfilter.why_not(m.stamp_ns) is not None:

@@ -312,3 +312,37 @@ class BagWriter:
             ))
         msgtype = "tf2_msgs/msg/TFMessage"
         self._write("/tf_static", msgtype, T[msgtype](transforms=tfs), stamp_ns)
+
+
+def split_ros1_bag(path, every_s: float) -> list[Path]:
+    """Cut a ROS1 bag into consecutive files of ``every_s`` seconds of log time each, as
+    `rosbag record --split --duration` leaves a long recording (``NAME_0.bag``, ``NAME_1.bag``, ...,
+    beside it; the original removed). A latched topic (/tf_static) is in the first file only, as
+    its one message arrived when the recording started. Returns the files' paths."""
+    from rosbags.rosbag1 import Reader, Writer
+
+    path = Path(path)
+    out: list[Path] = []
+    with Reader(path) as r:
+        t0 = r.start_time
+        writers: dict[int, tuple] = {}  # part -> (Writer, {connection id: its connection there})
+        try:
+            for conn, t, raw in r.messages():
+                part = int((t - t0) // int(every_s * 1e9))
+                if part not in writers:
+                    p = path.with_name(f"{path.stem}_{part}{path.suffix}")
+                    w = Writer(p)
+                    w.open()
+                    writers[part] = (w, {})
+                    out.append(p)
+                w, conns = writers[part]
+                if conn.id not in conns:
+                    conns[conn.id] = w.add_connection(conn.topic, conn.msgtype, msgdef=conn.msgdef.data,
+                                                      md5sum=conn.digest, callerid=conn.ext.callerid,
+                                                      latching=conn.ext.latching)
+                w.write(conns[conn.id], t, raw)
+        finally:
+            for w, _ in writers.values():
+                w.close()
+    path.unlink()
+    return out

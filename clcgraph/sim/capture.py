@@ -37,7 +37,7 @@ from ..errors import InputError
 from ..geometry import R_from_r, rt_from_T
 from ..outputs.atomic import atomic_dir
 from ..progress import progress
-from .bag_writer import FORMATS, BagWriter, LogDelays
+from .bag_writer import FORMATS, BagWriter, LogDelays, split_ros1_bag
 from .camera import board_corners_px, render
 from .lidar import simulate_scan
 from .rig import Rig, load_rig
@@ -187,7 +187,7 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
              tilt_max_deg: float = 40.0, tf_error=(1.0, 0.03), hold_s: float = 2.0, move_s: float = 1.0,
              camera_hz: float = 5.0, clutter: bool = True, compress: bool = False, log_delays: bool = True,
              vertical_boards: bool = False, max_distance_m: float | None = None, planned_tilts: bool = False,
-             pair_boards: int = 0, indoor: bool = False, force: bool = False) -> dict:
+             pair_boards: int = 0, indoor: bool = False, split_s: float | None = None, force: bool = False) -> dict:
     """Simulate a capture session of the rig in ``rig_yaml`` into ``out_dir`` (replaced atomically).
     ``compress``: lz4-compressed ROS1 bags (as `rosbag record --lz4` writes them).
     ``log_delays``: drivers' log times (see the module docstring); False: log time = stamp.
@@ -201,6 +201,8 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
     fewer poses than this, where that pair (the fewest so far) both see it: before its camera, or
     around one of its LIDARs (``_pair_to_show``); 0: wherever >= 2 sensors see it.
     ``indoor``: in a hall closed all round (``scene.static_meshes``): every LIDAR ray returns.
+    ``split_s``: a continuous ROS1 session cut into files of this many seconds, as `rosbag record
+    --split --duration` writes a long recording (``bag_writer.split_ros1_bag``).
     ``force``: replace ``out_dir`` even if it is not a previous simulated session.
 
     Returns the truth dict that is also written to ``out_dir/truth.yaml``.
@@ -276,6 +278,10 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
                 shown[p] += set(p) <= seen
         if continuous:
             writer.__exit__(None, None, None)
+            if split_s is not None:
+                if format != "ros1":
+                    raise InputError("split_s: ROS1 only (a ROS2 bag's files are split inside one bag)")
+                split_ros1_bag(tmp / f"session{ext}", split_s)
         truth = _truth(rig, tf, snapshots, format, continuous, seed)
         (tmp / "truth.yaml").write_text(yaml.safe_dump(truth, sort_keys=False, default_flow_style=None, width=200))
     return truth
