@@ -95,6 +95,27 @@ def test_targetless_from_bag_accuracy_covariance_outputs(drive, tmp_path_factory
 
 
 @pytest.mark.slow
+@pytest.mark.slow
+def test_a_drive_recorded_in_split_files_gives_the_whole_bags_answer(drive, tmp_path):
+    """`rosbag record --split`: the files read as one drive, in any order given, the last one
+    without one LIDAR's messages (the recording ended between its scan and the other's); the
+    answer is the single bag's, to the bit."""
+    from clcgraph.frontend.bag import bag_info
+    from clcgraph.sim.bag_writer import split_ros1_bag
+
+    write_drive_bag(drive, tmp_path / "drive.bag")
+    whole = calibrate_targetless([tmp_path / "drive.bag"], mapping_topic=TOP, calibration_topics=[SIDE], config=_cfg())
+    info = bag_info(tmp_path / "drive.bag")
+    last = sorted(t.last_ns for t in info.topics if t.topic in (TOP, SIDE))
+    (tmp_path / "split").mkdir()
+    write_drive_bag(drive, tmp_path / "split" / "drive.bag")
+    # three files, the third from between the two LIDARs' last scans: it holds only the later one
+    parts = split_ros1_bag(tmp_path / "split" / "drive.bag", ((last[0] + last[1]) / 2 - info.start_ns) / 2e9)
+    assert len(parts) == 3 and len(bag_info(parts[-1]).topics) == 1
+    split = calibrate_targetless(parts[::-1], mapping_topic=TOP, calibration_topics=[SIDE], config=_cfg())
+    np.testing.assert_array_equal(split.rt_lidar0_sensor[1], whole.rt_lidar0_sensor[1])
+
+
 def test_cli_targetless_prints_the_table_and_writes_outputs(drive, tmp_path, capsys):
     """Through the CLI, from a ROS2 mcap bag with organised Ouster-style clouds (padding, t in ns)."""
     from clcgraph.cli import main

@@ -241,10 +241,15 @@ def calibrate_targetless(bags, *, mapping_topic: str, calibration_topics, base_f
     bags = [bags] if isinstance(bags, (str, Path)) else list(bags)
     calibration_topics = list(calibration_topics)
     topics = [mapping_topic] + calibration_topics
-    # each topic streams from the bags when its stage needs it: a drive is never all in memory
-    scans = {t: (m.data for m in read_messages(bags, [t])) for t in topics}  # in stamp order
     counts = {t: message_count(bags, t) for t in topics}
-    frames = {t: frame_id(bags[0], t) for t in topics}
+    for t in topics:
+        if not counts[t]:
+            raise InputError(f"topic {t} has no message in the {len(bags)} bag(s) ({bags[0]}, ...); "
+                             "check the topics against `clcgraph show-bag`")
+    # each topic streams from the bags when its stage needs it: a drive is never all in memory. A
+    # drive recorded in split files may leave a topic out of a short last file: it holds none of it
+    scans = {t: (m.data for m in read_messages(bags, [t], missing_ok=True)) for t in topics}  # in stamp order
+    frames = {t: frame_id(next(b for b in bags if message_count(b, t)), t) for t in topics}
     tf = read_tf_static(bags)
     parent = base_frame or frames[mapping_topic]
     guess = {}
