@@ -165,6 +165,10 @@ CAPTURES = [
             "--duration 7): pauses cut by the file boundaries; /tf_static only in the first file",
             rig={"lidars": [TOP, BUMPER], "cameras": [CAM_FRONT]},
             simulate={"n_poses": 12, "continuous": True, "split_s": 7.0}),
+    Capture("ouster-boot-clock", "one continuous ROS1 recording; the bumper LIDAR stamps its scans on its own clock "
+            "(an Ouster's default TIME_FROM_INTERNAL_OSC: seconds since it booted), the others on ROS time",
+            rig={"lidars": [TOP, BUMPER], "cameras": [CAM_FRONT]},
+            simulate={"n_poses": 12, "continuous": True, "clock_offsets_s": {"/lidar/front/points": 42.0 - 1.7e9}}),
     Capture("drive-long", "targetless: a 30 s drive", drive={"duration": 30.0}),
 ]
 

@@ -28,6 +28,7 @@ line naming the bag, the topic and the message index. No rosbags traceback escap
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import glob
 import heapq
@@ -240,6 +241,7 @@ class _Bag:
 
     def __init__(self, path):
         self.path = _bag_root(path)
+        self._other_clock: dict[str, bool] = {}  # topic -> its stamps on another clock (``stamp``)
         from rosbags.typesys import Stores, get_typestore
 
         ros1 = self.path.is_file()
@@ -309,7 +311,28 @@ class _Bag:
                 ) from None
             yield conn, i, logtime, msg
 
-    def decode(self, conn, i, msg):
+    def stamp(self, topic: str, msg, logtime: int) -> int:
+        """The message's time: its header stamp, or its log time where the topic's stamps are on
+        another clock (judged on its first message in this bag: ``_OTHER_CLOCK_NS``)."""
+        s = _stamp(msg, logtime)
+        other = self._other_clock.get(topic)
+        if other is None:
+            other = self._other_clock[topic] = abs(int(logtime) - s) > _OTHER_CLOCK_NS
+            if other:
+                _warn_other_clock(topic, (int(logtime) - s) * 1e-9)
+        return int(logtime) if other else s
+
+    def decode(self, conn, i, msg, logtime: int | None = None):
+        """The decoded message; with ``logtime``, timed by ``stamp`` (its stamp_ns the log time
+        where the topic's stamps are on another clock)."""
+        data = self._decode(conn, i, msg)
+        if logtime is not None:
+            t = self.stamp(conn.topic, msg, logtime)
+            if t != data.stamp_ns:
+                data = dataclasses.replace(data, stamp_ns=t)
+        return data
+
+    def _decode(self, conn, i, msg):
         try:
             if conn.msgtype == POINTCLOUD2:
                 return decode_pointcloud2(msg, topic=conn.topic)
@@ -352,6 +375,24 @@ def log_span(path) -> tuple[int, int]:
     """(first, last) log time (ns) of the bag at ``path``, from its index (nothing is read)."""
     with _Bag(path) as b:
         return int(b.reader.start_time), int(b.reader.end_time)
+
+
+# A sensor whose header stamps differ from the recorder's log times by more than this is on
+# another clock (an Ouster's default TIME_FROM_INTERNAL_OSC counts from its boot, a camera its own
+# time): drivers log within a second of their stamps (MAX_LOG_DELAY_NS), clocks apart by minutes
+# to decades. Its messages are then timed by their log times (a driver's delay, tens of ms, late).
+_OTHER_CLOCK_NS = 10_000_000_000
+_WARNED_CLOCK: set = set()
+_WARNED_CLOCK_LOCK = threading.Lock()
+
+
+def _warn_other_clock(topic: str, offset_s: float) -> None:
+    with _WARNED_CLOCK_LOCK:
+        if topic in _WARNED_CLOCK:
+            return
+        _WARNED_CLOCK.add(topic)
+    logger.warning("%s: header stamps %.4g s from the bag's log times (the sensor's own clock, not ROS time; an "
+                   "Ouster's TIME_FROM_INTERNAL_OSC): its messages are timed by their log times", topic, -offset_s)
 
 
 def _stamp(msg, logtime: int) -> int:
@@ -398,13 +439,13 @@ def _iter_bag(path, topics, start_ns, stop_ns, missing_ok: bool = False) -> Iter
 
         def stamped():
             for conn, i, logtime, msg in b.raw(conns, lo, hi):
-                stamp = _stamp(msg, logtime)
+                stamp = b.stamp(conn.topic, msg, logtime)
                 if (start_ns is None or stamp >= start_ns) and (stop_ns is None or stamp < stop_ns):
-                    yield logtime, stamp, conn.topic, (conn, i, msg)
+                    yield logtime, stamp, conn.topic, (conn, i, msg, logtime)
 
         # decoded only once in order: the window holds deserialized messages, not point arrays
-        for stamp, topic, (conn, i, msg) in stamp_ordered(stamped(), where=str(b.path)):
-            yield Message(b.path, topic, i, stamp, b.decode(conn, i, msg))
+        for stamp, topic, (conn, i, msg, logtime) in stamp_ordered(stamped(), where=str(b.path)):
+            yield Message(b.path, topic, i, stamp, b.decode(conn, i, msg, logtime))
 
 
 def read_messages(paths, topics: Sequence[str], *, start_ns: int | None = None,
@@ -457,7 +498,7 @@ def leading_messages(path, topics: Sequence[str], counts: dict[str, int], *,
             n = max(1, int(counts.get(conn.topic, 1)))
             got = []
             for c, i, logtime, msg in b.raw([c for c in conns if c.topic == conn.topic]):
-                got.append(b.decode(c, i, msg))
+                got.append(b.decode(c, i, msg, logtime))
                 if len(got) >= n:
                     break
             if got:

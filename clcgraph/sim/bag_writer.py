@@ -103,10 +103,12 @@ class BagWriter:
     ``compress=True`` uses lz4 chunk compression for ROS1 bags (ignored for ROS2).
     The ROS1 path is a file (``x.bag``); a ROS2 path is a directory that must not exist.
     ``log_delays``: log times as a driver's (``LogDelays``); None: log time = stamp.
+    ``clock_offsets_ns``: {topic: offset}: that topic's header stamps on another clock (e.g. an
+    Ouster's default TIME_FROM_INTERNAL_OSC: seconds since the sensor booted), log times unchanged.
     """
 
     def __init__(self, path, *, format: str = "ros1", compress: bool = False,
-                 log_delays: LogDelays | None = None):
+                 log_delays: LogDelays | None = None, clock_offsets_ns: dict | None = None):
         from rosbags.typesys import Stores, get_typestore
 
         if format not in FORMATS:
@@ -122,6 +124,7 @@ class BagWriter:
             self.typestore.register(get_types_from_msg(
                 "geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage"))
         self.log_delays = log_delays
+        self.clock_offsets_ns = dict(clock_offsets_ns or {})
         self._delay_rng = np.random.default_rng(log_delays.seed) if log_delays else None
         self._writer = None
         self._connections: dict[str, object] = {}
@@ -162,6 +165,7 @@ class BagWriter:
 
     def _header(self, topic: str, stamp_ns: int, frame_id: str):
         T = self.typestore.types
+        stamp_ns = int(stamp_ns) + self.clock_offsets_ns.get(topic, 0)
         stamp = T["builtin_interfaces/msg/Time"](
             sec=int(stamp_ns // 1_000_000_000), nanosec=int(stamp_ns % 1_000_000_000)
         )

@@ -187,7 +187,8 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
              tilt_max_deg: float = 40.0, tf_error=(1.0, 0.03), hold_s: float = 2.0, move_s: float = 1.0,
              camera_hz: float = 5.0, clutter: bool = True, compress: bool = False, log_delays: bool = True,
              vertical_boards: bool = False, max_distance_m: float | None = None, planned_tilts: bool = False,
-             pair_boards: int = 0, indoor: bool = False, split_s: float | None = None, force: bool = False) -> dict:
+             pair_boards: int = 0, indoor: bool = False, split_s: float | None = None,
+             clock_offsets_s: dict | None = None, force: bool = False) -> dict:
     """Simulate a capture session of the rig in ``rig_yaml`` into ``out_dir`` (replaced atomically).
     ``compress``: lz4-compressed ROS1 bags (as `rosbag record --lz4` writes them).
     ``log_delays``: drivers' log times (see the module docstring); False: log time = stamp.
@@ -203,6 +204,7 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
     ``indoor``: in a hall closed all round (``scene.static_meshes``): every LIDAR ray returns.
     ``split_s``: a continuous ROS1 session cut into files of this many seconds, as `rosbag record
     --split --duration` writes a long recording (``bag_writer.split_ros1_bag``).
+    ``clock_offsets_s``: {topic: s}: that sensor's header stamps on another clock (``BagWriter``).
     ``force``: replace ``out_dir`` even if it is not a previous simulated session.
 
     Returns the truth dict that is also written to ``out_dir/truth.yaml``.
@@ -218,13 +220,15 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
     phases = {"lidar": [13_000_000 * i for i in range(len(rig.lidars))],
               "camera": [int(clock.uniform(0, 1e9 / camera_hz)) for _ in rig.cameras]}
     delays = LogDelays(seed=seed) if log_delays else None
+    offsets = {t: int(round(s * 1e9)) for t, s in (clock_offsets_s or {}).items()}
     with atomic_dir(out_dir, kind="session", force=force) as tmp:
         static = static_meshes(rng, clutter=clutter, indoor=indoor)
         tf = _tf_static(rig, rng, tf_error)
         ext = ".bag" if format == "ros1" else ""
         snapshots = []
         if continuous:
-            writer = BagWriter(tmp / f"session{ext}", format=format, compress=compress, log_delays=delays)
+            writer = BagWriter(tmp / f"session{ext}", format=format, compress=compress, log_delays=delays,
+                               clock_offsets_ns=offsets)
             writer.__enter__()
             writer.write_tf_static(tf, stamp_ns=T0_NS)
         poses = []
@@ -267,7 +271,8 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
                 t_ns += int((hold_s + move_s) * 1e9)
             else:
                 name = f"pose{k:03d}{ext}"
-                with BagWriter(tmp / name, format=format, compress=compress, log_delays=delays) as w:
+                with BagWriter(tmp / name, format=format, compress=compress, log_delays=delays,
+                               clock_offsets_ns=offsets) as w:
                     w.write_tf_static(tf, stamp_ns=t_ns)
                     _write(w, rig, scans, images)
                 snapshots.append({"bag": name, "stamp_ns": int(t_ns), "rt_lidar0_board": rt_l0_b.tolist(),

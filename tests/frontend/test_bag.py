@@ -310,6 +310,40 @@ def test_drivers_log_times_are_read_in_stamp_order(tmp_path, fmt):
     assert [s for _, s in read] == sorted(s for _, s in logged) and sorted(read) == sorted(logged)
 
 
+def test_a_sensor_stamping_on_its_own_clock_is_timed_by_log_time(tmp_path, caplog):
+    """An Ouster left at TIME_FROM_INTERNAL_OSC stamps its scans in seconds since it booted: its
+    messages are read in their place among the others', timed by their log times (one warning
+    naming the topic), in read_messages and in leading_messages alike; the other topics keep
+    their stamps."""
+    import logging
+
+    from clcgraph.sim.bag_writer import LogDelays
+
+    rng = np.random.default_rng(0)
+    T0 = 1_700_000_000 * 10**9
+    path = tmp_path / "boot.bag"
+    with BagWriter(path, log_delays=LogDelays(seed=1), clock_offsets_ns={"/os": 42 * 10**9 - T0}) as w:
+        for k in range(10):
+            w.write_pointcloud("/os", _scan(rng, T0 + k * 10**8, "/os"), frame_id="os")
+            w.write_pointcloud("/vlp", _scan(rng, T0 + k * 10**8 + 5 * 10**7, "/vlp"), frame_id="v")
+    with bag._Bag(path) as b:
+        logged = {(c.topic, i): (t, bag._stamp(m, t)) for c, i, t, m in b.raw(b.connections(["/os", "/vlp"]))}
+    assert all(s < 100 * 10**9 for (topic, _), (_, s) in logged.items() if topic == "/os")
+    bag._WARNED_CLOCK.discard("/os")
+    with caplog.at_level(logging.WARNING, logger="clcgraph.frontend.bag"):
+        read = list(bag.read_messages(path, ["/os", "/vlp"]))
+    # in their place among the others' (each about a rotation late), not all before them
+    assert len(read) == 20 and [m.stamp_ns for m in read] == sorted(m.stamp_ns for m in read)
+    assert [m.topic for m in read][1:-1] == ["/os", "/vlp"] * 9
+    for m in read:
+        log_ns, stamp = logged[m.topic, m.index]
+        assert m.stamp_ns == m.data.stamp_ns == (log_ns if m.topic == "/os" else stamp)
+    warned = [r.getMessage() for r in caplog.records if "own clock" in r.getMessage()]
+    assert len(warned) == 1 and warned[0].startswith("/os: header stamps"), warned
+    lead = bag.leading_messages(path, ["/os", "/vlp"], {})
+    assert lead["/os"][0].stamp_ns == logged["/os", 0][0] and lead["/vlp"][0].stamp_ns == logged["/vlp", 0][1]
+
+
 def test_bags_with_the_same_message_definitions_share_one_typestore(written, tmp_path, monkeypatch):
     """Parsing a bag's message definitions and compiling their deserializers costs more than reading
     a small bag: bags that carry the same ones (every bag of a capture) share one typestore, parsed
