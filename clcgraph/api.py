@@ -276,6 +276,7 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
             else:
                 camera_obs.append(CameraBoardObservation(sensor=i, snapshot=k, corners_px=np.asarray(r, float)))
 
+    _check_every_sensor_found_a_board(sensors, lidar_obs, camera_obs, rejected, board)
     # The seed's rule: a snapshot counts only if >= 2 sensors saw the board.
     seen: dict[int, int] = {}
     for o in [*lidar_obs, *camera_obs]:
@@ -399,10 +400,10 @@ def _board_regions(sensors, lidar_obs, cam_images, detection, cfg, board, n_snap
     return regions
 
 
-def _why_missed(sensors, lidar_obs, camera_obs, rejected) -> str:
-    """Per sensor, how many boards it found and its most common reason for the rest (reasons
-    that differ only in their numbers counted together, the first one quoted), e.g. a board
-    size that does not match the config: '/l: 2 found, 14 like "plane 1.79 m across, ..."'."""
+def _misses(sensors, lidar_obs, camera_obs, rejected) -> dict[int, tuple[int, int, int, str]]:
+    """{sensor: (boards found, scans or images that missed it, how many of those for its most
+    common reason, that reason quoted)}, for the sensors that missed any: reasons that differ
+    only in their numbers counted together, the first one quoted."""
     import re
     from collections import Counter
 
@@ -415,12 +416,36 @@ def _why_missed(sensors, lidar_obs, camera_obs, rejected) -> str:
             kind = re.sub(r"\d+(\.\d+)?", "#", text)
             why.setdefault(r.sensor, Counter())[kind] += 1
             example.setdefault((r.sensor, kind), text)
-    parts = []
-    for i, s in enumerate(sensors):
+    out = {}
+    for i in range(len(sensors)):
         if i in why:
             reason, n = why[i].most_common(1)[0]
-            parts.append(f'{s.topic}: {found.get(i, 0)} found, {n} like "{example[(i, reason)][:90]}"')
+            out[i] = (found.get(i, 0), sum(why[i].values()), n, example[(i, reason)])
+    return out
+
+
+def _why_missed(sensors, lidar_obs, camera_obs, rejected) -> str:
+    """Per sensor, how many boards it found and its most common reason for the rest, e.g. a board
+    size that does not match the config: '/l: 2 found, 14 like "plane 1.79 m across, ..."'."""
+    parts = [f'{sensors[i].topic}: {found} found, {n} like "{text[:90]}"'
+             for i, (found, _, n, text) in _misses(sensors, lidar_obs, camera_obs, rejected).items()]
     return ("; ".join(parts) + "; ") if parts else ""
+
+
+def _check_every_sensor_found_a_board(sensors, lidar_obs, camera_obs, rejected, board) -> None:
+    """DegenerateError naming the first sensor that found no board in any of its scans or images
+    (it could not be calibrated: the solve would only say it cannot be connected), with its
+    commonest reason and the board setting to check: the pattern for a camera, the size for a LIDAR."""
+    for i, (found, missed, n, text) in _misses(sensors, lidar_obs, camera_obs, rejected).items():
+        if found:
+            continue
+        s = sensors[i]
+        what = "images" if s.is_camera else "scans"
+        setting = (f"board.corners [{board.corners_x}, {board.corners_y}] (inner corners along the board's width "
+                   f"and height)" if s.is_camera else
+                   f"board.size_m [{board.width_m:g}, {board.height_m:g}] (the physical board, its border included)")
+        raise DegenerateError(f'{s.topic}: no board found in any of its {missed} {what} ({n} like "{text[:90]}"); '
+                              f"is {setting} right? `clcgraph {'detect' if s.is_camera else 'segment'}` shows each")
 
 
 @single_threaded_blas()  # as read_problem's (`clcgraph segment`, scripts)
@@ -460,7 +485,14 @@ def calibrate(problem: Problem, config=None, *, timings: dict | None = None, on_
     cfg = _config(config)
     clock = StageClock(timings)
     with clock("solve"):
-        result = solve(problem, cfg.solve, on_estimate=on_estimate)
+        try:
+            result = solve(problem, cfg.solve, on_estimate=on_estimate)
+        except DegenerateError as e:  # a sensor left unconnected: what its scans or images missed says why
+            missed = _why_missed(problem.sensors, problem.lidar_observations, problem.camera_observations,
+                                 problem.rejected)
+            if not str(e).startswith("cannot connect") or not missed:
+                raise
+            raise DegenerateError(f"{e}. Boards missed: {missed.rstrip('; ')}") from None
     with clock("uncertainty"):
         sectors = sector_report(result, cfg.sectors)
     return dataclasses.replace(result, sectors=sectors, rejected=explain_not_found(result))

@@ -128,6 +128,31 @@ def test_why_boards_were_missed_quotes_the_commonest_reason_with_its_numbers():
     assert _why_missed(sensors, [], [], rejected) == '/l: 0 found, 3 like "plane 1.70 m across, larger than the board"; '
 
 
+def test_a_sensor_that_found_no_board_anywhere_names_the_board_setting_to_check():
+    """A camera that found no board in any image (a pattern other than board.corners says) is
+    named with its commonest reason and the setting, before the solve could only say it cannot
+    be connected; a LIDAR likewise with board.size_m. One that found any board passes."""
+    from types import SimpleNamespace
+
+    import pytest
+
+    from clcgraph.api import _check_every_sensor_found_a_board
+    from clcgraph.errors import DegenerateError
+    from clcgraph.types import BoardGeometry, CameraBoardObservation, Rejected
+
+    board = BoardGeometry.from_spec(corners=[9, 7], square_m=0.1, size_m=[1.2, 1.0])
+    sensors = [SimpleNamespace(topic="/l", is_camera=False), SimpleNamespace(topic="/c", is_camera=True)]
+    rejected = [Rejected("no full 9x7 chessboard found", "detection", 1, k) for k in range(5)]
+    with pytest.raises(DegenerateError, match=r'^/c: no board found in any of its 5 images \(5 like "no full 9x7 '
+                                              r'chessboard found"\); is board.corners \[9, 7\] \(inner corners'):
+        _check_every_sensor_found_a_board(sensors, [], [], rejected, board)
+    seen = [CameraBoardObservation(sensor=1, snapshot=7, corners_px=None)]
+    _check_every_sensor_found_a_board(sensors, [], seen, rejected, board)
+    lidar = [Rejected("scan: plane 1.79 m across, larger than the board", "segmentation", 0, k) for k in range(3)]
+    with pytest.raises(DegenerateError, match=r"^/l: no board found in any of its 3 scans .*board.size_m \[1.2, 1\]"):
+        _check_every_sensor_found_a_board(sensors, [], seen, lidar + rejected, board)
+
+
 def test_settings_that_can_keep_nothing_are_one_line_errors(capsys, tmp_path, good):
     """--after not before --before, no topic in --topics, the mapping topic among the
     calibration topics: each refused before any work, naming what to change."""
