@@ -84,9 +84,10 @@ def expand_bags(patterns: Sequence[str | Path]) -> list[Path]:
 
 def bags_and_models(bags: Sequence[str], models: Sequence[str]) -> tuple[list[str], list[str]]:
     """`--bag a.bag b.bag cam.cameramodel` (an unquoted glob, expanded by the shell, before the
-    models): --bag takes every word up to the next option, so the .cameramodel files among them
-    are models (in order, before the later ones); a bag among the models is an InputError hint."""
-    is_model = [str(b).endswith(".cameramodel") for b in bags]
+    models): --bag takes every word up to the next option, so the .cameramodel and .yaml files among
+    them (not a ROS2 bag's metadata.yaml) are models (in order, before the later ones); a bag among
+    the models is an InputError hint."""
+    is_model = [str(b).endswith((".cameramodel", ".yaml", ".yml")) and Path(b).name != "metadata.yaml" for b in bags]
     models = [b for b, m in zip(bags, is_model) if m] + list(models)
     bags = [b for b, m in zip(bags, is_model) if not m]
     stray = [m for m in models if str(m).endswith((".bag", ".mcap", ".db3"))]
@@ -182,7 +183,8 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
     """Bags -> Problem: snapshots, LIDAR board segmentation, chessboard detection.
 
     ``topics``: LIDAR and camera topics in any order (the first LIDAR is lidar0);
-    ``models``: one .cameramodel per camera topic, in the cameras' order. A snapshot is
+    ``models``: one camera model per camera topic, in the cameras' order (an mrcal .cameramodel or
+    a ROS camera calibration .yaml: ``cameras.load_camera``). A snapshot is
     kept only if >= 2 sensors saw the board; everything dropped is in ``Problem.rejected``.
     ``timings``: if given, filled with wall seconds per stage (read, segment, detect).
     ``report_material``: if given, filled with what the report draws: "snapshots" (index ->
@@ -200,7 +202,8 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
     lidar_topics, camera_topics = classify_topics(paths, topics)
     if len(models) != len(camera_topics):
         raise InputError(f"{len(models)} camera model(s) given for {len(camera_topics)} camera topic(s) "
-                         f"({', '.join(camera_topics) or 'none'}): give one .cameramodel per camera topic, in order")
+                         f"({', '.join(camera_topics) or 'none'}): give one camera model (.cameramodel or ROS "
+                         "calibration .yaml) per camera topic, in order")
     sensors = [Sensor(topic=t, kind="lidar") for t in lidar_topics]
     sensors += [cameras.load_camera(t, m) for t, m in zip(camera_topics, models)]
     if len(sensors) < 2:

@@ -36,7 +36,9 @@ def _mrcal():
 
 
 def load_camera(topic: str, path: str | Path) -> Sensor:
-    """Read a .cameramodel file into a camera Sensor (intrinsics only; extrinsics are solved)."""
+    """Read a camera model into a camera Sensor (intrinsics only; extrinsics are solved): an mrcal
+    .cameramodel, or a ROS camera calibration YAML (.yaml/.yml: `camera_calibration`'s ost.yaml,
+    camera_info_manager's files; ``ros_calibration_yaml``)."""
     mrcal = _mrcal()
     path = Path(path)
     if not path.is_file():
@@ -44,13 +46,17 @@ def load_camera(topic: str, path: str | Path) -> Sensor:
     if path.stat().st_size > _MAX_MODEL_BYTES:
         raise DataError(f"{path}: {path.stat().st_size} bytes is too large for a .cameramodel "
                         f"(at most {_MAX_MODEL_BYTES >> 20} MB; given for camera topic {topic})")
-    try:
-        model = mrcal.cameramodel(str(path))
-        lensmodel, intrinsics = model.intrinsics()
-        w, h = (int(v) for v in model.imagersize())
-        intrinsics = np.array(intrinsics, dtype=float).reshape(-1)
-    except Exception as e:  # mrcal's parser raises many kinds (and RecursionError on deep nesting)
-        raise DataError(f"{path}: not a readable mrcal .cameramodel: {str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
+    model = None
+    if path.suffix.lower() in (".yaml", ".yml"):
+        lensmodel, intrinsics, (w, h) = ros_calibration_yaml(path)
+    else:
+        try:
+            model = mrcal.cameramodel(str(path))
+            lensmodel, intrinsics = model.intrinsics()
+            w, h = (int(v) for v in model.imagersize())
+            intrinsics = np.array(intrinsics, dtype=float).reshape(-1)
+        except Exception as e:  # mrcal's parser raises many kinds (and RecursionError on deep nesting)
+            raise DataError(f"{path}: not a readable mrcal .cameramodel: {str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
     if not (0 < w <= _MAX_IMAGER_SIDE and 0 < h <= _MAX_IMAGER_SIDE):
         raise DataError(f"{path}: imagersize {w}x{h} is not a camera's (each side 1..{_MAX_IMAGER_SIDE} px)")
     # every mrcal lens model starts with fx, fy, cx, cy
@@ -62,8 +68,46 @@ def load_camera(topic: str, path: str | Path) -> Sensor:
         lensmodel=lensmodel,
         intrinsics=intrinsics,
         imagersize=(w, h),
-        intrinsics_covariance=intrinsics_covariance(model, path),
+        intrinsics_covariance=None if model is None else intrinsics_covariance(model, path),
     )
+
+
+# ROS distortion models as mrcal lens models: the same polynomial, coefficients in the same order
+_ROS_MODELS = {("plumb_bob", 4): "LENSMODEL_OPENCV4", ("plumb_bob", 5): "LENSMODEL_OPENCV5",
+               ("rational_polynomial", 8): "LENSMODEL_OPENCV8"}
+
+
+def ros_calibration_yaml(path) -> tuple[str, np.ndarray, tuple[int, int]]:
+    """(mrcal lens model, intrinsics, (width, height)) of a ROS camera calibration YAML
+    (image_width, image_height, camera_matrix, distortion_model, distortion_coefficients): plumb_bob
+    as LENSMODEL_OPENCV4/5, rational_polynomial as LENSMODEL_OPENCV8 (the same model, exactly);
+    DataError naming the file for anything else (an equidistant fisheye has no mrcal model: fit one)."""
+    from .config import read_yaml
+
+    d = read_yaml(path, "ROS camera calibration", error=DataError,
+                  mapping="with image_width, camera_matrix, distortion_model, ...")
+    try:
+        w, h = int(d["image_width"]), int(d["image_height"])
+        K = np.asarray(d["camera_matrix"]["data"], float).reshape(3, 3)
+        model = str(d.get("distortion_model", "plumb_bob"))
+        D = np.asarray((d.get("distortion_coefficients") or {}).get("data", []), float).reshape(-1)
+    except (KeyError, TypeError, ValueError) as e:
+        raise DataError(f"{path}: not a ROS camera calibration YAML ({type(e).__name__}: {e}); it needs image_width, "
+                        "image_height, camera_matrix.data (9 numbers), distortion_model, distortion_coefficients.data") from None
+    n = len(D)
+    if model == "plumb_bob" and n > 5 and not np.any(D[5:]):  # zeros padded by some tools
+        D, n = D[:5], 5
+    if model == "rational_polynomial" and n < 8:
+        D, n = np.r_[D, np.zeros(8 - n)], 8
+    lens = _ROS_MODELS.get((model, n))
+    if lens is None:
+        hint = (" (a fisheye: mrcal has no such model; fit a splined mrcal model to it, as docs/real-data.md does)"
+                if model in ("equidistant", "fisheye", "kannala_brandt") else "")
+        raise DataError(f"{path}: distortion_model {model} with {n} coefficients is not one clcgraph can use as an "
+                        f"mrcal lens model{hint}; plumb_bob (4 or 5) and rational_polynomial (8) are; or give a .cameramodel")
+    if K[0, 1] != 0 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
+        raise DataError(f"{path}: camera_matrix {K.tolist()} is not [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
+    return lens, np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], D], (w, h)
 
 
 def intrinsics_covariance(model, path="the camera model") -> np.ndarray | None:

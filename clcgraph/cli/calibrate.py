@@ -55,7 +55,9 @@ def add_solve(sub):
     p = add_command(sub, "solve", run=_solve, help="target-based calibration of LIDARs and cameras from bags (the clc fit)",
                     description="Calibrate LIDARs and cameras from bags of a moving chessboard. "
                     "Writes calibration.yaml, one .cameramodel per sensor, report.html and a replayable dump.")
-    p.add_argument("models", nargs="*", metavar="MODEL.cameramodel", help="one per camera topic, in --topics order")
+    p.add_argument("models", nargs="*", metavar="MODEL",
+                   help="one camera model per camera topic, in --topics order: an mrcal .cameramodel or a ROS camera "
+                        "calibration .yaml (camera_calibration's ost.yaml: plumb_bob or rational_polynomial)")
     p.add_argument("--bag", action="extend", nargs="+", required=True, metavar="GLOB",
                    help="bag files/dirs, globs, or directories of bags (repeatable; an unquoted glob the shell "
                         "expanded works too)")
