@@ -113,6 +113,11 @@ def _config(config) -> Config:
         raise InputError(str(e)) from None
 
 
+# Message types of LIDAR drivers' raw packets (velodyne_msgs/VelodyneScan, ouster_msgs/PacketMsg,
+# hesai_ros_driver/UdpFrame, rslidar_msg/RslidarPacket, pandar_msgs/PandarScan): a bag recorded to save space
+_PACKET_TYPE_WORDS = ("Packet", "VelodyneScan", "PandarScan", "UdpFrame")
+
+
 def classify_topics(bags: Sequence[Path], topics: Sequence[str]) -> tuple[list[str], list[str]]:
     """(lidar topics, camera topics) in the given order, from the message types in the bags."""
     from .frontend.bag import COMPRESSED_IMAGE, IMAGE, POINTCLOUD2, bag_info
@@ -135,7 +140,10 @@ def classify_topics(bags: Sequence[Path], topics: Sequence[str]) -> tuple[list[s
         elif types[t] in (IMAGE, COMPRESSED_IMAGE):
             cams.append(t)
         else:
-            raise DataError(f"topic {t} has type {types[t]}: expected sensor_msgs/PointCloud2, Image or CompressedImage")
+            raw = any(w in types[t] for w in _PACKET_TYPE_WORDS)
+            raise DataError(f"topic {t} has type {types[t]}: expected sensor_msgs/PointCloud2, Image or CompressedImage"
+                            + ("; these are the LIDAR's raw packets: play the bag through its driver (e.g. "
+                               "velodyne_pointcloud, ouster_ros) and record the PointCloud2 it publishes" if raw else ""))
     if not lidars:
         raise InputError(f"none of the topics {', '.join(topics)} is a LIDAR (PointCloud2); lidar0 is the reference")
     return lidars, cams

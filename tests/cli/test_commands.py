@@ -153,6 +153,26 @@ def test_a_sensor_that_found_no_board_anywhere_names_the_board_setting_to_check(
         _check_every_sensor_found_a_board(sensors, [], seen, lidar + rejected, board)
 
 
+def test_a_topic_of_raw_lidar_packets_says_to_play_it_through_the_driver(monkeypatch):
+    import pytest
+
+    from clcgraph import api
+    from clcgraph.errors import DataError
+    from clcgraph.frontend import bag
+
+    types = {"/velodyne_packets": "velodyne_msgs/msg/VelodyneScan",
+             "/ouster/lidar_packets": "ouster_sensor_msgs/msg/PacketMsg",
+             "/tf": "tf2_msgs/msg/TFMessage"}
+    info = bag.BagInfo("a.bag", tuple(bag.TopicInfo(t, m, 1, 0, 0) for t, m in types.items()), 0, 0)
+    monkeypatch.setattr(bag, "bag_info", lambda path: info)
+    for t in ("/velodyne_packets", "/ouster/lidar_packets"):
+        with pytest.raises(DataError, match=f"topic {t} has type .*raw packets: play the bag through its driver"):
+            api.classify_topics(["a.bag"], [t])
+    with pytest.raises(DataError) as e:
+        api.classify_topics(["a.bag"], ["/tf"])
+    assert "packets" not in str(e.value)
+
+
 def test_settings_that_can_keep_nothing_are_one_line_errors(capsys, tmp_path, good):
     """--after not before --before, no topic in --topics, the mapping topic among the
     calibration topics: each refused before any work, naming what to change."""
