@@ -164,8 +164,8 @@ def has_second_returns(scan: LidarScan, ring: np.ndarray, az: np.ndarray) -> boo
 def _first_returns(order: np.ndarray, ring_sorted: np.ndarray, az: np.ndarray) -> np.ndarray:
     """``order`` (positions of the points, sorted by ring, then azimuth) with one return per ray:
     where a ray returned twice, the first in the cloud's own order. A second return counted as a
-    second measurement would halve the sigmas; keeping the nearer one would bias a surface's
-    noisy ranges toward the LIDAR (two returns of one surface are both noisy)."""
+    second measurement would shrink the sigmas (the same echo twice: by sqrt 2); keeping the nearer
+    one would bias a surface's noisy ranges toward the LIDAR (two returns of one surface both noisy)."""
     if len(order) < 2:
         return order
     same = (np.diff(ring_sorted) == 0) & (np.abs(np.diff(az[order])) <= _SAME_RAY_RAD)
