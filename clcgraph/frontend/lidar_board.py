@@ -39,13 +39,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..errors import DataError
 from ..geometry import azimuth, circular_mean, wrap_angle
 from ..planes import fit_plane, ransac_plane
 from ..types import BoardGeometry, LidarBoardObservation, LidarScan, Rejected
 from .board_edges import edge_rays
 from .board_outline import fit_outline, scan_rays
-from .lidar_preprocess import (Rings, finite_rows, neighbour_steps, prepare, ring_of, row_norms, session_masks,
-                               slice_medians, typical_step)
+from .lidar_preprocess import (Rings, finite_rows, neighbour_steps, origin_height_m, prepare, ring_of, row_norms,
+                               session_masks, slice_medians, typical_step)
 
 STAGE = "segmentation"
 log = logging.getLogger(__name__)
@@ -656,6 +657,26 @@ def _merge(pieces: list, points: np.ndarray, tol: float, reach: float) -> list:
     return [g[0] for g in groups]
 
 
+# A LIDAR's rings meet within a few cm of its origin (beam offsets: HDL-64 up to ~0.25 m); a cloud
+# moved into base_link has them 1-2 m off
+_MAX_ORIGIN_HEIGHT_M = 0.5
+
+
+def _check_sensor_frame(scans) -> None:
+    """DataError if the scans are not in their LIDAR's own frame (``origin_height_m``, judged on the
+    first of the first 3 scans that tells): the rays from the origin the segmentation and the board's
+    outline rest on would not be the LIDAR's."""
+    for scan in scans[:3]:
+        h = origin_height_m(scan)
+        if h is None:
+            continue
+        if abs(h) > _MAX_ORIGIN_HEIGHT_M:
+            raise DataError(f"{scan.topic}: its points are not in the LIDAR's own frame: its rings meet about {abs(h):.1f} m "
+                            f"{'above' if h > 0 else 'below'} the cloud's origin (a cloud already moved into base_link "
+                            "or another frame?); record the driver's cloud in the sensor's frame")
+        return
+
+
 def segment_many(scans, options, lidar_options, board: BoardGeometry, *, sensor: int = 0,
                  snapshots=None, jobs: int | None = None, progress=None, debug: list | None = None,
                  ring_offsets: dict | None = None) -> list:
@@ -667,6 +688,7 @@ def segment_many(scans, options, lidar_options, board: BoardGeometry, *, sensor:
     snapshots = list(range(len(scans))) if snapshots is None else list(snapshots)
     if not scans:
         return []
+    _check_sensor_frame(scans)
     npoints, static = session_masks(scans, lidar_options)
 
     def one(k):

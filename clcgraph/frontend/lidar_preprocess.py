@@ -144,6 +144,33 @@ def prepare(scan: LidarScan, *, min_range_m: float = 0.0, max_range_m: float = n
     return every.within(min_range_m=min_range_m, max_range_m=max_range_m, exclude=exclude)
 
 
+def origin_height_m(scan: LidarScan) -> float | None:
+    """How far above (> 0) or below the scan's origin its rings' apex lies (m, roughly: a height H
+    reads as H cos^2 of the rings' elevations), or None where the rings
+    are not known (no ring field, unorganised) or too few returns lie near and far. A LIDAR's own
+    cloud has each ring on a cone about the origin: a return's elevation is its ring's at any
+    range, but for a few cm of beam offsets (VLP-16 ~1 cm, HDL-64 up to ~0.25 m). A cloud already
+    moved into another frame (base_link, 1-2 m below the LIDAR) has its near returns' elevation off
+    by about that height over their range: per ring, the median of range x (elevation - its far
+    returns' elevation) over the returns at 2-8 m; the median over the rings."""
+    if scan.ring is None and scan.shape is None:
+        return None
+    p = np.asarray(scan.points, float)
+    ring = ring_of(scan)
+    ok = np.asarray(scan.valid, bool) & finite_rows(p) & (ring >= 0)
+    p, ring = p[ok], ring[ok]
+    r = row_norms(p)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        el = np.arcsin(np.clip(p[:, 2] / r, -1, 1))
+    near, far = (r >= 2.0) & (r <= 8.0), r >= 15.0
+    h = []
+    for k in np.unique(ring[near]):
+        n, f = near & (ring == k), far & (ring == k)
+        if n.sum() >= 20 and f.sum() >= 20:
+            h.append(np.median(r[n] * (el[n] - np.median(el[f]))))
+    return float(np.median(h)) if len(h) >= 3 else None
+
+
 # Two returns of one ray (a LIDAR in dual-return mode: strongest and last in one cloud) share its
 # ring and azimuth to float precision (~1e-7 rad); neighbouring rays are >= 1e-3 rad apart.
 _SAME_RAY_RAD = 1e-5

@@ -226,3 +226,28 @@ def test_a_dual_return_cloud_keeps_one_return_per_ray_and_finds_the_same_boards(
     for x, y in zip(a, b):
         if isinstance(x, LidarBoardObservation):
             np.testing.assert_array_equal(x.points, y.points)
+
+
+def test_a_cloud_moved_out_of_the_lidars_frame_is_refused_naming_the_topic():
+    """A cloud already moved into base_link (here 1.9 m below the LIDAR) has its rings meeting
+    away from its origin: the segmentation's rays from the origin would not be the LIDAR's, so
+    segment_many refuses in one line; the LIDAR's own clouds measure ~0 (real Ouster clouds: 0.026 m)."""
+    import dataclasses
+
+    import pytest
+
+    from clcgraph.config import Config
+    from clcgraph.errors import DataError
+    from clcgraph.frontend.lidar_board import segment_many
+    from clcgraph.frontend.lidar_preprocess import origin_height_m
+    from lidar_board_scans import BOARD, board_scans
+
+    scans, _ = board_scans(LidarModel.preset("vlp16"), 3, tilt_max_deg=30.0, distance_m=(3.0, 5.0))
+    assert all(abs(origin_height_m(s)) < 0.01 for s in scans)
+    moved = [dataclasses.replace(s, points=s.points + [1.0, 0.0, 1.9]) for s in scans]
+    assert 1.0 < origin_height_m(moved[0]) < 2.0
+    cfg = Config()
+    with pytest.raises(DataError, match=r"^/l: its points are not in the LIDAR's own frame: its rings meet about 1\.\d m "
+                                        r"above the cloud's origin"):
+        segment_many(moved, cfg.segmentation, cfg.lidar, BOARD)
+    assert len(segment_many(scans, cfg.segmentation, cfg.lidar, BOARD)) == 3
