@@ -456,7 +456,8 @@ def _check_every_sensor_found_a_board(sensors, lidar_obs, camera_obs, rejected, 
                    f"and height)" if s.is_camera else
                    f"board.size_m [{board.width_m:g}, {board.height_m:g}] (the physical board, its border included)")
         raise DegenerateError(f'{s.topic}: no board found in any of its {missed} {what} ({n} like "{text[:90]}"); '
-                              f"is {setting} right? `clcgraph {'detect' if s.is_camera else 'segment'}` shows each")
+                              f"is {setting} right, and was the board in its view? "
+                              f"`clcgraph {'detect' if s.is_camera else 'segment'}` shows each")
 
 
 @single_threaded_blas()  # as read_problem's (`clcgraph segment`, scripts)
