@@ -391,8 +391,9 @@ def _warn_other_clock(topic: str, offset_s: float) -> None:
         if topic in _WARNED_CLOCK:
             return
         _WARNED_CLOCK.add(topic)
-    logger.warning("%s: header stamps %.4g s from the bag's log times (the sensor's own clock, not ROS time; an "
-                   "Ouster's TIME_FROM_INTERNAL_OSC): its messages are timed by their log times", topic, -offset_s)
+    # a note, not a warning: handled, nothing for the user to do (and a refused run prints one line)
+    logger.info("%s: header stamps %.4g s from the bag's log times (the sensor's own clock, not ROS time; an "
+                "Ouster's TIME_FROM_INTERNAL_OSC): its messages are timed by their log times", topic, -offset_s)
 
 
 def _stamp(msg, logtime: int) -> int:
