@@ -322,15 +322,11 @@ class _Bag:
                 _warn_other_clock(topic, (int(logtime) - s) * 1e-9)
         return int(logtime) if other else s
 
-    def decode(self, conn, i, msg, logtime: int | None = None):
-        """The decoded message; with ``logtime``, timed by ``stamp`` (its stamp_ns the log time
-        where the topic's stamps are on another clock)."""
+    def decode(self, conn, i, msg, stamp: int):
+        """The decoded message, timed ``stamp`` (``stamp``'s: the log time where the topic's stamps
+        are on another clock)."""
         data = self._decode(conn, i, msg)
-        if logtime is not None:
-            t = self.stamp(conn.topic, msg, logtime)
-            if t != data.stamp_ns:
-                data = dataclasses.replace(data, stamp_ns=t)
-        return data
+        return data if data.stamp_ns == stamp else dataclasses.replace(data, stamp_ns=stamp)
 
     def _decode(self, conn, i, msg):
         try:
@@ -442,11 +438,11 @@ def _iter_bag(path, topics, start_ns, stop_ns, missing_ok: bool = False) -> Iter
             for conn, i, logtime, msg in b.raw(conns, lo, hi):
                 stamp = b.stamp(conn.topic, msg, logtime)
                 if (start_ns is None or stamp >= start_ns) and (stop_ns is None or stamp < stop_ns):
-                    yield logtime, stamp, conn.topic, (conn, i, msg, logtime)
+                    yield logtime, stamp, conn.topic, (conn, i, msg)
 
         # decoded only once in order: the window holds deserialized messages, not point arrays
-        for stamp, topic, (conn, i, msg, logtime) in stamp_ordered(stamped(), where=str(b.path)):
-            yield Message(b.path, topic, i, stamp, b.decode(conn, i, msg, logtime))
+        for stamp, topic, (conn, i, msg) in stamp_ordered(stamped(), where=str(b.path)):
+            yield Message(b.path, topic, i, stamp, b.decode(conn, i, msg, stamp))
 
 
 def read_messages(paths, topics: Sequence[str], *, start_ns: int | None = None,
@@ -499,7 +495,7 @@ def leading_messages(path, topics: Sequence[str], counts: dict[str, int], *,
             n = max(1, int(counts.get(conn.topic, 1)))
             got = []
             for c, i, logtime, msg in b.raw([c for c in conns if c.topic == conn.topic]):
-                got.append(b.decode(c, i, msg, logtime))
+                got.append(b.decode(c, i, msg, b.stamp(c.topic, msg, logtime)))
                 if len(got) >= n:
                     break
             if got:

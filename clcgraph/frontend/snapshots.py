@@ -405,16 +405,10 @@ def assemble_snapshots(bags: Sequence[Path], lidar_topics: Sequence[str],
         # are read: numpy releases the GIL there, and reading is mostly Python
         with ThreadPoolExecutor(max_workers=min(2, os.cpu_count() or 1), thread_name_prefix="clcgraph-average") as pool:
             for group in (progress(recordings(kept_bags)) if progress else recordings(kept_bags)):
-                still, moving_s = (still_intervals(group, lidar_topics, options, tfilter)
-                                   if _may_hold_two_still_intervals(group, lidar_topics) else ([], 0.0))
-                # the board stopped more than once: a continuous recording (one bag, or a recording
-                # split into files), a snapshot per still interval (a bag per pose in which something
-                # moved, e.g. a passer-by, keeps its first messages)
-                if moving_s > 0 and len(still) >= 2:
-                    s_new, r_new = _still_snapshots(group, still, moving_s, lidar_topics, camera_topics, options,
-                                                    tfilter, len(snaps))
-                    snaps += s_new
-                    rejected += r_new
+                found = _continuous(group, lidar_topics, camera_topics, options, tfilter, len(snaps))
+                if found is not None:
+                    snaps += found[0]
+                    rejected += found[1]
                     continue
                 for b in group:
                     r_new = _first_messages_snapshot(b, snaps, pool, lidar_topics, camera_topics, options, tfilter)
@@ -486,16 +480,24 @@ def continuous_snapshots(bag: Path | Sequence[Path], lidar_topics: Sequence[str]
     """The snapshots ``assemble_snapshots`` takes from ``bag`` (or the files of one recording,
     ``recordings``) if it is a continuous recording (the scene still more than once, judged by
     ``lidar_topics``), one per still interval; else [] (a bag per pose: its first messages)."""
-    tfilter = TimeFilter.from_options(options)
+    found = _continuous(bag, lidar_topics, [], options, TimeFilter.from_options(options), 0)
+    return [] if found is None else found[0]
+
+
+def _continuous(bag: Path | Sequence[Path], lidar_topics, camera_topics, options, tfilter: TimeFilter,
+                first_index: int) -> tuple[list[Snapshot], list[Rejected]] | None:
+    """``_still_snapshots`` of ``bag`` (or a recording's files) if the board stopped more than once
+    in it: a continuous recording, a snapshot per still interval; else None (a bag per pose, in
+    which something may have moved, e.g. a passer-by: its first messages make its snapshot)."""
     if not _may_hold_two_still_intervals(bag, lidar_topics):
-        return []
+        return None
     still, moving_s = still_intervals(bag, lidar_topics, options, tfilter)
     if not (moving_s > 0 and len(still) >= 2):
-        return []
-    return _still_snapshots(bag, still, moving_s, lidar_topics, [], options, tfilter, 0)[0]
+        return None
+    return _still_snapshots(bag, still, moving_s, lidar_topics, camera_topics, options, tfilter, first_index)
 
 
-def _may_hold_two_still_intervals(bag: Path, lidar_topics: Sequence[str]) -> bool:
+def _may_hold_two_still_intervals(bag: Path | Sequence[Path], lidar_topics: Sequence[str]) -> bool:
     """Whether ``still_intervals`` can find two still intervals in ``bag``: each needs >= 2 scans of
     every LIDAR seen, so a bag with fewer than 4 scans of each LIDAR (a bag per pose) cannot, and its
     scans need not be decoded and compared (from the bag's index: nothing is read)."""
@@ -561,11 +563,10 @@ def _still_snapshots(bag: Path | Sequence[Path], still, moving_s: float, lidar_t
                      tfilter: TimeFilter, first_index: int) -> tuple[list[Snapshot], list[Rejected]]:
     """One snapshot per still interval of a continuous ``bag`` or split recording (``still_intervals``):
     per topic the message nearest the interval's centre among those inside it (streamed: one
-    message per topic held); named by the file the interval starts in."""
-    from clcgraph.frontend.bag import log_span, read_messages
+    message per topic held); named by the file of the interval's first message."""
+    from clcgraph.frontend.bag import read_messages
 
     bags = [Path(bag)] if isinstance(bag, (str, Path)) else list(bag)
-    starts_of_files = [log_span(b)[0] for b in bags] if len(bags) > 1 else [0]
 
     snaps: list[Snapshot] = []
     name = bags[0] if len(bags) == 1 else f"{bags[0]} (+ {len(bags) - 1} more file(s) of the recording)"
@@ -575,12 +576,11 @@ def _still_snapshots(bag: Path | Sequence[Path], still, moving_s: float, lidar_t
         return snaps, rejected
     starts = np.array([a for a, _, _ in still], np.int64)
     picks: dict[str, list[tuple[int, _Msg]]] = {}  # per topic the messages nearest the centre, nearest first
-    k_open = -1
+    k_open, file_open = -1, bags[0]
 
     def close(k):
         a, b, _ = still[k]
-        where = f"{bags[max(0, int(np.searchsorted(starts_of_files, a, side='right')) - 1)]} still " \
-                f"{a * 1e-9:.3f}-{b * 1e-9:.3f}s"
+        where = f"{file_open} still {a * 1e-9:.3f}-{b * 1e-9:.3f}s"
         chosen = {t: _Msg(t, ms[0][1].stamp_ns, still_average([m.data for _, m in ms])) for t, ms in picks.items()}
         spread = _spread_rejection(chosen.values(), options)
         if spread:
@@ -596,7 +596,7 @@ def _still_snapshots(bag: Path | Sequence[Path], still, moving_s: float, lidar_t
         if k != k_open:
             if k_open >= 0:
                 close(k_open)
-            picks, k_open = {}, k
+            picks, k_open, file_open = {}, k, m.bag
         dt = abs(m.stamp_ns - (still[k][0] + still[k][1]) // 2)
         keep = options.max_scans_averaged if m.topic in lidar_topics else 1
         ms = picks.setdefault(m.topic, [])

@@ -213,6 +213,9 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
         raise InputError(f"unknown bag format {format!r}; use one of {', '.join(FORMATS)}")
     if not camera_hz > 0:
         raise InputError(f"camera_hz must be > 0, got {camera_hz}")
+    if split_s is not None and not (continuous and format == "ros1" and split_s > 0):
+        raise InputError(f"split_s {split_s}: a continuous ROS1 session's files of > 0 s (a ROS2 bag's files are "
+                         "split inside one bag)")
     rig = rig_yaml if isinstance(rig_yaml, Rig) else load_rig(rig_yaml)
     rng = np.random.default_rng(seed)
     # timing draws of their own: the scenes stay those of the seed whatever the rates
@@ -284,8 +287,6 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
         if continuous:
             writer.__exit__(None, None, None)
             if split_s is not None:
-                if format != "ros1":
-                    raise InputError("split_s: ROS1 only (a ROS2 bag's files are split inside one bag)")
                 split_ros1_bag(tmp / f"session{ext}", split_s)
         truth = _truth(rig, tf, snapshots, format, continuous, seed)
         (tmp / "truth.yaml").write_text(yaml.safe_dump(truth, sort_keys=False, default_flow_style=None, width=200))
