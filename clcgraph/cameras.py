@@ -91,7 +91,7 @@ def ros_calibration_yaml(path) -> tuple[str, np.ndarray, tuple[int, int]]:
         K = np.asarray(d["camera_matrix"]["data"], float).reshape(3, 3)
         model = str(d.get("distortion_model", "plumb_bob"))
         D = np.asarray((d.get("distortion_coefficients") or {}).get("data", []), float).reshape(-1)
-    except (KeyError, TypeError, ValueError) as e:
+    except (AttributeError, KeyError, TypeError, ValueError) as e:
         raise DataError(f"{path}: not a ROS camera calibration YAML ({type(e).__name__}: {e}); it needs image_width, "
                         "image_height, camera_matrix.data (9 numbers), distortion_model, distortion_coefficients.data") from None
     n = len(D)

@@ -321,8 +321,9 @@ class BagWriter:
 def split_ros1_bag(path, every_s: float) -> list[Path]:
     """Cut a ROS1 bag into consecutive files of ``every_s`` seconds of log time each, as
     `rosbag record --split --duration` leaves a long recording (``NAME_0.bag``, ``NAME_1.bag``, ...,
-    beside it; the original removed). A latched topic (/tf_static) is in the first file only, as
-    its one message arrived when the recording started. Returns the files' paths."""
+    beside it, each new: rosbags' Writer overwrites nothing; the original is left as it is). A
+    latched topic (/tf_static) is in the first file only, as its one message arrived when the
+    recording started. Returns the files' paths."""
     from rosbags.rosbag1 import Reader, Writer
 
     path = Path(path)
@@ -348,5 +349,4 @@ def split_ros1_bag(path, every_s: float) -> list[Path]:
         finally:
             for w, _ in writers.values():
                 w.close()
-    path.unlink()
     return out

@@ -286,8 +286,9 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
                 shown[p] += set(p) <= seen
         if continuous:
             writer.__exit__(None, None, None)
-            if split_s is not None:
+            if split_s is not None:  # the session's files in place of the one bag
                 split_ros1_bag(tmp / f"session{ext}", split_s)
+                (tmp / f"session{ext}").unlink()
         truth = _truth(rig, tf, snapshots, format, continuous, seed)
         (tmp / "truth.yaml").write_text(yaml.safe_dump(truth, sort_keys=False, default_flow_style=None, width=200))
     return truth

@@ -52,9 +52,12 @@ def test_what_cannot_be_used_is_one_line_naming_the_file(tmp_path):
                             ("plumb_bob", [0.1, 0.2, 0.3], "plumb_bob with 3 coefficients")):
         with pytest.raises(DataError, match=words):
             load_camera("/cam", _ros_yaml(tmp_path / "x.yaml", K, model, D))
-    (tmp_path / "bad.yaml").write_text("image_width: 640\n")
-    with pytest.raises(DataError, match=r"bad.yaml: not a ROS camera calibration YAML"):
-        load_camera("/cam", tmp_path / "bad.yaml")
+    for text in ("image_width: 640\n",  # keys missing; a key of another shape
+                 "image_width: 640\nimage_height: 480\ncamera_matrix: {data: [500, 0, 320, 0, 500, 240, 0, 0, 1]}\n"
+                 "distortion_coefficients: [0.1, 0, 0, 0, 0]\n"):
+        (tmp_path / "bad.yaml").write_text(text)
+        with pytest.raises(DataError, match=r"bad.yaml: not a ROS camera calibration YAML"):
+            load_camera("/cam", tmp_path / "bad.yaml")
     with pytest.raises(DataError, match=r"is not \[\[fx, 0, cx\]"):
         load_camera("/cam", _ros_yaml(tmp_path / "skew.yaml", [[500, 3, 320], [0, 500, 240], [0, 0, 1]], "plumb_bob",
                                       [0, 0, 0, 0, 0]))
