@@ -11,12 +11,15 @@ dq_dp (...,2,3); dq_di (...,2,Nintrinsics).
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
 
 from .errors import DataError, DependencyError, InputError
 from .types import Sensor
+
+log = logging.getLogger(__name__)
 
 
 # A .cameramodel is text of a few kB (splined models some 100 kB); a camera side is < 100k px.
@@ -75,13 +78,19 @@ def load_camera(topic: str, path: str | Path) -> Sensor:
 # ROS distortion models as mrcal lens models: the same polynomial, coefficients in the same order
 _ROS_MODELS = {("plumb_bob", 4): "LENSMODEL_OPENCV4", ("plumb_bob", 5): "LENSMODEL_OPENCV5",
                ("rational_polynomial", 8): "LENSMODEL_OPENCV8"}
+# ROS's name for OpenCV's fisheye model (camera_calibration's), and other tools' names for it
+_ROS_FISHEYE = ("equidistant", "fisheye", "kannala_brandt")
+# a splined model fitted to a fisheye is off by less than this anywhere (corner detection: 0.1-0.3 px)
+_MAX_FISHEYE_FIT_PX = 0.25
 
 
 def ros_calibration_yaml(path) -> tuple[str, np.ndarray, tuple[int, int]]:
     """(mrcal lens model, intrinsics, (width, height)) of a ROS camera calibration YAML
     (image_width, image_height, camera_matrix, distortion_model, distortion_coefficients): plumb_bob
     as LENSMODEL_OPENCV4/5, rational_polynomial as LENSMODEL_OPENCV8 (the same model, exactly);
-    DataError naming the file for anything else (an equidistant fisheye has no mrcal model: fit one)."""
+    equidistant (OpenCV's fisheye, Kannala-Brandt k1-k4), which mrcal has not, as a splined
+    stereographic model fitted to it over the whole image (fisheye_fit; ~0.5-3 s; refused if it
+    is more than _MAX_FISHEYE_FIT_PX off anywhere); DataError naming the file for anything else."""
     from .config import read_yaml
 
     d = read_yaml(path, "ROS camera calibration", error=DataError,
@@ -99,15 +108,30 @@ def ros_calibration_yaml(path) -> tuple[str, np.ndarray, tuple[int, int]]:
         D, n = D[:5], 5
     if model == "rational_polynomial" and n < 8:
         D, n = np.r_[D, np.zeros(8 - n)], 8
+    fisheye = model in _ROS_FISHEYE and n == 4
     lens = _ROS_MODELS.get((model, n))
-    if lens is None:
-        hint = (" (a fisheye: mrcal has no such model; fit a splined mrcal model to it, as docs/real-data.md does)"
-                if model in ("equidistant", "fisheye", "kannala_brandt") else "")
+    if lens is None and not fisheye:
         raise DataError(f"{path}: distortion_model {model} with {n} coefficients is not one clcgraph can use as an "
-                        f"mrcal lens model{hint}; plumb_bob (4 or 5) and rational_polynomial (8) are; or give a .cameramodel")
+                        f"mrcal lens model; plumb_bob (4 or 5), rational_polynomial (8) and equidistant (4) are; or "
+                        "give a .cameramodel")
     if K[0, 1] != 0 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
         raise DataError(f"{path}: camera_matrix {K.tolist()} is not [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
-    return lens, np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], D], (w, h)
+    if not fisheye:
+        return lens, np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], D], (w, h)
+    from .fisheye_fit import fit_splined
+
+    if not (np.all(np.isfinite(D)) and K[0, 0] > 0 and K[1, 1] > 0 and 0 < w <= _MAX_IMAGER_SIDE and 0 < h <= _MAX_IMAGER_SIDE):
+        raise DataError(f"{path}: an equidistant model needs positive focal lengths, finite coefficients and a "
+                        f"camera's image size; got fx, fy {K[0, 0]:g}, {K[1, 1]:g}, {w}x{h}, D {D.tolist()}")
+    fit = fit_splined(K, D, (w, h))
+    worst = max(fit.max_px, fit.check_max_px)
+    if not worst <= _MAX_FISHEYE_FIT_PX:
+        raise DataError(f"{path}: the equidistant model (fx {K[0, 0]:g}, D {D.tolist()}) could not be fitted as an mrcal "
+                        f"model: {worst:.2g} px off somewhere in the image (> {_MAX_FISHEYE_FIT_PX} px); give a "
+                        ".cameramodel (mrcal-calibrate-cameras)")
+    log.info("%s: the equidistant (fisheye) model as %s, fitted to within %.3f px over the image (RMS %.4f px)",
+             path, fit.lensmodel, worst, fit.rms_px)
+    return fit.lensmodel, fit.intrinsics, (w, h)
 
 
 def intrinsics_covariance(model, path="the camera model") -> np.ndarray | None:

@@ -110,7 +110,7 @@ def convert(run: Path, out: Path, *, camera_info: Path | None = None, run_index:
     from clcgraph.sim.bag_writer import BagWriter
     from clcgraph.types import Image, LidarScan
 
-    from .fisheye_fit import fit_splined
+    from clcgraph.fisheye_fit import fit_splined
 
     camera_info = Path(camera_info) if camera_info else run / "camera_info.yaml"
     K, D, size = read_camera_info(camera_info)

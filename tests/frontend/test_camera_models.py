@@ -46,9 +46,29 @@ def test_a_ros_calibration_yaml_is_the_same_camera_as_its_cameramodel(tmp_path):
                                    atol=1e-9)
 
 
+def test_a_ros_equidistant_fisheye_is_fitted_as_a_splined_model(tmp_path):
+    """ROS's equidistant model (OpenCV's fisheye: theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8)),
+    which mrcal has not, becomes a splined stereographic model that projects as the fisheye does
+    over the whole image, to 0.05 px, out to 85 deg off the axis (a 170 deg lens, 640x480)."""
+    K = [[190.0, 0, 318.0], [0, 191.0, 243.0], [0, 0, 1]]
+    D = [0.04, -0.012, 0.003, -0.0004]
+    cam = load_camera("/fisheye", _ros_yaml(tmp_path / "fisheye.yaml", K, "equidistant", D, size=(640, 480)))
+    assert cam.lensmodel.startswith("LENSMODEL_SPLINED_STEREOGRAPHIC") and cam.imagersize == (640, 480)
+    rng = np.random.default_rng(3)
+    th, ph = np.radians(rng.uniform(0, 85, 400)), rng.uniform(-np.pi, np.pi, 400)
+    v = np.c_[np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)]
+    t2 = th**2
+    thd = th * (1 + t2 * (D[0] + t2 * (D[1] + t2 * (D[2] + t2 * D[3]))))
+    q = np.c_[K[0][0] * thd * np.cos(ph) + K[0][2], K[1][1] * thd * np.sin(ph) + K[1][2]]
+    seen = (q[:, 0] >= 0) & (q[:, 0] <= 639) & (q[:, 1] >= 0) & (q[:, 1] <= 479)
+    assert seen.sum() > 200 and th[seen].max() > np.radians(75)
+    err = np.linalg.norm(project(v[seen], cam.lensmodel, cam.intrinsics) - q[seen], axis=1)
+    assert err.max() < 0.05, err.max()
+
+
 def test_what_cannot_be_used_is_one_line_naming_the_file(tmp_path):
     K = [[500, 0, 320], [0, 500, 240], [0, 0, 1]]
-    for model, D, words in (("equidistant", [0.1, 0.01, 0, 0], "equidistant with 4 coefficients .* \\(a fisheye"),
+    for model, D, words in (("equidistant", [0.1, 0.01, 0], "equidistant with 3 coefficients"),
                             ("plumb_bob", [0.1, 0.2, 0.3], "plumb_bob with 3 coefficients")):
         with pytest.raises(DataError, match=words):
             load_camera("/cam", _ros_yaml(tmp_path / "x.yaml", K, model, D))

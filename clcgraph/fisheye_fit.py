@@ -1,7 +1,7 @@
 """A mrcal splined model fitted to a Kannala-Brandt (OpenCV "fisheye") camera.
 
 SYNOPSIS
-    from bench.real.fisheye_fit import fit_splined
+    from clcgraph.fisheye_fit import fit_splined
     fit = fit_splined(K, D, (1920, 1208))
     fit.lensmodel, fit.intrinsics        # mrcal LENSMODEL_SPLINED_STEREOGRAPHIC_...
     fit.rms_px, fit.max_px               # fit error over the whole image
@@ -11,6 +11,8 @@ the image corners of a wide fisheye (0.65 px off on the ACFR camera). A splined
 stereographic model can: it is fitted by least squares to the observation vectors of a
 dense grid of pixels covering the whole image (unprojected exactly through the fisheye
 model), with a light ridge on the spline controls so the knots outside the image stay put.
+The fit's error is measured within MAX_THETA_DEG of the axis: a circular fisheye's corners
+beyond it are dark or look backwards (no board is seen there), and the spline is looser there.
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+MAX_THETA_DEG = 100.0
 
 
 def fisheye_project(p: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarray:
@@ -66,6 +70,13 @@ def _grid(imagersize, step: float, offset: float = 0.0) -> np.ndarray:
     return np.stack(np.meshgrid(np.r_[u, w - 1], np.r_[v, h - 1]), -1).reshape(-1, 2)
 
 
+def _seen(q: np.ndarray, K, D) -> tuple[np.ndarray, np.ndarray]:
+    """(pixels, their observation vectors) of the pixels ``q`` within MAX_THETA_DEG of the axis."""
+    v = fisheye_unproject(q, K, D)
+    ok = v[:, 2] >= np.cos(np.radians(MAX_THETA_DEG))
+    return q[ok], v[ok]
+
+
 def fit_splined(K, D, imagersize, *, Nx: int = 30, Ny: int = 20, fov_margin: float = 1.1,
                 step_px: float = 16.0, ridge: float = 1e-3) -> SplinedFit:
     """Least-squares LENSMODEL_SPLINED_STEREOGRAPHIC (order 3, ``Nx`` x ``Ny`` knots) fitted to
@@ -95,8 +106,9 @@ def fit_splined(K, D, imagersize, *, Nx: int = 30, Ny: int = 20, fov_margin: flo
         x += dx
         if np.abs(dx).max() < 1e-9:
             break
+    q, v = _seen(q, K, D)
     err = np.linalg.norm(mrcal.project(v, lensmodel, x) - q, axis=1)
-    qc = _grid(imagersize, step_px / 2.3, offset=step_px / 4)
-    errc = np.linalg.norm(mrcal.project(fisheye_unproject(qc, K, D), lensmodel, x) - qc, axis=1)
+    qc, vc = _seen(_grid(imagersize, step_px / 2.3, offset=step_px / 4), K, D)
+    errc = np.linalg.norm(mrcal.project(vc, lensmodel, x) - qc, axis=1)
     return SplinedFit(lensmodel, x, float(np.sqrt(np.mean(err**2))), float(err.max()),
                       float(np.sqrt(np.mean(errc**2))), float(errc.max()))
