@@ -375,9 +375,11 @@ def log_span(path) -> tuple[int, int]:
 
 # A sensor whose header stamps differ from the recorder's log times by more than this is on
 # another clock (an Ouster's default TIME_FROM_INTERNAL_OSC counts from its boot, a camera its own
-# time): drivers log within a second of their stamps (MAX_LOG_DELAY_NS), clocks apart by minutes
-# to decades. Its messages are then timed by their log times (a driver's delay, tens of ms, late).
-_OTHER_CLOCK_NS = 10_000_000_000
+# time, an unsynchronised computer's clock seconds off): drivers log within a second of their
+# stamps, which is what stamp order assumes (MAX_LOG_DELAY_NS): a topic stamped seconds earlier
+# would be dropped as logged too late, one stamped seconds later paired with the others' older
+# messages. Its messages are then timed by their log times (a driver's delay, tens of ms, late).
+_OTHER_CLOCK_NS = MAX_LOG_DELAY_NS
 _WARNED_CLOCK: set = set()
 _WARNED_CLOCK_LOCK = threading.Lock()
 
@@ -388,8 +390,9 @@ def _warn_other_clock(topic: str, offset_s: float) -> None:
             return
         _WARNED_CLOCK.add(topic)
     # a note, not a warning: handled, nothing for the user to do (and a refused run prints one line)
-    logger.info("%s: header stamps %.4g s from the bag's log times (the sensor's own clock, not ROS time; an "
-                "Ouster's TIME_FROM_INTERNAL_OSC): its messages are timed by their log times", topic, -offset_s)
+    logger.info("%s: header stamps %.4g s from the bag's log times (the sensor's own clock, not ROS time: an "
+                "Ouster's TIME_FROM_INTERNAL_OSC, an unsynchronised clock): its messages are timed by their log times",
+                topic, -offset_s)
 
 
 def _stamp(msg, logtime: int) -> int:
