@@ -169,10 +169,10 @@ CAPTURES = [
             "(an Ouster's default TIME_FROM_INTERNAL_OSC: seconds since it booted), the others on ROS time",
             rig={"lidars": [TOP, BUMPER], "cameras": [CAM_FRONT]},
             simulate={"n_poses": 12, "continuous": True, "clock_offsets_s": {"/lidar/front/points": 42.0 - 1.7e9}}),
-    Capture("unsynced-camera-clock", "bag per pose; the camera's computer is not time-synchronised: its frames are "
-            "stamped 3 s behind ROS time (the LIDARs')",
+    Capture("unsynced-camera-clock", "one continuous ROS1 recording; the camera's computer is not time-synchronised: "
+            "its frames are stamped 3 s behind ROS time (the LIDARs')",
             rig={"lidars": [TOP, BUMPER], "cameras": [CAM_FRONT]},
-            simulate={"n_poses": 12, "clock_offsets_s": {"/cam/front/image": -3.0}}),
+            simulate={"n_poses": 12, "continuous": True, "clock_offsets_s": {"/cam/front/image": -3.0}}),
     Capture("sideways-lidar", "a blind-spot VLP-16 mounted on its side (rolled 90 deg, its rings vertical fans), "
             "an upside-down one at the rear (rolled 180 deg), beside the roof LIDAR and a camera",
             rig={"lidars": [TOP, _lidar("/lidar/side/points", "vlp16", (1.5, -0.9, 1.0), (90, 0, -60)),
