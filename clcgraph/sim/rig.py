@@ -111,10 +111,11 @@ def _pose(d, where, path) -> np.ndarray:
     return T_from_xyz_rpy(xyz, rpy)
 
 
-_LIDAR_KEYS = {"topic", "model", "elevations_deg", "npoints_per_rotation", "layout", "frame_id", "xyz", "rpy_deg",
-               "range_noise_m", "dropout", "max_range_m", "ring_range_bias_m", "ring_elevation_error_deg",
-               "errors_seed", "heavy_tail_fraction", "heavy_tail_scale", "dark_range_bias_m", "mixed_pixel_m",
-               "dual_returns"}
+# a LIDAR's keys that override its model's fields (LidarModel), and the others
+_LIDAR_MODEL_KEYS = ("layout", "range_noise_m", "dropout", "max_range_m", "npoints_per_rotation", "ring_range_bias_m",
+                     "ring_elevation_error_deg", "errors_seed", "heavy_tail_fraction", "heavy_tail_scale",
+                     "dark_range_bias_m", "mixed_pixel_m", "dual_returns")
+_LIDAR_KEYS = {"topic", "model", "elevations_deg", "frame_id", "xyz", "rpy_deg", *_LIDAR_MODEL_KEYS}
 _CAMERA_KEYS = {"topic", "model", "encoding", "compressed", "frame_id", "xyz", "rpy_deg"}
 
 
@@ -142,10 +143,7 @@ def load_rig(path) -> Rig:
                 model = LidarModel.preset(str(_need(L, "model", where, path)))
         except KeyError as e:
             raise InputError(f"{path}: {where}.model: {e.args[0]}") from None
-        over = {k2: L[k2] for k2 in ("layout", "range_noise_m", "dropout", "max_range_m", "npoints_per_rotation",
-                                     "ring_range_bias_m", "ring_elevation_error_deg", "errors_seed",
-                                     "heavy_tail_fraction", "heavy_tail_scale", "dark_range_bias_m",
-                                     "mixed_pixel_m", "dual_returns") if k2 in L}
+        over = {k2: L[k2] for k2 in _LIDAR_MODEL_KEYS if k2 in L}
         if over.get("layout", model.layout) not in ("velodyne", "ouster"):
             raise InputError(f"{path}: {where}.layout must be velodyne or ouster")
         if over.get("dual_returns") and over.get("layout", model.layout) != "velodyne":
