@@ -173,6 +173,11 @@ CAPTURES = [
             "its frames are stamped 3 s behind ROS time (the LIDARs')",
             rig={"lidars": [TOP, BUMPER], "cameras": [CAM_FRONT]},
             simulate={"n_poses": 12, "continuous": True, "clock_offsets_s": {"/cam/front/image": -3.0}}),
+    Capture("camera-info-no-models", "the cameras' drivers publish CameraInfo beside their images (plumb_bob and "
+            "rational_polynomial) and the user gives no camera model file",
+            rig={"lidars": [TOP, BUMPER], "cameras": [{**CAM_FRONT, "camera_info": True},
+                                                      {**CAM_COLOUR, "camera_info": True}]},
+            simulate={"n_poses": 16}),
     Capture("sideways-lidar", "a blind-spot VLP-16 mounted on its side (rolled 90 deg, its rings vertical fans), "
             "an upside-down one at the rear (rolled 180 deg), beside the roof LIDAR and a camera",
             rig={"lidars": [TOP, _lidar("/lidar/side/points", "vlp16", (1.5, -0.9, 1.0), (90, 0, -60)),
@@ -190,6 +195,8 @@ CI_CAPTURES = [
             simulate={"n_poses": 10, "continuous": True, "hold_s": 1.2, "move_s": 0.6}),
     Capture("ci-vertical-boards", "exactly vertical boards: the outline gives the relative height",
             rig={"lidars": [TOP, BUMPER]}, simulate={"n_poses": 8, "vertical_boards": True}),
+    Capture("ci-camera-info", "a camera whose driver publishes CameraInfo, no camera model file given",
+            rig={"lidars": [TOP], "cameras": [{**CAM_FRONT, "camera_info": True}]}, simulate={"n_poses": 10}),
 ]
 
 # ----------------------------------------------------------------------------------- running
@@ -338,7 +345,9 @@ def run_capture(c: Capture, settings: tuple[str, ...] = (), build: Path = BUILD,
         bar = (0.02, 3.0)
     else:
         topics = truth["topics"]
-        models = [d / cam["model"] for cam in c.rig.get("cameras", [])]
+        # cameras whose drivers publish CameraInfo are given no model file: the user relies on the bags
+        cams = c.rig.get("cameras", [])
+        models = [] if cams and all(cam.get("camera_info") for cam in cams) else [d / cam["model"] for cam in cams]
         config = []
         if c.board is not None:
             (d / "board.yaml").write_text(yaml.safe_dump({"board": c.board}))

@@ -192,7 +192,8 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
 
     ``topics``: LIDAR and camera topics in any order (the first LIDAR is lidar0);
     ``models``: one camera model per camera topic, in the cameras' order (an mrcal .cameramodel or
-    a ROS camera calibration .yaml: ``cameras.load_camera``). A snapshot is
+    a ROS camera calibration .yaml: ``cameras.load_camera``), or none: each camera's CameraInfo
+    in the bags (``frontend.bag.camera_info``, ``cameras.camera_from_info``). A snapshot is
     kept only if >= 2 sensors saw the board; everything dropped is in ``Problem.rejected``.
     ``timings``: if given, filled with wall seconds per stage (read, segment, detect).
     ``report_material``: if given, filled with what the report draws: "snapshots" (index ->
@@ -208,12 +209,20 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
     paths = expand_bags(bags)
     topics = list(dict.fromkeys(t.strip() for t in topics if t.strip()))
     lidar_topics, camera_topics = classify_topics(paths, topics)
-    if len(models) != len(camera_topics):
+    if models and len(models) != len(camera_topics):
         raise InputError(f"{len(models)} camera model(s) given for {len(camera_topics)} camera topic(s) "
                          f"({', '.join(camera_topics) or 'none'}): give one camera model (.cameramodel or ROS "
-                         "calibration .yaml) per camera topic, in order")
+                         "calibration .yaml) per camera topic, in order (or none: each camera's CameraInfo in the bags)")
     sensors = [Sensor(topic=t, kind="lidar") for t in lidar_topics]
-    sensors += [cameras.load_camera(t, m) for t, m in zip(camera_topics, models)]
+    if models:
+        sensors += [cameras.load_camera(t, m) for t, m in zip(camera_topics, models)]
+    else:  # as the drivers published them: each camera's CameraInfo beside its images
+        from .frontend.bag import camera_info
+
+        for t in camera_topics:
+            info = camera_info(paths, t)
+            sensors.append(cameras.camera_from_info(t, info))
+            log.info("%s: camera model from %s (%s)", t, info.where, sensors[-1].lensmodel)
     if len(sensors) < 2:
         raise InputError(f"only one sensor ({sensors[0].topic}): calibration needs >= 2 sensors")
 

@@ -86,11 +86,8 @@ _MAX_FISHEYE_FIT_PX = 0.25
 
 def ros_calibration_yaml(path) -> tuple[str, np.ndarray, tuple[int, int]]:
     """(mrcal lens model, intrinsics, (width, height)) of a ROS camera calibration YAML
-    (image_width, image_height, camera_matrix, distortion_model, distortion_coefficients): plumb_bob
-    as LENSMODEL_OPENCV4/5, rational_polynomial as LENSMODEL_OPENCV8 (the same model, exactly);
-    equidistant (OpenCV's fisheye, Kannala-Brandt k1-k4), which mrcal has not, as a splined
-    stereographic model fitted to it over the whole image (fisheye_fit; ~0.5-3 s; refused if it
-    is more than _MAX_FISHEYE_FIT_PX off anywhere); DataError naming the file for anything else."""
+    (image_width, image_height, camera_matrix, distortion_model, distortion_coefficients):
+    ``ros_lens``'s; DataError naming the file for anything it cannot use."""
     from .config import read_yaml
 
     d = read_yaml(path, "ROS camera calibration", error=DataError,
@@ -103,6 +100,31 @@ def ros_calibration_yaml(path) -> tuple[str, np.ndarray, tuple[int, int]]:
     except (AttributeError, KeyError, TypeError, ValueError) as e:
         raise DataError(f"{path}: not a ROS camera calibration YAML ({type(e).__name__}: {e}); it needs image_width, "
                         "image_height, camera_matrix.data (9 numbers), distortion_model, distortion_coefficients.data") from None
+    return ros_lens(K, model, D, (w, h), where=str(path), other="give a .cameramodel")
+
+
+def camera_from_info(topic: str, info) -> Sensor:
+    """A camera Sensor from its sensor_msgs/CameraInfo (frontend/bag.camera_info: its K, D,
+    distortion_model, width, height and where it was read), as ``ros_lens`` maps it."""
+    w, h = info.size
+    if not (0 < w <= _MAX_IMAGER_SIDE and 0 < h <= _MAX_IMAGER_SIDE) or not np.all(np.isfinite(info.K)) or info.K[0, 0] <= 0:
+        raise DataError(f"{info.where}: not a calibrated camera (width x height {w}x{h}, K {info.K.tolist()}): give a "
+                        f"camera model for {topic}")
+    lens, intrinsics, size = ros_lens(info.K, info.distortion_model, info.D, (w, h), where=info.where,
+                                      other=f"give a camera model for {topic}")
+    return Sensor(topic=topic, kind="camera", lensmodel=lens, intrinsics=intrinsics, imagersize=size)
+
+
+def ros_lens(K: np.ndarray, model: str, D: np.ndarray, size: tuple[int, int], *, where: str,
+             other: str) -> tuple[str, np.ndarray, tuple[int, int]]:
+    """(mrcal lens model, intrinsics, size) of a ROS camera calibration (K, distortion_model, D):
+    plumb_bob as LENSMODEL_OPENCV4/5, rational_polynomial as LENSMODEL_OPENCV8 (the same model,
+    exactly); equidistant (OpenCV's fisheye, Kannala-Brandt k1-k4), which mrcal has not, as a
+    splined stereographic model fitted to it over the image (fisheye_fit; ~0.5-3 s; refused if it
+    is more than _MAX_FISHEYE_FIT_PX off anywhere); DataError naming ``where`` (and saying
+    ``other``) for anything else."""
+    K, D = np.asarray(K, float).reshape(3, 3), np.asarray(D, float).reshape(-1)
+    w, h = size
     n = len(D)
     if model == "plumb_bob" and n > 5 and not np.any(D[5:]):  # zeros padded by some tools
         D, n = D[:5], 5
@@ -111,26 +133,26 @@ def ros_calibration_yaml(path) -> tuple[str, np.ndarray, tuple[int, int]]:
     fisheye = model in _ROS_FISHEYE and n == 4
     lens = _ROS_MODELS.get((model, n))
     if lens is None and not fisheye:
-        raise DataError(f"{path}: distortion_model {model} with {n} coefficients is not one clcgraph can use as an "
+        raise DataError(f"{where}: distortion_model {model} with {n} coefficients is not one clcgraph can use as an "
                         f"mrcal lens model; plumb_bob (4 or 5), rational_polynomial (8) and equidistant (4) are; or "
-                        "give a .cameramodel")
+                        f"{other}")
     if K[0, 1] != 0 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
-        raise DataError(f"{path}: camera_matrix {K.tolist()} is not [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
+        raise DataError(f"{where}: camera_matrix {K.tolist()} is not [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
     if not fisheye:
         return lens, np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], D], (w, h)
     from .fisheye_fit import fit_splined
 
     if not (np.all(np.isfinite(D)) and K[0, 0] > 0 and K[1, 1] > 0 and 0 < w <= _MAX_IMAGER_SIDE and 0 < h <= _MAX_IMAGER_SIDE):
-        raise DataError(f"{path}: an equidistant model needs positive focal lengths, finite coefficients and a "
+        raise DataError(f"{where}: an equidistant model needs positive focal lengths, finite coefficients and a "
                         f"camera's image size; got fx, fy {K[0, 0]:g}, {K[1, 1]:g}, {w}x{h}, D {D.tolist()}")
     fit = fit_splined(K, D, (w, h))
     worst = max(fit.max_px, fit.check_max_px)
     if not worst <= _MAX_FISHEYE_FIT_PX:
-        raise DataError(f"{path}: the equidistant model (fx {K[0, 0]:g}, D {D.tolist()}) could not be fitted as an mrcal "
-                        f"model: {worst:.2g} px off somewhere in the image (> {_MAX_FISHEYE_FIT_PX} px); give a "
-                        ".cameramodel (mrcal-calibrate-cameras)")
+        raise DataError(f"{where}: the equidistant model (fx {K[0, 0]:g}, D {D.tolist()}) could not be fitted as an mrcal "
+                        f"model: {worst:.2g} px off somewhere in the image (> {_MAX_FISHEYE_FIT_PX} px); {other} "
+                        "(mrcal-calibrate-cameras)")
     log.info("%s: the equidistant (fisheye) model as %s, fitted to within %.3f px over the image (RMS %.4f px)",
-             path, fit.lensmodel, worst, fit.rms_px)
+             where, fit.lensmodel, worst, fit.rms_px)
     return fit.lensmodel, fit.intrinsics, (w, h)
 
 

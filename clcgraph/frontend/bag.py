@@ -52,6 +52,7 @@ logger = logging.getLogger(__name__)
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 TFMESSAGE = "tf2_msgs/msg/TFMessage"
 DECODABLE = (POINTCLOUD2, IMAGE, COMPRESSED_IMAGE)
 
@@ -365,6 +366,47 @@ def bag_info(path) -> BagInfo:
             for ti in topics
         )
         return BagInfo(b.path, topics, min(first.values(), default=None), max(last.values(), default=None))
+
+
+@dataclass(frozen=True)
+class CameraInfo:
+    """A camera's calibration as its driver publishes it (sensor_msgs/CameraInfo)."""
+
+    K: np.ndarray  # (3,3)
+    D: np.ndarray
+    distortion_model: str
+    size: tuple[int, int]  # (width, height)
+    where: str  # "BAG: topic T"
+
+
+def camera_info_topic(image_topic: str) -> str:
+    """The CameraInfo topic beside an image topic, as image_transport names them:
+    /ns/image_raw and /ns/image_raw/compressed -> /ns/camera_info."""
+    base = image_topic[: -len("/compressed")] if image_topic.endswith("/compressed") else image_topic
+    return base.rsplit("/", 1)[0] + "/camera_info"
+
+
+def camera_info(paths, image_topic: str) -> CameraInfo:
+    """The first CameraInfo on ``camera_info_topic(image_topic)`` in the bags ``paths``; InputError
+    naming the topic (and the CameraInfo topics there are) if none has it."""
+    topic = camera_info_topic(image_topic)
+    others = set()
+    for path in paths:
+        with _Bag(path) as b:
+            have = b.topics()
+            others |= {t for t, m in have.items() if m == CAMERA_INFO}
+            if have.get(topic) != CAMERA_INFO:
+                continue
+            for _, _, _, msg in b.raw(b.connections([topic], msgtypes=(CAMERA_INFO,))):
+                def field(name):  # ROS 1 names them K, D; ROS 2 k, d
+                    return np.asarray(getattr(msg, name, getattr(msg, name.lower(), ())), float)
+
+                return CameraInfo(field("K").reshape(3, 3) if field("K").size == 9 else np.full((3, 3), np.nan),
+                                  field("D").reshape(-1), str(msg.distortion_model), (int(msg.width), int(msg.height)),
+                                  f"{b.path}: topic {topic}")
+    raise InputError(f"no camera model given for {image_topic} and no {topic} in the bags"
+                     + (f" (CameraInfo topics: {', '.join(sorted(others))})" if others else "")
+                     + ": give one camera model (.cameramodel or ROS calibration .yaml) per camera topic, in order")
 
 
 def log_span(path) -> tuple[int, int]:

@@ -294,6 +294,21 @@ class BagWriter:
         delay = self._delay_ns(self.log_delays.camera_s) if self.log_delays else 0
         self._write(topic, msgtype, msg, image.stamp_ns + delay)
 
+    def write_camera_info(self, topic: str, *, stamp_ns: int, frame_id: str, size: tuple[int, int], K,
+                          distortion_model: str, D) -> None:
+        """Write one sensor_msgs/CameraInfo (K (3,3), D, ``size`` (width, height); R identity, P = [K 0])."""
+        T = self.typestore.types
+        K = np.asarray(K, float).reshape(3, 3)
+        fields = {"D": np.asarray(D, float), "K": K.ravel(), "R": np.eye(3).ravel(), "P": np.c_[K, np.zeros(3)].ravel()}
+        if not self._ros1:  # ROS 2 names them in lower case
+            fields = {k.lower(): v for k, v in fields.items()}
+        msgtype = "sensor_msgs/msg/CameraInfo"
+        msg = T[msgtype](header=self._header(topic, stamp_ns, frame_id), height=int(size[1]), width=int(size[0]),
+                         distortion_model=distortion_model, **fields, binning_x=0, binning_y=0,
+                         roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
+                                                                   do_rectify=False))
+        self._write(topic, msgtype, msg, stamp_ns)
+
     def write_tf_static(self, transforms, *, stamp_ns: int) -> None:
         """Write one tf2_msgs/TFMessage on /tf_static.
 

@@ -180,7 +180,7 @@ def _write(w: BagWriter, rig: Rig, scans, images):
             w.write_pointcloud(L.topic, s, frame_id=L.frame_id, layout=L.model.layout)
     for C in rig.cameras:
         for im in images[C.topic]:
-            w.write_image(C.topic, im, frame_id=C.frame_id, compressed=C.compressed)
+            _write_image(w, C, im)
 
 
 def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str = "ros1", continuous: bool = False,
@@ -326,7 +326,20 @@ def _write_move(w, rig, T_a, T_b, static, rng, stamps, t0_ns, move_s):
             scene = make_scene(rig.board, Tm, rng, static=static, person=rig.person, arm=rig.arm)
             img, _ = render(C.sensor, C.T_base_sensor, scene, rig.board, Tm, rng, topic=C.topic, stamp_ns=t,
                             colour=C.encoding == "bgr8")
-            w.write_image(C.topic, img, frame_id=C.frame_id, compressed=C.compressed)
+            _write_image(w, C, img)
+
+
+def _write_image(w: BagWriter, C, image) -> None:
+    """One frame of camera ``C``, and its CameraInfo where the rig says its driver publishes one."""
+    w.write_image(C.topic, image, frame_id=C.frame_id, compressed=C.compressed)
+    if C.camera_info:
+        from ..frontend.bag import camera_info_topic
+        from .rig import ROS_DISTORTION
+
+        fx, fy, cx, cy, *D = C.sensor.intrinsics
+        w.write_camera_info(camera_info_topic(C.topic), stamp_ns=image.stamp_ns, frame_id=C.frame_id,
+                            size=C.sensor.imagersize, K=[[fx, 0, cx], [0, fy, cy], [0, 0, 1]],
+                            distortion_model=ROS_DISTORTION[C.sensor.lensmodel], D=D)
 
 
 def _truth(rig: Rig, tf, snapshots, format, continuous, seed) -> dict:

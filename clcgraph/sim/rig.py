@@ -23,6 +23,7 @@
         model: left.cameramodel      # mrcal model, relative to this file
         encoding: mono8              # mono8 | bgr8
         compressed: null             # null | png | jpeg
+        camera_info: false           # optional: its CameraInfo beside each image (OPENCV4/5/8 models)
         frame_id: cam_left
         xyz: [1.3, 0.3, 1.6]
         rpy_deg: [0, 5, 10]          # of a front-left-up frame; the optical axes follow mrcal
@@ -76,6 +77,7 @@ class RigCamera:
     T_base_sensor: np.ndarray  # base_link <- camera (optical axes)
     encoding: str = "mono8"
     compressed: str | None = None
+    camera_info: bool = False  # a CameraInfo beside each image, as drivers publish it (bag.camera_info_topic)
 
 
 @dataclass(frozen=True, eq=False)
@@ -116,7 +118,10 @@ _LIDAR_MODEL_KEYS = ("layout", "range_noise_m", "dropout", "max_range_m", "npoin
                      "ring_elevation_error_deg", "errors_seed", "heavy_tail_fraction", "heavy_tail_scale",
                      "dark_range_bias_m", "mixed_pixel_m", "dual_returns")
 _LIDAR_KEYS = {"topic", "model", "elevations_deg", "frame_id", "xyz", "rpy_deg", *_LIDAR_MODEL_KEYS}
-_CAMERA_KEYS = {"topic", "model", "encoding", "compressed", "frame_id", "xyz", "rpy_deg"}
+# mrcal lens models a CameraInfo can carry: ROS's name for the same polynomial
+ROS_DISTORTION = {"LENSMODEL_OPENCV4": "plumb_bob", "LENSMODEL_OPENCV5": "plumb_bob",
+                  "LENSMODEL_OPENCV8": "rational_polynomial"}
+_CAMERA_KEYS = {"topic", "model", "encoding", "compressed", "camera_info", "frame_id", "xyz", "rpy_deg"}
 
 
 def _unknown(d: dict, known: set, where: str, path: Path):
@@ -166,10 +171,14 @@ def load_rig(path) -> Rig:
         comp = C.get("compressed")
         if comp not in (None, "png", "jpeg"):
             raise InputError(f"{path}: {where}.compressed must be null, png or jpeg")
+        info = bool(C.get("camera_info", False))
+        if info and sensor.lensmodel not in ROS_DISTORTION:
+            raise InputError(f"{path}: {where}.camera_info needs an OPENCV4/5/8 model (ROS's plumb_bob, "
+                             f"rational_polynomial), not {sensor.lensmodel}")
         T = _pose(C, where, path)
         T[:3, :3] = T[:3, :3] @ R_FLU_CAMERA
         cams.append(RigCamera(topic, str(C.get("frame_id", topic.strip("/").replace("/", "_"))), sensor, model_path,
-                              T, enc, comp))
+                              T, enc, comp, info))
     b = d.get("board") or {}
     if not isinstance(b, dict):
         raise InputError(f"{path}: 'board' must be a mapping")

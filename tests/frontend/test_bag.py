@@ -378,3 +378,22 @@ def test_bags_with_the_same_message_definitions_share_one_typestore(written, tmp
     got = bag.first_raw_message(b, "/velo")
     assert bytes(got.data) == bytes(want.data) and got.header.stamp == want.header.stamp
     assert [f.name for f in got.fields] == [f.name for f in want.fields]
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "ros2-sqlite3", "ros2-mcap"])
+def test_a_cameras_camera_info_is_read_beside_its_images(tmp_path, fmt):
+    """CameraInfo (K, D as ROS 1's K, D and ROS 2's k, d) on the topic image_transport puts beside
+    the images (/ns/image_raw[/compressed] -> /ns/camera_info); its absence names both topics."""
+    path = tmp_path / ("c.bag" if fmt == "ros1" else "c")
+    K = [[500.0, 0, 320], [0, 501, 240], [0, 0, 1]]
+    with BagWriter(path, format=fmt) as w:
+        w.write_camera_info("/cam/camera_info", stamp_ns=10**18, frame_id="c", size=(640, 480), K=K,
+                            distortion_model="plumb_bob", D=[-0.1, 0.02, 0.001, -0.002, 0.003])
+    for topic in ("/cam/image_raw", "/cam/image_raw/compressed"):
+        info = bag.camera_info([path], topic)
+        np.testing.assert_array_equal(info.K, K)
+        np.testing.assert_array_equal(info.D, [-0.1, 0.02, 0.001, -0.002, 0.003])
+        assert info.distortion_model == "plumb_bob" and info.size == (640, 480) and "/cam/camera_info" in info.where
+    with pytest.raises(InputError, match=r"no camera model given for /other/image and no /other/camera_info in the "
+                                         r"bags \(CameraInfo topics: /cam/camera_info\)"):
+        bag.camera_info([path], "/other/image")
