@@ -78,6 +78,7 @@ def load_camera(topic: str, path: str | Path) -> Sensor:
 # ROS distortion models as mrcal lens models: the same polynomial, coefficients in the same order
 _ROS_MODELS = {("plumb_bob", 4): "LENSMODEL_OPENCV4", ("plumb_bob", 5): "LENSMODEL_OPENCV5",
                ("rational_polynomial", 8): "LENSMODEL_OPENCV8"}
+ROS_DISTORTION = {lens: model for (model, _), lens in _ROS_MODELS.items()}  # and back (a CameraInfo's)
 # ROS's name for OpenCV's fisheye model (camera_calibration's), and other tools' names for it
 _ROS_FISHEYE = ("equidistant", "fisheye", "kannala_brandt")
 # a splined model fitted to a fisheye is off by less than this anywhere (corner detection: 0.1-0.3 px)

@@ -4,7 +4,7 @@ SYNOPSIS
     from clcgraph.fisheye_fit import fit_splined
     fit = fit_splined(K, D, (1920, 1208))
     fit.lensmodel, fit.intrinsics        # mrcal LENSMODEL_SPLINED_STEREOGRAPHIC_...
-    fit.rms_px, fit.max_px               # fit error over the whole image
+    fit.rms_px, fit.max_px               # fit error over the image (within MAX_THETA_DEG of the axis)
 
 mrcal has no Kannala-Brandt model and LENSMODEL_OPENCV8 cannot follow that projection to
 the image corners of a wide fisheye (0.65 px off on the ACFR camera). A splined

@@ -397,13 +397,13 @@ def camera_info(paths, image_topic: str) -> CameraInfo:
             others |= {t for t, m in have.items() if m == CAMERA_INFO}
             if have.get(topic) != CAMERA_INFO:
                 continue
-            for _, _, _, msg in b.raw(b.connections([topic], msgtypes=(CAMERA_INFO,))):
-                def field(name):  # ROS 1 names them K, D; ROS 2 k, d
-                    return np.asarray(getattr(msg, name, getattr(msg, name.lower(), ())), float)
-
-                return CameraInfo(field("K").reshape(3, 3) if field("K").size == 9 else np.full((3, 3), np.nan),
-                                  field("D").reshape(-1), str(msg.distortion_model), (int(msg.width), int(msg.height)),
-                                  f"{b.path}: topic {topic}")
+            msg = next((m for _, _, _, m in b.raw(b.connections([topic], msgtypes=(CAMERA_INFO,)))), None)
+            if msg is None:
+                continue
+            # ROS 1 names them K, D; ROS 2 k, d
+            K, D = (np.asarray(getattr(msg, n, getattr(msg, n.lower(), ())), float).reshape(-1) for n in ("K", "D"))
+            return CameraInfo(K.reshape(3, 3) if K.size == 9 else np.full((3, 3), np.nan), D, str(msg.distortion_model),
+                              (int(msg.width), int(msg.height)), f"{b.path}: topic {topic}")
     raise InputError(f"no camera model given for {image_topic} and no {topic} in the bags"
                      + (f" (CameraInfo topics: {', '.join(sorted(others))})" if others else "")
                      + ": give one camera model (.cameramodel or ROS calibration .yaml) per camera topic, in order")

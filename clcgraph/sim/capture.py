@@ -333,8 +333,8 @@ def _write_image(w: BagWriter, C, image) -> None:
     """One frame of camera ``C``, and its CameraInfo where the rig says its driver publishes one."""
     w.write_image(C.topic, image, frame_id=C.frame_id, compressed=C.compressed)
     if C.camera_info:
+        from ..cameras import ROS_DISTORTION
         from ..frontend.bag import camera_info_topic
-        from .rig import ROS_DISTORTION
 
         fx, fy, cx, cy, *D = C.sensor.intrinsics
         w.write_camera_info(camera_info_topic(C.topic), stamp_ns=image.stamp_ns, frame_id=C.frame_id,

@@ -118,9 +118,6 @@ _LIDAR_MODEL_KEYS = ("layout", "range_noise_m", "dropout", "max_range_m", "npoin
                      "ring_elevation_error_deg", "errors_seed", "heavy_tail_fraction", "heavy_tail_scale",
                      "dark_range_bias_m", "mixed_pixel_m", "dual_returns")
 _LIDAR_KEYS = {"topic", "model", "elevations_deg", "frame_id", "xyz", "rpy_deg", *_LIDAR_MODEL_KEYS}
-# mrcal lens models a CameraInfo can carry: ROS's name for the same polynomial
-ROS_DISTORTION = {"LENSMODEL_OPENCV4": "plumb_bob", "LENSMODEL_OPENCV5": "plumb_bob",
-                  "LENSMODEL_OPENCV8": "rational_polynomial"}
 _CAMERA_KEYS = {"topic", "model", "encoding", "compressed", "camera_info", "frame_id", "xyz", "rpy_deg"}
 
 
@@ -172,7 +169,7 @@ def load_rig(path) -> Rig:
         if comp not in (None, "png", "jpeg"):
             raise InputError(f"{path}: {where}.compressed must be null, png or jpeg")
         info = bool(C.get("camera_info", False))
-        if info and sensor.lensmodel not in ROS_DISTORTION:
+        if info and sensor.lensmodel not in cameras.ROS_DISTORTION:
             raise InputError(f"{path}: {where}.camera_info needs an OPENCV4/5/8 model (ROS's plumb_bob, "
                              f"rational_polynomial), not {sensor.lensmodel}")
         T = _pose(C, where, path)
