@@ -1,5 +1,7 @@
 """Bag round trips (writer -> reader) for ROS1 / ROS2-sqlite3 / ROS2-mcap, tf_static, bad bags."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -397,3 +399,9 @@ def test_a_cameras_camera_info_is_read_beside_its_images(tmp_path, fmt):
     with pytest.raises(InputError, match=r"no camera model given for /other/image and no /other/camera_info in the "
                                          r"bags \(CameraInfo topics: /cam/camera_info\)"):
         bag.camera_info([path], "/other/image")
+    from clcgraph.cameras import camera_from_info
+
+    assert camera_from_info("/cam/image_raw", info).lensmodel == "LENSMODEL_OPENCV5"
+    uncalibrated = dataclasses.replace(info, K=np.zeros((3, 3)), D=np.zeros(0))  # what an uncalibrated driver sends
+    with pytest.raises(DataError, match=r"/cam/camera_info: not a calibrated camera .* give a camera model for /cam/x"):
+        camera_from_info("/cam/x", uncalibrated)
