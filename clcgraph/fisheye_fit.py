@@ -81,7 +81,7 @@ def fit_splined(K, D, imagersize, *, Nx: int = 30, Ny: int = 20, fov_margin: flo
                 step_px: float = 16.0, ridge: float = 1e-3) -> SplinedFit:
     """Least-squares LENSMODEL_SPLINED_STEREOGRAPHIC (order 3, ``Nx`` x ``Ny`` knots) fitted to
     the fisheye model (K (3,3), D (4,)) over every ``step_px`` pixels of the image."""
-    import mrcal
+    from .cameras import num_intrinsics, project  # the mrcal wrapper
 
     K = np.asarray(K, float)
     D = np.asarray(D, float)
@@ -92,14 +92,14 @@ def fit_splined(K, D, imagersize, *, Nx: int = 30, Ny: int = 20, fov_margin: flo
     ux = np.abs(2 * np.tan(th / 2) * v[:, 0] / np.maximum(np.hypot(v[:, 0], v[:, 1]), 1e-12))
     fov_x_deg = int(np.ceil(np.degrees(4 * np.arctan(fov_margin * ux.max() / 2))))
     lensmodel = f"LENSMODEL_SPLINED_STEREOGRAPHIC_order=3_Nx={Nx}_Ny={Ny}_fov_x_deg={fov_x_deg}"
-    n = mrcal.lensmodel_num_params(lensmodel)
+    n = num_intrinsics(lensmodel)
     x = np.zeros(n)
     x[:4] = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     # Gauss-Newton on the normal equations: q is nearly linear in the spline controls, a
     # few steps converge
     reg = ridge * np.r_[np.zeros(4), np.ones(n - 4)]
     for _ in range(5):
-        qp, _, dq_di = mrcal.project(v, lensmodel, x, get_gradients=True)
+        qp, _, dq_di = project(v, lensmodel, x, get_gradients=True)
         r = (qp - q).reshape(-1)
         J = dq_di.reshape(-1, n)
         dx = np.linalg.solve(J.T @ J + np.diag(reg), -(J.T @ r + reg * x))
@@ -107,8 +107,8 @@ def fit_splined(K, D, imagersize, *, Nx: int = 30, Ny: int = 20, fov_margin: flo
         if np.abs(dx).max() < 1e-9:
             break
     q, v = _seen(q, K, D)
-    err = np.linalg.norm(mrcal.project(v, lensmodel, x) - q, axis=1)
+    err = np.linalg.norm(project(v, lensmodel, x) - q, axis=1)
     qc, vc = _seen(_grid(imagersize, step_px / 2.3, offset=step_px / 4), K, D)
-    errc = np.linalg.norm(mrcal.project(vc, lensmodel, x) - qc, axis=1)
+    errc = np.linalg.norm(project(vc, lensmodel, x) - qc, axis=1)
     return SplinedFit(lensmodel, x, float(np.sqrt(np.mean(err**2))), float(err.max()),
                       float(np.sqrt(np.mean(errc**2))), float(errc.max()))
