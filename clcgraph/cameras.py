@@ -107,11 +107,7 @@ def ros_calibration_yaml(path) -> tuple[str, np.ndarray, tuple[int, int]]:
 def camera_from_info(topic: str, info) -> Sensor:
     """A camera Sensor from its sensor_msgs/CameraInfo (frontend/bag.camera_info: its K, D,
     distortion_model, width, height and where it was read), as ``ros_lens`` maps it."""
-    w, h = info.size
-    if not (0 < w <= _MAX_IMAGER_SIDE and 0 < h <= _MAX_IMAGER_SIDE) or not np.all(np.isfinite(info.K)) or info.K[0, 0] <= 0:
-        raise DataError(f"{info.where}: not a calibrated camera (width x height {w}x{h}, K {info.K.tolist()}): give a "
-                        f"camera model for {topic}")
-    lens, intrinsics, size = ros_lens(info.K, info.distortion_model, info.D, (w, h), where=info.where,
+    lens, intrinsics, size = ros_lens(info.K, info.distortion_model, info.D, info.size, where=info.where,
                                       other=f"give a camera model for {topic}")
     return Sensor(topic=topic, kind="camera", lensmodel=lens, intrinsics=intrinsics, imagersize=size)
 
@@ -126,6 +122,11 @@ def ros_lens(K: np.ndarray, model: str, D: np.ndarray, size: tuple[int, int], *,
     ``other``) for anything else."""
     K, D = np.asarray(K, float).reshape(3, 3), np.asarray(D, float).reshape(-1)
     w, h = size
+    # before the model's checks: an uncalibrated driver publishes zeros (and the fisheye fit needs a camera)
+    if not (0 < w <= _MAX_IMAGER_SIDE and 0 < h <= _MAX_IMAGER_SIDE and np.all(np.isfinite(K)) and K[0, 0] > 0
+            and K[1, 1] > 0 and np.all(np.isfinite(D))):
+        raise DataError(f"{where}: not a calibrated camera (width x height {w}x{h}, K {K.tolist()}, D {D.tolist()}): "
+                        f"{other}")
     n = len(D)
     if model == "plumb_bob" and n > 5 and not np.any(D[5:]):  # zeros padded by some tools
         D, n = D[:5], 5
@@ -143,9 +144,6 @@ def ros_lens(K: np.ndarray, model: str, D: np.ndarray, size: tuple[int, int], *,
         return lens, np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], D], (w, h)
     from .fisheye_fit import fit_splined
 
-    if not (np.all(np.isfinite(D)) and K[0, 0] > 0 and K[1, 1] > 0 and 0 < w <= _MAX_IMAGER_SIDE and 0 < h <= _MAX_IMAGER_SIDE):
-        raise DataError(f"{where}: an equidistant model needs positive focal lengths, finite coefficients and a "
-                        f"camera's image size; got fx, fy {K[0, 0]:g}, {K[1, 1]:g}, {w}x{h}, D {D.tolist()}")
     fit = fit_splined(K, D, (w, h))
     worst = max(fit.max_px, fit.check_max_px)
     if not worst <= _MAX_FISHEYE_FIT_PX:

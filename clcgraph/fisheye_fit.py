@@ -70,9 +70,8 @@ def _grid(imagersize, step: float, offset: float = 0.0) -> np.ndarray:
     return np.stack(np.meshgrid(np.r_[u, w - 1], np.r_[v, h - 1]), -1).reshape(-1, 2)
 
 
-def _seen(q: np.ndarray, K, D) -> tuple[np.ndarray, np.ndarray]:
-    """(pixels, their observation vectors) of the pixels ``q`` within MAX_THETA_DEG of the axis."""
-    v = fisheye_unproject(q, K, D)
+def _seen(q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pixels ``q`` and their observation vectors ``v`` within MAX_THETA_DEG of the axis."""
     ok = v[:, 2] >= np.cos(np.radians(MAX_THETA_DEG))
     return q[ok], v[ok]
 
@@ -106,9 +105,10 @@ def fit_splined(K, D, imagersize, *, Nx: int = 30, Ny: int = 20, fov_margin: flo
         x += dx
         if np.abs(dx).max() < 1e-9:
             break
-    q, v = _seen(q, K, D)
+    q, v = _seen(q, v)
     err = np.linalg.norm(project(v, lensmodel, x) - q, axis=1)
-    qc, vc = _seen(_grid(imagersize, step_px / 2.3, offset=step_px / 4), K, D)
+    qc = _grid(imagersize, step_px / 2.3, offset=step_px / 4)
+    qc, vc = _seen(qc, fisheye_unproject(qc, K, D))
     errc = np.linalg.norm(project(vc, lensmodel, x) - qc, axis=1)
     return SplinedFit(lensmodel, x, float(np.sqrt(np.mean(err**2))), float(err.max()),
                       float(np.sqrt(np.mean(errc**2))), float(errc.max()))
