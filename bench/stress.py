@@ -35,6 +35,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from clcgraph.cameras import FROM_CAMERA_INFO
+
 ROOT = Path(__file__).resolve().parents[1]
 BUILD = ROOT / "build" / "stress"
 
@@ -178,6 +180,10 @@ CAPTURES = [
             rig={"lidars": [TOP, BUMPER], "cameras": [{**CAM_FRONT, "camera_info": True},
                                                       {**CAM_COLOUR, "camera_info": True}]},
             simulate={"n_poses": 16}),
+    Capture("camera-info-mixed", "one camera's model from a file the user calibrated, the other's from the "
+            "CameraInfo its driver publishes (camera_info given in its place among the models)",
+            rig={"lidars": [TOP, BUMPER], "cameras": [CAM_FRONT, {**CAM_COLOUR, "camera_info": True}]},
+            simulate={"n_poses": 16}),
     Capture("sideways-lidar", "a blind-spot VLP-16 mounted on its side (rolled 90 deg, its rings vertical fans), "
             "an upside-down one at the rear (rolled 180 deg), beside the roof LIDAR and a camera",
             rig={"lidars": [TOP, _lidar("/lidar/side/points", "vlp16", (1.5, -0.9, 1.0), (90, 0, -60)),
@@ -195,8 +201,9 @@ CI_CAPTURES = [
             simulate={"n_poses": 10, "continuous": True, "hold_s": 1.2, "move_s": 0.6}),
     Capture("ci-vertical-boards", "exactly vertical boards: the outline gives the relative height",
             rig={"lidars": [TOP, BUMPER]}, simulate={"n_poses": 8, "vertical_boards": True}),
-    Capture("ci-camera-info", "a camera whose driver publishes CameraInfo, no camera model file given",
-            rig={"lidars": [TOP], "cameras": [{**CAM_FRONT, "camera_info": True}]}, simulate={"n_poses": 10}),
+    Capture("ci-camera-info", "a camera whose driver publishes CameraInfo, no camera model file given for it "
+            "(camera_info in its place), beside one with a model file",
+            rig={"lidars": [TOP], "cameras": [{**CAM_FRONT, "camera_info": True}, CAM_COLOUR]}, simulate={"n_poses": 10}),
 ]
 
 # ----------------------------------------------------------------------------------- running
@@ -346,8 +353,10 @@ def run_capture(c: Capture, settings: tuple[str, ...] = (), build: Path = BUILD,
     else:
         topics = truth["topics"]
         # cameras whose drivers publish CameraInfo are given no model file: the user relies on the bags
+        # (no models at all when every camera's is there, else "camera_info" in those cameras' places)
         cams = c.rig.get("cameras", [])
-        models = [] if cams and all(cam.get("camera_info") for cam in cams) else [d / cam["model"] for cam in cams]
+        models = [] if cams and all(cam.get("camera_info") for cam in cams) else \
+            [FROM_CAMERA_INFO if cam.get("camera_info") else d / cam["model"] for cam in cams]
         config = []
         if c.board is not None:
             (d / "board.yaml").write_text(yaml.safe_dump({"board": c.board}))

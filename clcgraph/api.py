@@ -192,8 +192,9 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
 
     ``topics``: LIDAR and camera topics in any order (the first LIDAR is lidar0);
     ``models``: one camera model per camera topic, in the cameras' order (an mrcal .cameramodel or
-    a ROS camera calibration .yaml: ``cameras.load_camera``), or none: each camera's CameraInfo
-    in the bags (``frontend.bag.camera_info``, ``cameras.camera_from_info``). A snapshot is
+    a ROS camera calibration .yaml: ``cameras.load_camera``; or ``cameras.FROM_CAMERA_INFO``: the
+    camera's CameraInfo in the bags, ``frontend.bag.camera_info``, ``cameras.camera_from_info``),
+    or none: every camera's CameraInfo. A snapshot is
     kept only if >= 2 sensors saw the board; everything dropped is in ``Problem.rejected``.
     ``timings``: if given, filled with wall seconds per stage (read, segment, detect).
     ``report_material``: if given, filled with what the report draws: "snapshots" (index ->
@@ -211,18 +212,22 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
     lidar_topics, camera_topics = classify_topics(paths, topics)
     if models and len(models) != len(camera_topics):
         raise InputError(f"{len(models)} camera model(s) given for {len(camera_topics)} camera topic(s) "
-                         f"({', '.join(camera_topics) or 'none'}): give one camera model (.cameramodel or ROS "
-                         "calibration .yaml) per camera topic, in order (or none: each camera's CameraInfo in the bags)")
+                         f"({', '.join(camera_topics) or 'none'}): give one camera model per camera topic, in order "
+                         f"(.cameramodel, ROS calibration .yaml, or {cameras.FROM_CAMERA_INFO}: its CameraInfo in the "
+                         "bags), or none: each camera's CameraInfo")
     sensors = [Sensor(topic=t, kind="lidar") for t in lidar_topics]
-    if models:
-        sensors += [cameras.load_camera(t, m) for t, m in zip(camera_topics, models)]
-    else:  # as the drivers published them: each camera's CameraInfo beside its images
-        from .frontend.bag import camera_info
+    sources = []  # per camera: where its model came from, for the messages
+    for t, m in zip(camera_topics, models or [cameras.FROM_CAMERA_INFO] * len(camera_topics)):
+        if str(m) == cameras.FROM_CAMERA_INFO:  # as the driver published it, beside the images
+            from .frontend.bag import camera_info
 
-        for t in camera_topics:
             info = camera_info(paths, t)
             sensors.append(cameras.camera_from_info(t, info))
+            sources.append(f"CameraInfo ({info.where})")
             log.info("%s: camera model from %s (%s)", t, info.where, sensors[-1].lensmodel)
+        else:
+            sensors.append(cameras.load_camera(t, m))
+            sources.append(str(m))
     if len(sensors) < 2:
         raise InputError(f"only one sensor ({sensors[0].topic}): calibration needs >= 2 sensors")
 
@@ -249,7 +254,7 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
                 continue
             if im.pixels.shape[:2] != (h, w):
                 raise DataError(f"topic {t}: images are {im.pixels.shape[1]}x{im.pixels.shape[0]} but its model "
-                                f"{models[j]} is {w}x{h}; give the model of this camera")
+                                f"{sources[j]} is {w}x{h}; give the model of this camera")
             cam_images.append((i, s.index, im))
 
     from concurrent.futures import ThreadPoolExecutor
@@ -659,6 +664,7 @@ def gather_report_inputs(result: Result, config=None, *, bags=None, models=(), c
     import shlex
     import sys
 
+    from . import cameras
     from .outputs.evidence import ReportInputs
 
     cfg = _config(config)
@@ -683,7 +689,7 @@ def gather_report_inputs(result: Result, config=None, *, bags=None, models=(), c
         except Exception as e:  # the nominal poses only add to the report: never lose the calibration
             log.warning("report: no nominal poses from /tf_static (%s)", str(e).splitlines()[0] if str(e) else e)
     return ReportInputs(bags=tuple((str(q), size(q)) for q in paths if q.exists()),
-                        models=tuple(zip(cams, map(str, models))),
+                        models=tuple(zip(cams, map(str, models or [cameras.FROM_CAMERA_INFO] * len(cams)))),
                         command=command, config_yaml=cfg.to_yaml(), snapshots=material.get("snapshots", {}),
                         sources=material.get("sources", {}) or {k: b for k, b in enumerate(p.snapshot_bags)},
                         rt_nominal=nominal, nominal_source=source)

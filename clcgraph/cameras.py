@@ -25,6 +25,8 @@ log = logging.getLogger(__name__)
 # A .cameramodel is text of a few kB (splined models some 100 kB); a camera side is < 100k px.
 _MAX_MODEL_BYTES = 16 << 20
 _MAX_IMAGER_SIDE = 100_000
+# Given for a camera's model: its CameraInfo in the bags (camera_from_info), beside files for the others
+FROM_CAMERA_INFO = "camera_info"
 
 
 def _mrcal():

@@ -45,6 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .cameras import FROM_CAMERA_INFO
 from .errors import ClcgraphError, DependencyError, InputError
 
 log = logging.getLogger(__name__)
@@ -159,7 +160,7 @@ class Manifest:
             raise InputError(f"{self.where}:{v.line}: {at} has no 'topics' (give them here or in defaults)")
         topics = self._strings(*src["topics"][:2], "a list of topics", merged["topics"], at=src["topics"][2])
         models = [] if merged["models"] is None else \
-            self._strings(*src["models"][:2], "a list of .cameramodel files", merged["models"], at=src["models"][2],
+            self._strings(*src["models"][:2], "a list of camera models (files, or camera_info)", merged["models"], at=src["models"][2],
                           empty_ok=True)
         if method == "targetless" and models:
             self._fail(*src["models"][:2], f"{src['models'][2]}: targetless calibrates LIDARs only: no models")
@@ -195,7 +196,7 @@ class Manifest:
             d = v if "config" in v else defaults
             self._fail(d, "config", f"{at}: config: {e}")
         return {"id": v["id"], "method": method, "bags": tuple(self._path(b) for b in bags), "topics": tuple(topics),
-                "models": tuple(self._path(m) for m in models), "base_frame": base_frame, "config": cfg,
+                "models": tuple(m if m == FROM_CAMERA_INFO else self._path(m) for m in models), "base_frame": base_frame, "config": cfg,
                 "previous": None if previous is None else self._path(previous)}
 
     @classmethod

@@ -56,9 +56,10 @@ def add_solve(sub):
                     description="Calibrate LIDARs and cameras from bags of a moving chessboard. "
                     "Writes calibration.yaml, one .cameramodel per sensor, report.html and a replayable dump.")
     p.add_argument("models", nargs="*", metavar="MODEL",
-                   help="one camera model per camera topic, in --topics order: an mrcal .cameramodel or a ROS camera "
+                   help="one camera model per camera topic, in --topics order: an mrcal .cameramodel, a ROS camera "
                         "calibration .yaml (camera_calibration's ost.yaml: plumb_bob, rational_polynomial or "
-                        "equidistant); none: each camera's CameraInfo in the bags (/ns/image_raw -> /ns/camera_info)")
+                        "equidistant), or camera_info: the camera's CameraInfo in the bags (/ns/image_raw -> "
+                        "/ns/camera_info); none: every camera's CameraInfo")
     p.add_argument("--bag", action="extend", nargs="+", required=True, metavar="GLOB",
                    help="bag files/dirs, globs, or directories of bags (repeatable; an unquoted glob the shell "
                         "expanded works too)")

@@ -404,9 +404,9 @@ def camera_info(paths, image_topic: str) -> CameraInfo:
             K, D = (np.asarray(getattr(msg, n, getattr(msg, n.lower(), ())), float).reshape(-1) for n in ("K", "D"))
             return CameraInfo(K.reshape(3, 3) if K.size == 9 else np.full((3, 3), np.nan), D, str(msg.distortion_model),
                               (int(msg.width), int(msg.height)), f"{b.path}: topic {topic}")
-    raise InputError(f"no camera model given for {image_topic} and no {topic} in the bags"
+    raise InputError(f"no camera model file given for {image_topic} and no {topic} in the bags"
                      + (f" (CameraInfo topics: {', '.join(sorted(others))})" if others else "")
-                     + ": give one camera model (.cameramodel or ROS calibration .yaml) per camera topic, in order")
+                     + ": give its camera model (.cameramodel or ROS calibration .yaml) in its place among the models")
 
 
 def log_span(path) -> tuple[int, int]:

@@ -21,9 +21,16 @@ def _scan(rng, stamp_ns, topic, *, all_invalid=False):
                      time_s=np.tile(np.linspace(0, 0.099, 360), 16), shape=(16, 360))
 
 
-def make_bag(path, *, lidars=("/lidar0", "/lidar1"), camera="/cam0", all_invalid=False, encoding="mono8"):
+def make_bag(path, *, lidars=("/lidar0", "/lidar1"), camera="/cam0", all_invalid=False, encoding="mono8",
+             camera_info_size=None):
+    """``camera_info_size``: (width, height) of a pinhole CameraInfo written beside the camera's images."""
     rng = np.random.default_rng(0)
     with BagWriter(path, format="ros1") as w:
+        if camera and camera_info_size:
+            from clcgraph.frontend.bag import camera_info_topic
+
+            w.write_camera_info(camera_info_topic(camera), stamp_ns=T0, frame_id="cam0", size=camera_info_size,
+                                K=[[50, 0, 31.5], [0, 50, 23.5], [0, 0, 1]], distortion_model="plumb_bob", D=[0] * 5)
         w.write_tf_static([("base_link", "lidar0", np.eye(4)),
                            ("base_link", "lidar1", T_from_rt(np.array([0, 0, 0.1, 0.5, 0, 0])))], stamp_ns=T0)
         for k, t in enumerate(lidars):
@@ -59,5 +66,5 @@ def model(tmp_path_factory):
 
 @pytest.fixture
 def bag_factory():
-    """make_bag(path, lidars=..., camera=..., all_invalid=..., encoding=...) -> path."""
+    """make_bag(path, lidars=..., camera=..., all_invalid=..., encoding=..., camera_info_size=...) -> path."""
     return make_bag

@@ -82,7 +82,16 @@ def test_model_count(capsys, tmp_path, good, model):
     out = tmp_path / "out"
     _run(capsys, _solve(good, out, models=[model, model]), "2 camera model", "/cam0")
     # none given: the camera's CameraInfo in the bags, which these bags lack
-    _run(capsys, _solve(good, out, models=[]), "no camera model given for /cam0", "/camera_info")
+    _run(capsys, _solve(good, out, models=[]), "no camera model file given for /cam0", "/camera_info")
+    assert not out.exists()
+
+
+def test_images_of_another_size_than_their_camera_info(capsys, tmp_path, model, bag_factory):
+    """camera_info given for the camera: its CameraInfo is the model, and images of another size
+    are refused naming the CameraInfo topic (with the other cameras' models given as files)."""
+    b = bag_factory(tmp_path / "info.bag", camera_info_size=(640, 480))
+    out = tmp_path / "out"
+    _run(capsys, _solve(b, out, models=["camera_info"]), "/cam0", "64x48", "CameraInfo", "topic /camera_info", "640x480")
     assert not out.exists()
 
 

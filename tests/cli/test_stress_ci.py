@@ -33,19 +33,20 @@ def test_vertical_boards_the_outline_gives_the_height_planes_alone_are_refused(t
 
 
 def test_a_camera_model_from_the_bags_camera_info(tmp_path):
-    """No camera model file: the camera's CameraInfo in the bags is its model (rational_polynomial
-    as LENSMODEL_OPENCV8), and the answer is right; without CameraInfo, one line naming the topic."""
+    """camera_info for a camera's model: its CameraInfo in the bags (rational_polynomial as
+    LENSMODEL_OPENCV8), beside a camera whose model is a file, and the answer is right; with no
+    models given and a camera without CameraInfo, one line naming the topic."""
     c = CI["ci-camera-info"]
     o = stress.run_capture(c, build=tmp_path)
     assert o.verdict == "ok", (o.verdict, o.detail, o.rot_deg, o.trans_mm, o.max_z)
     assert o.rot_deg < 0.1 and o.trans_mm < 5.0 and o.max_z < 3.0
-    cam = dict(c.rig["cameras"][0], camera_info=False)
-    plain = dataclasses.replace(c, name="ci-camera-info-none", rig={**c.rig, "cameras": [cam]})
+    cams = [dict(c.rig["cameras"][0], camera_info=False)]
+    plain = dataclasses.replace(c, name="ci-camera-info-none", rig={**c.rig, "cameras": cams})
     data = stress._prepare(plain, build=tmp_path) / "data"
     r = stress._clcgraph("solve", "--bag", data, "--topics", "/lidar/top/points,/cam/front/image",
                          "--out", tmp_path / "none")
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0, r.stderr
-    assert "no camera model given for /cam/front/image and no /cam/front/camera_info in the bags" in r.stderr
+    assert "no camera model file given for /cam/front/image and no /cam/front/camera_info in the bags" in r.stderr
 
 @pytest.mark.parametrize("c", stress.CAPTURES + stress.CI_CAPTURES, ids=lambda c: c.name)
 def test_every_capture_recipe_loads(c, tmp_path):

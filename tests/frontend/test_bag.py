@@ -396,7 +396,7 @@ def test_a_cameras_camera_info_is_read_beside_its_images(tmp_path, fmt):
         np.testing.assert_array_equal(info.K, K)
         np.testing.assert_array_equal(info.D, [-0.1, 0.02, 0.001, -0.002, 0.003])
         assert info.distortion_model == "plumb_bob" and info.size == (640, 480) and "/cam/camera_info" in info.where
-    with pytest.raises(InputError, match=r"no camera model given for /other/image and no /other/camera_info in the "
+    with pytest.raises(InputError, match=r"no camera model file given for /other/image and no /other/camera_info in the "
                                          r"bags \(CameraInfo topics: /cam/camera_info\)"):
         bag.camera_info([path], "/other/image")
     from clcgraph.cameras import camera_from_info
