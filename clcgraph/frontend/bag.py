@@ -37,7 +37,8 @@ import threading
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Iterator, Sequence
+from types import MappingProxyType
+from typing import Iterable, Iterator, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
@@ -411,8 +412,35 @@ def camera_info(paths, image_topic: str) -> CameraInfo:
 
 def log_span(path) -> tuple[int, int]:
     """(first, last) log time (ns) of the bag at ``path``, from its index (nothing is read)."""
-    with _Bag(path) as b:
-        return int(b.reader.start_time), int(b.reader.end_time)
+    index = bag_index(path)
+    return index.start_ns, index.end_ns
+
+
+class BagIndex(NamedTuple):
+    """What a bag's index says without reading a message: its log-time span and messages per topic."""
+
+    start_ns: int
+    end_ns: int
+    counts: Mapping[str, int]
+
+
+def bag_index(path) -> BagIndex:
+    """The index of the bag at ``path``, read once per version of its files: opening a bag parses
+    its whole index, and a capture's reading asks each bag's span and counts several times
+    (grouping split recordings, telling a bag per pose from a continuous one)."""
+    root = _bag_root(path)
+    files = [root] if root.is_file() else sorted(f for f in root.iterdir() if f.is_file())
+    stats = [(f.name, f.stat()) for f in files]
+    return _bag_index(root.resolve(), tuple((name, st.st_ino, st.st_mtime_ns, st.st_size) for name, st in stats))
+
+
+@functools.lru_cache(maxsize=1024)
+def _bag_index(root: Path, version: tuple) -> BagIndex:
+    with _Bag(root) as b:
+        counts: dict[str, int] = {}
+        for c in b.reader.connections:
+            counts[c.topic] = counts.get(c.topic, 0) + int(c.msgcount)
+        return BagIndex(int(b.reader.start_time), int(b.reader.end_time), MappingProxyType(counts))
 
 
 # A sensor whose header stamps differ from the recorder's log times by more than this is on
@@ -515,11 +543,7 @@ def message_count(paths, topic: str) -> int:
     """Messages of ``topic`` in all ``paths``, from the bags' indexes (nothing is read)."""
     if isinstance(paths, (str, Path)):
         paths = [paths]
-    n = 0
-    for p in paths:
-        with _Bag(p) as b:
-            n += sum(c.msgcount for c in b.reader.connections if c.topic == topic)
-    return n
+    return sum(bag_index(p).counts.get(topic, 0) for p in paths)
 
 
 def first_messages(path, topics: Sequence[str]) -> dict[str, LidarScan | Image]:
