@@ -6,6 +6,7 @@ import dataclasses
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
@@ -62,3 +63,21 @@ def test_every_capture_recipe_loads(c, tmp_path):
     (tmp_path / "rig.yaml").write_text(yaml.safe_dump(rig))
     r = load_rig(tmp_path / "rig.yaml")
     assert [x.topic for x in r.lidars] == [x["topic"] for x in c.rig["lidars"]]
+
+
+def test_the_sets_sigma_summary_counts_axes_beyond_3_sigma_against_chance():
+    """stress.honesty: mean z^2 and the axes / captures beyond 3 sigma over the answered captures
+    (refused ones carry no z), against what exact sigmas give by chance."""
+    rng = np.random.default_rng(0)
+    exact = [stress.Outcome(f"c{k}", "ok", "", z=tuple(rng.normal(size=24))) for k in range(400)]
+    refused = stress.Outcome("r", "refused", "one line")
+    line = stress.honesty([*exact, refused])
+    mean_z2 = float(line.split("mean z^2 ")[1].split()[0])
+    assert "9600 axes of 400 answered" in line and abs(mean_z2 - 1) < 0.05, line
+    beyond = int(line.split("beyond 3 sigma ")[1].split()[0])
+    assert abs(beyond - 9600 * 0.0027) < 4 * np.sqrt(9600 * 0.0027), line  # Poisson: within 4 sd of 25.9
+    # sigmas half the errors: every count far beyond chance
+    small = [stress.Outcome("s", "ok", "", z=tuple(2 * np.asarray(o.z))) for o in exact]
+    line = stress.honesty(small)
+    assert float(line.split("mean z^2 ")[1].split()[0]) > 3.5, line
+    assert int(line.split("captures with an axis beyond 3 sigma ")[1].split()[0]) > 200, line
