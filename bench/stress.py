@@ -192,6 +192,13 @@ CAPTURES = [
                             _lidar("/lidar/rear/points", "vlp16", (-0.5, 0.0, 1.2), (180, 10, 180))],
                  "cameras": [CAM_FRONT]},
             simulate={"n_poses": 18, "pair_boards": 3}),
+    Capture("bayer-camera", "a machine-vision camera publishing its raw Bayer mosaic (bayer_rggb8, red and "
+            "blue at half of green, as a FLIR / Basler driver does without on-camera debayering) beside the "
+            "mono and the colour camera",
+            rig={"lidars": [TOP, BUMPER], "cameras": [CAM_FRONT, CAM_COLOUR,
+                                                      _camera("/cam/raw/image_raw", "mono1024", (1.6, 0.6, 1.5),
+                                                              (0, 3, 20), encoding="bayer_rggb8")]},
+            simulate={"n_poses": 16, "pair_boards": 3}),
     Capture("drive-long", "targetless: a 30 s drive", drive={"duration": 30.0}),
 ]
 

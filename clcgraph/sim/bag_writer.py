@@ -62,7 +62,8 @@ _NP = {_INT8: "i1", _UINT8: "u1", _INT16: "i2", _UINT16: "u2", _INT32: "i4",
 
 _IMAGE_CHANNELS = {"mono8": (1, "u1"), "8UC1": (1, "u1"), "mono16": (1, "u2"),
                    "16UC1": (1, "u2"), "bgr8": (3, "u1"), "rgb8": (3, "u1"),
-                   "bgra8": (4, "u1"), "rgba8": (4, "u1")}
+                   "bgra8": (4, "u1"), "rgba8": (4, "u1"),
+                   **{f"bayer_{p}8": (1, "u1") for p in ("rggb", "bggr", "gbrg", "grbg")}}
 
 
 @dataclass(frozen=True)

@@ -21,6 +21,12 @@ from ..types import BoardGeometry, Image, Sensor
 
 BLACK, WHITE = 25.0, 225.0
 
+# A raw Bayer mosaic as machine-vision drivers publish it (ROS names; row 0 = its first two letters)
+BAYER_ENCODINGS = ("bayer_rggb8", "bayer_bggr8", "bayer_gbrg8", "bayer_grbg8")
+# The sensor's raw response to the scene's (white-balanced) colour, per B, G, R: a silicon sensor
+# under daylight records red and blue at about half of green before white balance
+_RAW_GAINS_BGR = np.array([0.6, 1.0, 0.5])
+
 
 def board_shade(board: BoardGeometry, xy: np.ndarray) -> np.ndarray:
     """Gray level of board-frame points (…,2): the pattern's (corners + 1) x (corners + 1) squares,
@@ -137,3 +143,14 @@ def _supersampled_board(q, grid, T_world_camera, board, T_world_board, n, *, bac
     occluded = np.repeat(t_first, n * n) < dist - 0.05
     val = np.where(hit & ~occluded, board_shade(board, xy), np.repeat(background, n * n))
     return val.reshape(-1, n * n).mean(axis=1)
+
+
+def bayer_mosaic(image: Image, encoding: str) -> Image:
+    """``image`` (BGR) as the raw mosaic of ``encoding`` (one of BAYER_ENCODINGS): each pixel the one
+    channel its filter passes, at the sensor's raw (not white-balanced) response."""
+    pattern = encoding.removeprefix("bayer_").removesuffix("8")
+    bgr = np.asarray(image.pixels, float) * _RAW_GAINS_BGR
+    raw = np.zeros(bgr.shape[:2])
+    for k, (dy, dx) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
+        raw[dy::2, dx::2] = bgr[dy::2, dx::2, "bgr".index(pattern[k])]
+    return Image(image.topic, image.stamp_ns, np.clip(np.rint(raw), 0, 255).astype(np.uint8), encoding)

@@ -38,7 +38,7 @@ from ..geometry import R_from_r, rt_from_T
 from ..outputs.atomic import atomic_dir
 from ..progress import progress
 from .bag_writer import FORMATS, BagWriter, LogDelays, split_ros1_bag
-from .camera import board_corners_px, render
+from .camera import BAYER_ENCODINGS, bayer_mosaic, board_corners_px, render
 from .lidar import simulate_scan
 from .rig import Rig, load_rig
 from .scene import make_scene, planned_tilt, random_board_pose, static_meshes
@@ -113,7 +113,7 @@ def _observe(rig: Rig, T_board, static, rng, stamps):
     images, truth_corners = {}, {}
     for j, C in enumerate(rig.cameras):
         img, corners = render(C.sensor, C.T_base_sensor, scene, rig.board, T_board, rng, topic=C.topic,
-                              colour=C.encoding == "bgr8", noise_sigma=0.0)
+                              colour=C.encoding != "mono8", noise_sigma=0.0)
         if _in_image(corners, C.sensor) and _corners_unoccluded(scene, rig.board, T_board, C.T_base_sensor):
             seen.add(C.topic)
             truth_corners[C.topic] = corners
@@ -325,12 +325,15 @@ def _write_move(w, rig, T_a, T_b, static, rng, stamps, t0_ns, move_s):
             Tm = board_at(t)
             scene = make_scene(rig.board, Tm, rng, static=static, person=rig.person, arm=rig.arm)
             img, _ = render(C.sensor, C.T_base_sensor, scene, rig.board, Tm, rng, topic=C.topic, stamp_ns=t,
-                            colour=C.encoding == "bgr8")
+                            colour=C.encoding != "mono8")
             _write_image(w, C, img)
 
 
 def _write_image(w: BagWriter, C, image) -> None:
-    """One frame of camera ``C``, and its CameraInfo where the rig says its driver publishes one."""
+    """One frame of camera ``C`` (a raw Bayer mosaic where its encoding is one), and its CameraInfo
+    where the rig says its driver publishes one."""
+    if C.encoding in BAYER_ENCODINGS:
+        image = bayer_mosaic(image, C.encoding)
     w.write_image(C.topic, image, frame_id=C.frame_id, compressed=C.compressed)
     if C.camera_info:
         from ..cameras import ROS_DISTORTION

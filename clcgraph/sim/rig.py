@@ -21,7 +21,7 @@
     cameras:
       - topic: /cam/left/image
         model: left.cameramodel      # mrcal model, relative to this file
-        encoding: mono8              # mono8 | bgr8
+        encoding: mono8              # mono8 | bgr8 | bayer_rggb8 (bggr8, gbrg8, grbg8: a raw mosaic)
         compressed: null             # null | png | jpeg
         camera_info: false           # optional: its CameraInfo beside each image (OPENCV4/5/8 models)
         frame_id: cam_left
@@ -53,6 +53,7 @@ from ..config import Config, ConfigError, read_yaml
 from ..errors import InputError
 from ..geometry import T_from_xyz_rpy
 from ..types import BoardGeometry, Sensor
+from .camera import BAYER_ENCODINGS
 from .lidar import LidarModel
 from .scene import PERSON_PLACES
 
@@ -163,8 +164,10 @@ def load_rig(path) -> Rig:
         model_path = (path.parent / str(_need(C, "model", where, path))).resolve()
         sensor = cameras.load_camera(topic, model_path)
         enc = str(C.get("encoding", "mono8"))
-        if enc not in ("mono8", "bgr8"):
-            raise InputError(f"{path}: {where}.encoding must be mono8 or bgr8")
+        if enc not in ("mono8", "bgr8", *BAYER_ENCODINGS):
+            raise InputError(f"{path}: {where}.encoding must be mono8, bgr8 or one of {', '.join(BAYER_ENCODINGS)}")
+        if enc in BAYER_ENCODINGS and C.get("compressed"):
+            raise InputError(f"{path}: {where}: a Bayer mosaic is published raw (compressed: null)")
         comp = C.get("compressed")
         if comp not in (None, "png", "jpeg"):
             raise InputError(f"{path}: {where}.compressed must be null, png or jpeg")

@@ -2,6 +2,9 @@
 on the rings that geometry says cross it, and the detector finds every visible chessboard to
 < 0.3 px RMS of the projected truth; bad rig files are one-line errors."""
 
+import dataclasses
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import yaml
@@ -73,6 +76,38 @@ def test_visible_chessboards_found_within_0p3px(session, fallback):
             assert np.sqrt(((r - np.asarray(corners)) ** 2).sum(axis=1).mean()) < 0.3, (snap["bag"], topic)
     # mrgingham (which retries small boards upsampled) finds every visible board here
     assert missed == 0 and found >= 3
+
+
+def test_a_raw_bayer_mosaic_reads_back_and_its_corners_are_found_within_0p3px(session):
+    """A camera publishing its raw mosaic (sim.camera.bayer_mosaic: red and blue at their raw
+    response, half of green) as a machine-vision driver does: the reader demosaics it and the
+    detector finds the same corners as in the colour image."""
+    import cv2
+
+    from clcgraph.frontend.images import decode_image
+    from clcgraph.sim.camera import BAYER_ENCODINGS, bayer_mosaic
+
+    out, truth, rig = session
+    snap, topic, corners = next((s, t, c) for s in truth["snapshots"] for t, c in s["corners_px"].items())
+    im = first_messages(out / snap["bag"], [topic])[topic]
+    bgr = cv2.cvtColor(im.pixels, cv2.COLOR_GRAY2BGR) if im.pixels.ndim == 2 else im.pixels
+    colour = dataclasses.replace(im, pixels=bgr, encoding="bgr8")
+    for enc in BAYER_ENCODINGS:
+        raw = bayer_mosaic(colour, enc)
+        assert raw.pixels.shape == bgr.shape[:2] and raw.encoding == enc
+        msg = SimpleNamespace(header=SimpleNamespace(stamp=SimpleNamespace(sec=1, nanosec=0)), encoding=enc,
+                              height=raw.pixels.shape[0], width=raw.pixels.shape[1], step=raw.pixels.shape[1],
+                              is_bigendian=0, data=raw.pixels.ravel())
+        back = decode_image(msg, topic=topic)
+        # demosaiced: each channel at its raw gain of the scene (a flat region keeps its ratios)
+        assert back.pixels.shape == bgr.shape
+        g = back.pixels[..., 1].astype(float)
+        bright = g > 150
+        ratio = back.pixels[..., 2][bright].mean() / g[bright].mean()
+        assert 0.45 < ratio < 0.55, (enc, ratio)  # red at half of green (blue: 0.6): each filter where it belongs
+        r = detect_corners([back], DetectionOptions(), rig.board)[0]
+        assert isinstance(r, np.ndarray), (enc, r)
+        assert np.sqrt(((r - np.asarray(corners)) ** 2).sum(axis=1).mean()) < 0.3, enc
 
 
 def test_rig_errors_name_the_file(tmp_path):
