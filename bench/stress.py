@@ -199,6 +199,12 @@ CAPTURES = [
                                                       _camera("/cam/raw/image_raw", "mono1024", (1.6, 0.6, 1.5),
                                                               (0, 3, 20), encoding="bayer_rggb8")]},
             simulate={"n_poses": 16, "pair_boards": 3}),
+    Capture("dim-noisy-blurred-camera", "a camera exposed for a dim site (grey levels at 30 %) at high sensor gain "
+            "(pixel noise 7 grey levels) and slightly out of focus or shaken (blur sigma 0.8 px), beside a "
+            "well-exposed one",
+            rig={"lidars": [TOP, BUMPER], "cameras": [CAM_FRONT, {**CAM_COLOUR, "gain": 0.3, "pixel_noise": 7.0,
+                                                                   "blur_px": 0.8}]},
+            simulate={"n_poses": 16, "pair_boards": 3}),
     Capture("drive-long", "targetless: a 30 s drive", drive={"duration": 30.0}),
 ]
 

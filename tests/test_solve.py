@@ -143,6 +143,21 @@ def test_noise_is_estimated_per_sensor():
     assert np.all(z < 3.5), z
 
 
+def test_a_noisier_camera_beside_a_sharp_one_keeps_its_boards():
+    """Cameras of different corner noise (a sharp mono camera at 0.1 px, a dim noisy one at 0.6 px):
+    outliers are judged against each camera's own scale, so the noisy one's boards are not thrown
+    out as 'off the board pose the other sensors see' against the sharp one's residuals."""
+    rig = make_rig(n_lidars=1, n_cameras=2)
+    problem, truth = simulate_problem(rig=rig, n_snapshots=24, seed=5, sigma_camera_px=[0.1, 0.6])
+    r = calibrate(problem, SolveOptions())
+    noisy = [x for x in r.rejected if x.stage == "outlier" and x.sensor == 2]
+    assert len(noisy) <= 1, [x.reason for x in noisy]
+    per = r.noise["per_sensor"]
+    assert abs(per[1] / 0.1 - 1) < 0.15 and abs(per[2] / 0.6 - 1) < 0.15, per
+    rot, tr, z = _errors(r, truth)
+    assert np.all(z < 3.5), z
+
+
 def test_the_estimate_when_the_last_noise_round_moved_the_poses(monkeypatch):
     """The noise components' last round may move the poses (then it hands back no linearization at
     them): the estimate's normalized RMS is taken from a fresh one, as when it did not."""

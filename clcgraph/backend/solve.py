@@ -53,13 +53,18 @@ _MIN_SIGMA_LIDAR_M = 1e-3
 _MIN_SIGMA_CAMERA_PX = 1e-2
 _WHOLE_OBS_FACTOR = 3.0  # reject an observation whose RMS exceeds this many sigmas
 _MAX_ROUNDS = 8
-_MIN_INLIER_SHARE = 0.5
+_MIN_INLIER_SHARE = 0.5  # ... or whose points/corners are mostly beyond outlier_sigma
 _MAX_EFFECT_ROUNDS = 3  # solve <-> variance components of the per-observation errors
 # The cost is ~ half the number of residuals: 1e-7 of it is far below what moves a pose by
 # a fraction of its sigma (a cost change of 0.5). (LM crept while a LIDAR D's in-plane DOFs
 # were loose: noise._UNSEEN.)
 _EFFECT_TOL = 1e-7
-_TIE_RATIO = 1.5  # deleted residuals this close cannot tell the culprit apart  # ... or whose points/corners are mostly beyond outlier_sigma
+_TIE_RATIO = 1.5  # deleted residuals this close cannot tell the culprit apart
+# A sensor's outliers are judged by its own robust sigma where that is this many times its kind's
+# other sensors': beyond what a minority of bad observations does to a median (a third of them
+# moves it at most to the 75th percentile of the good residuals, 1.7x), over this many observations
+_OWN_SCALE_RATIO = 2.0
+_MIN_ROBUST_OBSERVATIONS = 3
 
 
 def _lm(problem, active, rt_sensor, rt_board, lidar, sigma, options, nominal, stage, effects=None,
@@ -93,6 +98,33 @@ def _lm(problem, active, rt_sensor, rt_board, lidar, sigma, options, nominal, st
 
 def _mad_sigma(r: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(r))) if len(r) else float("nan")
+
+
+def _robust_sigmas(problem, active, per: dict, options) -> np.ndarray:
+    """Per sensor, the robust sigma (MAD) of the residuals ``per`` that its outliers are judged
+    against: its kind's, pooled (a sensor pulled by its own bad observations cannot raise the scale
+    they are judged by), unless its own MAD is more than _OWN_SCALE_RATIO x that of the other
+    sensors of its kind over three or more observations: rigs mix a sharp camera with a dim noisy
+    one, a quiet LIDAR with a noisy one, and the pooled scale threw out the noisier one's boards."""
+    is_lidar = [s.is_lidar for s in problem.sensors]
+    n_obs = np.zeros(len(problem.sensors), int)
+    for o, m in [*zip(problem.lidar_observations, active.lidar), *zip(problem.camera_observations, active.camera)]:
+        n_obs[o.sensor] += m is not None
+
+    def mad(ids, default):
+        r = [per[i] for i in ids if len(per.get(i, ()))]
+        return _mad_sigma(np.concatenate(r)) if r else default
+
+    out = np.zeros(len(problem.sensors))
+    for i, lidar in enumerate(is_lidar):
+        kind = [j for j in range(len(is_lidar)) if is_lidar[j] == lidar]
+        default = options.sigma_lidar_m if lidar else options.sigma_camera_px
+        out[i] = mad(kind, default)
+        if n_obs[i] >= _MIN_ROBUST_OBSERVATIONS and len(kind) > 1 and len(per.get(i, ())):
+            own = _mad_sigma(per[i])
+            if own > _OWN_SCALE_RATIO * mad([j for j in kind if j != i], own):
+                out[i] = own
+    return out
 
 
 def _dof(problem, active, n_l: int, n_c: int) -> tuple[float, float]:
@@ -500,12 +532,8 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
         lid, cam = G.residuals(problem, rt_sensor, rt_board)
         new, before = [], _mask_signature(active)
         if options.reject_outliers:
-            # outliers against one robust sigma per kind: a sensor with several bad observations
-            # would inflate its own
-            rl, rc = _active_residuals(lid, cam, active)
-            robust_l = _mad_sigma(rl) if len(rl) else options.sigma_lidar_m
-            robust_c = _mad_sigma(rc) if len(rc) else options.sigma_camera_px
-            new = _reject(problem, active, lid, cam, robust_l, robust_c, options, rt_sensor, rt_board)
+            robust = _robust_sigmas(problem, active, _per_sensor_residuals(problem, lid, cam, active), options)
+            new = _reject(problem, active, lid, cam, robust, robust, options, rt_sensor, rt_board)
             rejected += new
         old = sig.copy()
         if options.reestimate_noise:
@@ -631,8 +659,6 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
                              f"(now {options.max_iterations})")
         warnings.append(f"the final solve did not converge, but its last step moved the sensor poses by only "
                         f"{step:.2g} sigma (<= {MAX_UNCONVERGED_STEP_SIGMA:g}): the result stands")
-    if warnings:  # one line on stderr; every stage's record is in calibration.yaml and the report
-        log.warning("solve: not converged everywhere: %s", "; ".join(warnings))
     convergence = {"converged": not warnings, "final_step_sigma": step, "rounds": rounds,
                    "stages": [public(r) for r in stages], "warnings": warnings}
     t = time.perf_counter()
@@ -658,6 +684,9 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
     t = time.perf_counter()  # after the verdict: a refused capture needs none
     unit_errors = _unit_errors(problem, rebuild, values, (g, lin), rt_sensor, options)
     times["unit_error_sensitivities"] = time.perf_counter() - t
+    if warnings:  # one line on stderr, once the result stands (a refusal is its own one line); every
+        # stage's record is in calibration.yaml and the report
+        log.warning("solve: not converged everywhere: %s", "; ".join(warnings))
 
     times["total"] = time.perf_counter() - t0
     stats = {"stage": "solve", "iterations": iters, "convergence": convergence, "time_s": times, "regularization_share": float(prior / max(total, 1e-300)),

@@ -50,8 +50,9 @@ def board_corners_px(camera: Sensor, T_world_camera: np.ndarray, board: BoardGeo
 
 def render(camera: Sensor, T_world_camera: np.ndarray, scene, board: BoardGeometry, T_world_board: np.ndarray | None,
            rng, *, topic: str = "/camera", stamp_ns: int = 0, colour: bool = False, supersample: int = 4,
-           noise_sigma: float = 2.0, blur_sigma_px: float = 0.0) -> tuple[Image, np.ndarray | None]:
-    """(Image, truth corners (N,2) in px or None) of ``camera`` at ``T_world_camera``."""
+           noise_sigma: float = 2.0, blur_sigma_px: float = 0.0, gain: float = 1.0) -> tuple[Image, np.ndarray | None]:
+    """(Image, truth corners (N,2) in px or None) of ``camera`` at ``T_world_camera``; ``gain``: the
+    exposure's scale of every grey level (0.25: a dim image), before the blur and the noise."""
     w, h = camera.imagersize
     u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
     q = np.stack([u, v], -1).reshape(-1, 2)
@@ -73,7 +74,7 @@ def render(camera: Sensor, T_world_camera: np.ndarray, scene, board: BoardGeomet
             img[near] = _supersampled_board(q[near], grid, T_world_camera, board, T_world_board, supersample,
                                             background=img[near], t_first=t_hit[near])
         corners = board_corners_px(camera, T_world_camera, board, T_world_board)
-    img = img.reshape(h, w)
+    img = img.reshape(h, w) * gain
     if blur_sigma_px > 0:
         import cv2
 

@@ -113,11 +113,11 @@ def _observe(rig: Rig, T_board, static, rng, stamps):
     images, truth_corners = {}, {}
     for j, C in enumerate(rig.cameras):
         img, corners = render(C.sensor, C.T_base_sensor, scene, rig.board, T_board, rng, topic=C.topic,
-                              colour=C.encoding != "mono8", noise_sigma=0.0)
+                              colour=C.encoding != "mono8", noise_sigma=0.0, gain=C.gain, blur_sigma_px=C.blur_px)
         if _in_image(corners, C.sensor) and _corners_unoccluded(scene, rig.board, T_board, C.T_base_sensor):
             seen.add(C.topic)
             truth_corners[C.topic] = corners
-        images[C.topic] = [_noisy(img, t, rng) for t in stamps["camera"][j]]
+        images[C.topic] = [_noisy(img, t, rng, C.pixel_noise) for t in stamps["camera"][j]]
     return scans, images, truth_corners, seen
 
 
@@ -325,7 +325,8 @@ def _write_move(w, rig, T_a, T_b, static, rng, stamps, t0_ns, move_s):
             Tm = board_at(t)
             scene = make_scene(rig.board, Tm, rng, static=static, person=rig.person, arm=rig.arm)
             img, _ = render(C.sensor, C.T_base_sensor, scene, rig.board, Tm, rng, topic=C.topic, stamp_ns=t,
-                            colour=C.encoding != "mono8")
+                            colour=C.encoding != "mono8", noise_sigma=C.pixel_noise, gain=C.gain,
+                            blur_sigma_px=C.blur_px)
             _write_image(w, C, img)
 
 

@@ -287,7 +287,8 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
                      fixed_errors_seed: int | None = None, board_poses_seed: int | None = None):
     """A Problem with noisy board observations of ``rig`` and its Truth (see module doc).
 
-    ``sigma_lidar_m``: one range sigma, or one per LIDAR (in sensor order).
+    ``sigma_lidar_m``: one range sigma, or one per LIDAR (in sensor order); ``sigma_camera_px``: one
+    corner sigma, or one per camera (in sensor order).
     ``vertical_only``: the board is held upright (yaw up to ``tilt_max_deg``, pitch jitter
     ``vertical_jitter_deg``, 0 = exactly vertical). ``corrupt_fraction``: that share of each
     sensor's observations is corrupted (LIDAR: points of another surface 0.3 m off and 25 deg
@@ -321,6 +322,7 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
                       if errors.ring_elevation_deg else None for i, m in lidars.items()}
     lens_field = {i: _lens_field(frng, s.imagersize, errors.lens_field_px) for i, s in enumerate(sensors)
                   if s.is_camera and errors.lens_field_px}
+    camera_number = {i: c for c, i in enumerate(i for i, s in enumerate(sensors) if s.is_camera)}
     corners_b = board.corners()
     if errors.board_warp_m:
         corners_b = np.c_[corners_b[:, :2], board_warp(board, corners_b[:, :2], errors.board_warp_m)]
@@ -356,8 +358,9 @@ def simulate_problem(rig: Rig | None = None, n_snapshots: int = 24, seed: int = 
                         q = q + lens_field[i](q)
                     if errors.corner_bias_px:
                         q = q + rng.normal(0, errors.corner_bias_px, 2)
-                    if sigma_camera_px > 0:
-                        q = q + rng.normal(0, sigma_camera_px, q.shape)
+                    sigma = sigma_camera_px[camera_number[i]] if np.ndim(sigma_camera_px) else sigma_camera_px
+                    if sigma > 0:
+                        q = q + rng.normal(0, sigma, q.shape)
                     co.append(CameraBoardObservation(sensor=i, snapshot=k, corners_px=q))
         if len(lo) + len(co) < 2:
             continue

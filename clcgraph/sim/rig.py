@@ -24,6 +24,9 @@
         encoding: mono8              # mono8 | bgr8 | bayer_rggb8 (bggr8, gbrg8, grbg8: a raw mosaic)
         compressed: null             # null | png | jpeg
         camera_info: false           # optional: its CameraInfo beside each image (OPENCV4/5/8 models)
+        gain: 1.0                    # optional: exposure, the scene's grey levels scaled (0.25: dim)
+        pixel_noise: 2.0             # optional: grey levels of pixel noise (high sensor gain: 5-10)
+        blur_px: 0.0                 # optional: Gaussian blur sigma (px): defocus, a hand-held board moving
         frame_id: cam_left
         xyz: [1.3, 0.3, 1.6]
         rpy_deg: [0, 5, 10]          # of a front-left-up frame; the optical axes follow mrcal
@@ -79,6 +82,9 @@ class RigCamera:
     encoding: str = "mono8"
     compressed: str | None = None
     camera_info: bool = False  # a CameraInfo beside each image, as drivers publish it (bag.camera_info_topic)
+    gain: float = 1.0  # the exposure's scale of the scene's grey levels (0.25: dim)
+    pixel_noise: float = 2.0  # grey levels (a high sensor gain: 5-10)
+    blur_px: float = 0.0  # Gaussian sigma (px): defocus, or a hand-held board's motion during the exposure
 
 
 @dataclass(frozen=True, eq=False)
@@ -105,6 +111,13 @@ def _need(d: dict, key: str, where: str, path: Path):
     return d[key]
 
 
+def _number(d: dict, key: str, default: float, where: str, path: Path) -> float:
+    try:
+        return float(d.get(key, default))
+    except (ValueError, TypeError):
+        raise InputError(f"{path}: {where}.{key} must be a number") from None
+
+
 def _pose(d, where, path) -> np.ndarray:
     try:
         xyz = np.asarray(_need(d, "xyz", where, path), float).reshape(3)
@@ -119,7 +132,8 @@ _LIDAR_MODEL_KEYS = ("layout", "range_noise_m", "dropout", "max_range_m", "npoin
                      "ring_elevation_error_deg", "errors_seed", "heavy_tail_fraction", "heavy_tail_scale",
                      "dark_range_bias_m", "mixed_pixel_m", "dual_returns")
 _LIDAR_KEYS = {"topic", "model", "elevations_deg", "frame_id", "xyz", "rpy_deg", *_LIDAR_MODEL_KEYS}
-_CAMERA_KEYS = {"topic", "model", "encoding", "compressed", "camera_info", "frame_id", "xyz", "rpy_deg"}
+_CAMERA_KEYS = {"topic", "model", "encoding", "compressed", "camera_info", "frame_id", "xyz", "rpy_deg", "gain",
+                "pixel_noise", "blur_px"}
 
 
 def _unknown(d: dict, known: set, where: str, path: Path):
@@ -175,10 +189,14 @@ def load_rig(path) -> Rig:
         if info and sensor.lensmodel not in cameras.ROS_DISTORTION:
             raise InputError(f"{path}: {where}.camera_info needs an OPENCV4/5/8 model (ROS's plumb_bob, "
                              f"rational_polynomial), not {sensor.lensmodel}")
+        exposure = {k: _number(C, k, default, where, path) for k, default in (("gain", 1.0), ("pixel_noise", 2.0),
+                                                                              ("blur_px", 0.0))}
+        if exposure["gain"] <= 0 or exposure["pixel_noise"] < 0 or exposure["blur_px"] < 0:
+            raise InputError(f"{path}: {where}: gain must be > 0, pixel_noise and blur_px >= 0")
         T = _pose(C, where, path)
         T[:3, :3] = T[:3, :3] @ R_FLU_CAMERA
         cams.append(RigCamera(topic, str(C.get("frame_id", topic.strip("/").replace("/", "_"))), sensor, model_path,
-                              T, enc, comp, info))
+                              T, enc, comp, info, **exposure))
     b = d.get("board") or {}
     if not isinstance(b, dict):
         raise InputError(f"{path}: 'board' must be a mapping")
