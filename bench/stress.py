@@ -205,6 +205,11 @@ CAPTURES = [
             rig={"lidars": [TOP, BUMPER], "cameras": [CAM_FRONT, {**CAM_COLOUR, "gain": 0.3, "pixel_noise": 7.0,
                                                                    "blur_px": 0.8}]},
             simulate={"n_poses": 16, "pair_boards": 3}),
+    Capture("mixed-lidar-noise", "an older roof VLP-16 ranging at 3.5 cm (worn, or a weak-return surface mode) "
+            "beside a bumper LIDAR at 0.6 cm, and a camera",
+            rig={"lidars": [dict(TOP, range_noise_m=0.035), dict(BUMPER, range_noise_m=0.006)],
+                 "cameras": [CAM_FRONT]},
+            simulate={"n_poses": 16, "pair_boards": 3}),
     Capture("drive-long", "targetless: a 30 s drive", drive={"duration": 30.0}),
 ]
 
