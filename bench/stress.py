@@ -210,6 +210,11 @@ CAPTURES = [
             rig={"lidars": [dict(TOP, range_noise_m=0.035), dict(BUMPER, range_noise_m=0.006)],
                  "cameras": [CAM_FRONT]},
             simulate={"n_poses": 16, "pair_boards": 3}),
+    Capture("pcl-xyzi-clouds", "both LIDARs recorded after a PCL filter node (pcl::PointXYZI: no ring or time "
+            "field, invalid points dropped), as pipelines that crop or downsample the drivers' clouds record them",
+            rig={"lidars": [dict(TOP, layout="pcl_xyzi"), dict(BUMPER, layout="pcl_xyzi")],
+                 "cameras": [CAM_FRONT, CAM_COLOUR]},
+            simulate={"n_poses": 16, "pair_boards": 3}),
     Capture("drive-long", "targetless: a 30 s drive", drive={"duration": 30.0}),
 ]
 

@@ -23,10 +23,14 @@ order across topics, as in real recordings. Field layouts mimic the real drivers
   x y z @0,4,8, pad, intensity @16 (float32), t @20 (uint32 ns), reflectivity @24
   (uint16), ring @26 (uint16), ambient @28 (uint16), range @32 (uint32 mm),
   point_step 48; invalid points are written as (0,0,0) with range 0.
+- ``layout="pcl_xyzi"``: a PCL filter node's output (pcl::PointXYZI): unorganised and dense
+  (invalid points dropped), x y z @0,4,8, pad, intensity @16 (float32), point_step 32: no ring,
+  no time.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -55,6 +59,11 @@ _LAYOUTS = {
          ("intensity", 16, _FLOAT32), ("t", 20, _UINT32), ("reflectivity", 24, _UINT16),
          ("ring", 26, _UINT16), ("ambient", 28, _UINT16), ("range", 32, _UINT32)],
         48,
+    ),
+    # what a PCL filter node (crop box, voxel) republishes: pcl::PointXYZI, no ring or time
+    "pcl_xyzi": (
+        [("x", 0, _FLOAT32), ("y", 4, _FLOAT32), ("z", 8, _FLOAT32), ("intensity", 16, _FLOAT32)],
+        32,
     ),
 }
 _NP = {_INT8: "i1", _UINT8: "u1", _INT16: "i2", _UINT16: "u2", _INT32: "i4",
@@ -202,8 +211,14 @@ class BagWriter:
         time as uint32 ns). Missing ring / time / intensity are written as zeros.
         """
         if layout not in _LAYOUTS:
-            raise InputError(f"pointcloud layout {layout!r} unknown; use velodyne or ouster")
+            raise InputError(f"pointcloud layout {layout!r} unknown; use {', '.join(_LAYOUTS)}")
         fields, point_step = _LAYOUTS[layout]
+        if layout == "pcl_xyzi":  # dense: a filter drops the invalid points (and the cloud's layout)
+            keep = np.asarray(scan.valid, bool)
+            scan = dataclasses.replace(scan, points=np.asarray(scan.points)[keep], valid=keep[keep], shape=None,
+                                       ring=None, intensity=None if scan.intensity is None else
+                                       np.asarray(scan.intensity)[keep],
+                                       time_s=None if scan.time_s is None else np.asarray(scan.time_s)[keep])
         n = len(scan.points)
         if layout == "ouster" or organised:
             if scan.shape is None or scan.shape[0] * scan.shape[1] != n:
@@ -233,10 +248,12 @@ class BagWriter:
             arr["reflectivity"] = np.clip(np.asarray(intensity), 0, 65535).astype(np.uint16)
         else:
             pts = np.where(valid[:, None], pts, np.nan)  # the driver's invalid marker
+        if "time" in arr.dtype.names:
             arr["time"] = time_s
         arr["x"], arr["y"], arr["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
         arr["intensity"] = intensity
-        arr["ring"] = np.asarray(ring).astype(np.uint16)
+        if "ring" in arr.dtype.names:
+            arr["ring"] = np.asarray(ring).astype(np.uint16)
 
         T = self.typestore.types
         msgtype = "sensor_msgs/msg/PointCloud2"
