@@ -90,7 +90,7 @@ def bags_and_models(bags: Sequence[str], models: Sequence[str]) -> tuple[list[st
     is_model = [str(b).endswith((".cameramodel", ".yaml", ".yml")) and Path(b).name != "metadata.yaml" for b in bags]
     models = [b for b, m in zip(bags, is_model) if m] + list(models)
     bags = [b for b, m in zip(bags, is_model) if not m]
-    stray = [m for m in models if str(m).endswith((".bag", ".mcap", ".db3"))]
+    stray = [m for m in models if str(m).endswith((".bag", ".mcap", ".db3", ".db3.zstd", ".mcap.zstd"))]
     if stray:
         raise InputError(f"{stray[0]} is a bag, given where the camera models go: put every bag after --bag "
                          "(or quote the glob: --bag 'capture/*.bag')")

@@ -194,8 +194,8 @@ def _bag_root(path) -> Path:
             n = len(glob.glob(str(p)))
             raise InputError(f"{p}: a pattern ({n} match{'es' if n != 1 else ''}), not one bag; give one bag file")
         raise InputError(f"{p}: no such bag file or directory")
-    if p.is_file() and p.suffix in (".db3", ".mcap"):
-        return p.parent
+    if p.is_file() and (p.suffix in (".db3", ".mcap") or p.name.endswith((".db3.zstd", ".mcap.zstd"))):
+        return p.parent  # a ROS2 bag's storage file (compressed whole: ros2 bag record --compression-mode file)
     return p
 
 

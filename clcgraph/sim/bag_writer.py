@@ -110,7 +110,9 @@ def _latched_qos():
 class BagWriter:
     """A context manager writing one bag: ``format`` is "ros1", "ros2-sqlite3" or "ros2-mcap".
 
-    ``compress=True`` uses lz4 chunk compression for ROS1 bags (ignored for ROS2).
+    ``compress=True``: lz4 chunk compression for ROS1 bags; for ROS2, the storage file compressed
+    with zstd as a whole (``ros2 bag record --compression-mode file --compression-format zstd``:
+    ``*.db3.zstd`` / ``*.mcap.zstd``).
     The ROS1 path is a file (``x.bag``); a ROS2 path is a directory that must not exist.
     ``log_delays``: log times as a driver's (``LogDelays``); None: log time = stamp.
     ``clock_offsets_ns``: {topic: offset}: that topic's header stamps on another clock (e.g. an
@@ -150,9 +152,12 @@ class BagWriter:
                 self._writer.set_compression(Writer.CompressionFormat.LZ4)
         else:
             from rosbags.rosbag2 import StoragePlugin, Writer
+            from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 
             plugin = StoragePlugin.MCAP if self.format == "ros2-mcap" else StoragePlugin.SQLITE3
             self._writer = Writer(self.path, version=9, storage_plugin=plugin)
+            if self.compress:
+                self._writer.set_compression(CompressionMode.FILE, CompressionFormat.ZSTD)
         self._writer.open()
         return self
 

@@ -113,6 +113,18 @@ def test_round_trip_exact(written, fmt, big):
                 assert err.max() == 0, m.topic
 
 
+@pytest.mark.parametrize("fmt", ["ros2-sqlite3", "ros2-mcap"])
+def test_a_ros2_bag_compressed_whole_reads_from_its_folder_or_its_storage_file(written, fmt):
+    """`ros2 bag record --compression-mode file --compression-format zstd` leaves the storage file as
+    *.db3.zstd / *.mcap.zstd (the fixture writes so): given the folder or that file, the same messages."""
+    paths, *_ = written
+    folder = paths[(fmt, False)]
+    (storage,) = [f for f in folder.iterdir() if f.name.endswith(".zstd")]
+    by_folder = [(m.topic, m.stamp_ns) for m in bag.read_messages([folder], TOPICS)]
+    assert len(by_folder) == 2 * len(TOPICS)
+    assert [(m.topic, m.stamp_ns) for m in bag.read_messages([storage], TOPICS)] == by_folder
+
+
 def test_a_pcl_filters_xyzi_cloud_reads_without_rings_and_they_come_from_elevation(tmp_path):
     """pcl::PointXYZI as a filter node republishes a driver's cloud: dense (invalid points dropped),
     no ring or time field. The reader takes it as it is; the rings come from the elevations."""
