@@ -229,6 +229,10 @@ CI_CAPTURES = [
     Capture("ci-camera-info", "a camera whose driver publishes CameraInfo, no camera model file given for it "
             "(camera_info in its place), beside one with a model file",
             rig={"lidars": [TOP], "cameras": [{**CAM_FRONT, "camera_info": True}, CAM_COLOUR]}, simulate={"n_poses": 10}),
+    Capture("ci-hand-sway", "a bag per pose, the board held by hands that are not still: from message to message "
+            "(0.1-0.3 s apart) it moves by 1.5 mm and turns by 0.1 deg (sd) about its centre",
+            rig={"lidars": [TOP], "cameras": [CAM_FRONT]},
+            simulate={"n_poses": 12, "hand_sway": [0.0015, 0.1]}),
 ]
 
 # ----------------------------------------------------------------------------------- running

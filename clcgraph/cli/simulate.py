@@ -31,7 +31,8 @@ def add_simulate(sub):
     p.add_argument("--poses", type=int, default=20, help="number of board poses")
     p.add_argument("--format", default="ros1", choices=["ros1", "ros2-sqlite3", "ros2-mcap"], help="bag format")
     p.add_argument("--continuous", action="store_true", help="one continuous bag (the board moves between poses)")
-    p.add_argument("--compress", action="store_true", help="lz4-compressed ROS1 bags")
+    p.add_argument("--compress", action="store_true",
+                   help="compressed bags: ROS1 lz4 chunks, ROS2 the storage file zstd-compressed (.db3.zstd, .mcap.zstd)")
     p.add_argument("--camera-hz", type=float, default=5.0, help="camera frame rate (LIDARs run at 10 Hz)")
     p.add_argument("--no-log-delays", action="store_true",
                    help="log time = header stamp (default: as drivers log, a scan ~0.1 s and a frame 20-35 ms late)")

@@ -98,26 +98,48 @@ def _lowest_z(rig: Rig, T: np.ndarray) -> float:
     return float((corners @ T[:3, :3].T + T[:3, 3])[:, 2].min())
 
 
-def _observe(rig: Rig, T_board, static, rng, stamps):
-    """Scans and images of one board pose, and the topics of the sensors that see the board."""
-    scene = make_scene(rig.board, T_board, rng, static=static, person=rig.person, arm=rig.arm)
+def _observe(rig: Rig, T_board, static, rng, stamps, sway=(0.0, 0.0)):
+    """Scans and images of one board pose, and the topics of the sensors that see the board (and
+    the truth corners of each camera's first frame). ``sway``: (m, deg) standard deviations of the
+    board's pose about its centre, drawn anew for every message: the tremor of the hands holding
+    it (0: the board is still, one scene for every message)."""
+    still = make_scene(rig.board, T_board, rng, static=static, person=rig.person, arm=rig.arm)
+    # a swaying board's scenes: the same person holding it (their draws from one seed), moved with it
+    person_seed = int(rng.integers(1 << 62)) if any(sway) else None
+
+    def at_message():  # (scene, board pose) of one message
+        if not any(sway):
+            return still, T_board
+        c = rig.board.corners().mean(axis=0)
+        D = np.eye(4)
+        D[:3, :3] = R_from_r(np.radians(sway[1]) * rng.normal(size=3))
+        D[:3, 3] = c - D[:3, :3] @ c + sway[0] * rng.normal(size=3)  # turned about the board's centre
+        T = T_board @ D
+        return make_scene(rig.board, T, np.random.default_rng(person_seed), static=static, person=rig.person,
+                          arm=rig.arm), T
+
     seen = set()
     scans = {}
     for i, L in enumerate(rig.lidars):
         scans[L.topic] = []
         for m, t in enumerate(stamps["lidar"][i]):
-            scan, hit = simulate_scan(L.model, L.T_base_sensor, scene, rng, stamp_ns=t, topic=L.topic)
+            scan, hit = simulate_scan(L.model, L.T_base_sensor, at_message()[0], rng, stamp_ns=t, topic=L.topic)
             scans[L.topic].append(scan)
             if m == 0 and len(np.unique(scan.ring[hit])) >= 3:
                 seen.add(L.topic)
     images, truth_corners = {}, {}
     for j, C in enumerate(rig.cameras):
-        img, corners = render(C.sensor, C.T_base_sensor, scene, rig.board, T_board, rng, topic=C.topic,
-                              colour=C.encoding != "mono8", noise_sigma=0.0, gain=C.gain, blur_sigma_px=C.blur_px)
-        if _in_image(corners, C.sensor) and _corners_unoccluded(scene, rig.board, T_board, C.T_base_sensor):
-            seen.add(C.topic)
-            truth_corners[C.topic] = corners
-        images[C.topic] = [_noisy(img, t, rng, C.pixel_noise) for t in stamps["camera"][j]]
+        images[C.topic] = []
+        for m, t in enumerate(stamps["camera"][j]):
+            if m == 0 or any(sway):
+                scene, T = at_message()
+                img, corners = render(C.sensor, C.T_base_sensor, scene, rig.board, T, rng, topic=C.topic,
+                                      colour=C.encoding != "mono8", noise_sigma=0.0, gain=C.gain,
+                                      blur_sigma_px=C.blur_px)
+            if m == 0 and _in_image(corners, C.sensor) and _corners_unoccluded(scene, rig.board, T, C.T_base_sensor):
+                seen.add(C.topic)
+                truth_corners[C.topic] = corners
+            images[C.topic].append(_noisy(img, t, rng, C.pixel_noise))
     return scans, images, truth_corners, seen
 
 
@@ -188,9 +210,10 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
              camera_hz: float = 5.0, clutter: bool = True, compress: bool = False, log_delays: bool = True,
              vertical_boards: bool = False, max_distance_m: float | None = None, planned_tilts: bool = False,
              pair_boards: int = 0, indoor: bool = False, split_s: float | None = None,
-             clock_offsets_s: dict | None = None, force: bool = False) -> dict:
+             clock_offsets_s: dict | None = None, hand_sway=(0.0, 0.0), force: bool = False) -> dict:
     """Simulate a capture session of the rig in ``rig_yaml`` into ``out_dir`` (replaced atomically).
-    ``compress``: lz4-compressed ROS1 bags (as `rosbag record --lz4` writes them).
+    ``compress``: lz4-compressed ROS1 bags (as `rosbag record --lz4` writes them); ROS2: the storage
+    file zstd-compressed (`ros2 bag record --compression-mode file --compression-format zstd`).
     ``log_delays``: drivers' log times (see the module docstring); False: log time = stamp.
     ``vertical_boards``: every board plane exactly vertical (one LIDAR's height then unobservable).
     ``max_distance_m``: boards at most this far from the sensor they are shown to (default 9 m
@@ -205,6 +228,8 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
     ``split_s``: a continuous ROS1 session cut into files of this many seconds, as `rosbag record
     --split --duration` writes a long recording (``bag_writer.split_ros1_bag``).
     ``clock_offsets_s``: {topic: s}: that sensor's header stamps on another clock (``BagWriter``).
+    ``hand_sway``: (m, deg) a bag per pose: the held board's position and angle about its centre
+    differ by these standard deviations from message to message (a person's hands are not still).
     ``force``: replace ``out_dir`` even if it is not a previous simulated session.
 
     Returns the truth dict that is also written to ``out_dir/truth.yaml``.
@@ -256,7 +281,8 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
                     stamps = {"lidar": [[t_ns + ph + m * 100_000_000 for m in range(2)] for ph in phases["lidar"]],
                               "camera": [[t_ns + int(clock.uniform(0, 1e9 / camera_hz)) + int(m * 1e9 / camera_hz)
                                           for m in range(2)] for _ in rig.cameras]}
-                scans, images, corners, seen = _observe(rig, T_board, static, rng, stamps)
+                scans, images, corners, seen = _observe(rig, T_board, static, rng, stamps,
+                                                        (0.0, 0.0) if continuous else hand_sway)
                 if len(seen) >= 2 and (pair is None or set(pair) <= seen):
                     break
             else:
