@@ -215,6 +215,11 @@ CAPTURES = [
             rig={"lidars": [dict(TOP, layout="pcl_xyzi"), dict(BUMPER, layout="pcl_xyzi")],
                  "cameras": [CAM_FRONT, CAM_COLOUR]},
             simulate={"n_poses": 16, "pair_boards": 3}),
+    Capture("dual-return-organised", "both LIDARs in dual-return mode, the bumper one's cloud kept organised "
+            "(each column followed by its second returns' column, the same rows)",
+            rig={"lidars": [dict(TOP, dual_returns=True), dict(BUMPER, dual_returns=True)],
+                 "cameras": [CAM_FRONT, CAM_COLOUR]},
+            simulate={"n_poses": 16, "pair_boards": 3}),
     Capture("drive-long", "targetless: a 30 s drive", drive={"duration": 30.0}),
 ]
 

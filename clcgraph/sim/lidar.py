@@ -51,8 +51,9 @@ class LidarModel:
     # a ring's board return next to a miss of the board is up to this much long (part of the
     # beam's footprint hit the background: a mixed pixel).
     mixed_pixel_m: float = 0.0
-    # dual-return mode (velodyne layout): each firing's returns, then a second return of every ray:
-    # with one surface on the ray the same echo again (strongest = last, as Hesai drivers publish it)
+    # dual-return mode: a second return of every ray, with one surface on the ray the same echo
+    # again (strongest = last); velodyne layout: after each firing's returns (as Hesai drivers
+    # publish it); ouster layout: organised, each column followed by its second returns' column
     dual_returns: bool = False
 
     def ring_errors(self) -> tuple[np.ndarray, np.ndarray]:
@@ -121,6 +122,11 @@ def simulate_scan(model: LidarModel, T_world_lidar: np.ndarray, scene, rng, *, s
     intensity = np.where(on_board, np.where(dark, 20.0, 180.0), 60.0).astype(np.float32)
     hit_board = valid & on_board
     if model.layout == "ouster":
+        if model.dual_returns:  # kept organised: each column followed by its second returns' column
+            pts, valid, intensity, ring, time_s, hit_board = (
+                np.repeat(x.reshape(rings, cols, *x.shape[1:]), 2, axis=1).reshape(rings * 2 * cols, *x.shape[1:])
+                for x in (pts, valid, intensity, ring, time_s, hit_board))
+            return LidarScan(topic, stamp_ns, pts, valid, intensity, ring, time_s, (rings, 2 * cols)), hit_board
         return LidarScan(topic, stamp_ns, pts, valid, intensity, ring, time_s, (rings, cols)), hit_board
     order = np.arange(rings * cols).reshape(rings, cols).T.ravel()  # firing order: column by column
     if model.dual_returns:  # each column's second returns right after its first ones

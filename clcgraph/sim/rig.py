@@ -16,7 +16,7 @@
         heavy_tail_fraction: 0.02        # optional: share of returns with heavy_tail_scale (10) x the noise
         dark_range_bias_m: 0.015         # optional: the board's dark squares return weak and this long
         mixed_pixel_m: 0.1               # optional: a ring's board-edge return up to this long
-        dual_returns: false              # optional: two returns of every ray (velodyne layout only)
+        dual_returns: false              # optional: two returns of every ray (velodyne: after each firing's; ouster: organised, each column then its second returns')
         dropout: 0.005
     cameras:
       - topic: /cam/left/image
@@ -163,8 +163,8 @@ def load_rig(path) -> Rig:
         over = {k2: L[k2] for k2 in _LIDAR_MODEL_KEYS if k2 in L}
         if over.get("layout", model.layout) not in ("velodyne", "ouster", "pcl_xyzi"):
             raise InputError(f"{path}: {where}.layout must be velodyne, ouster or pcl_xyzi")
-        if over.get("dual_returns") and over.get("layout", model.layout) != "velodyne":
-            raise InputError(f"{path}: {where}.dual_returns needs the velodyne layout (an unorganised cloud)")
+        if over.get("dual_returns") and over.get("layout", model.layout) == "pcl_xyzi":
+            raise InputError(f"{path}: {where}.dual_returns needs a driver's layout (velodyne or ouster)")
         model = replace(model, **over)
         lidars.append(RigLidar(topic, str(L.get("frame_id", topic.strip("/").replace("/", "_"))), model,
                                _pose(L, where, path)))

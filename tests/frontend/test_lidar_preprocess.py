@@ -228,6 +228,40 @@ def test_a_dual_return_cloud_keeps_one_return_per_ray_and_finds_the_same_boards(
             np.testing.assert_array_equal(x.points, y.points)
 
 
+def test_an_organised_dual_return_cloud_finds_the_boards_of_its_first_returns():
+    """Dual returns kept organised (each column followed by its second returns' column, the same
+    rows): one return per ray again, and the boards, their points and the averaging of a bag's
+    scans are those of the single-return clouds of the same draws."""
+    from dataclasses import replace
+
+    from clcgraph.config import Config
+    from clcgraph.frontend.lidar_board import segment_many
+    from clcgraph.frontend.lidar_preprocess import average_scans
+    from clcgraph.types import LidarBoardObservation
+    from lidar_board_scans import BOARD, board_scans
+
+    model = LidarModel.preset("os1-64", npoints_per_rotation=1024)
+    single, _ = board_scans(model, 5, tilt_max_deg=40.0, distance_m=(2.5, 6.0))
+    dual, _ = board_scans(replace(model, dual_returns=True), 5, tilt_max_deg=40.0, distance_m=(2.5, 6.0))
+    assert dual[0].shape == (64, 2048)
+    R1, R2 = prepare(single[0]), prepare(dual[0])
+    rows, cols = divmod(R2.index, 2048)
+    assert len(R2.index) == len(R1.index) and np.all(cols % 2 == 0)  # one per ray: the first column of each pair
+    np.testing.assert_array_equal(rows * 1024 + cols // 2, R1.index)
+    cfg = Config()
+    a = segment_many(single, cfg.segmentation, cfg.lidar, BOARD)
+    b = segment_many(dual, cfg.segmentation, cfg.lidar, BOARD)
+    found = [isinstance(x, LidarBoardObservation) for x in a]
+    assert sum(found) >= 4 and found == [isinstance(x, LidarBoardObservation) for x in b]
+    for x, y in zip(a, b):
+        if isinstance(x, LidarBoardObservation):
+            np.testing.assert_array_equal(x.points, y.points)
+    # a bag's scans averaged: the same ranges whatever the layout
+    avg1, n1 = average_scans(single[:1] * 2)
+    avg2, n2 = average_scans(dual[:1] * 2)
+    np.testing.assert_array_equal(avg2.points[R2.index], avg1.points[R1.index])
+
+
 def test_a_cloud_moved_out_of_the_lidars_frame_is_refused_naming_the_topic():
     """A cloud already moved into base_link (here 1.9 m below the LIDAR) has its rings meeting
     away from its origin: the segmentation's rays from the origin would not be the LIDAR's, so

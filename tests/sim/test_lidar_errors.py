@@ -97,3 +97,15 @@ def test_person_and_arm_across_the_board_edge(place):
     xmin, xmax, _, _ = BOARD.extent()
     from_edge = np.minimum(q[:, 0] - xmin, xmax - q[:, 0])  # across a side edge, reaching ~0.1 m in
     assert from_edge.min() < 0.05 and from_edge.max() < 0.2
+
+
+def test_dual_returns_in_an_organised_cloud_are_the_next_column():
+    one = replace(EXACT, range_noise_m=0.01)  # the ouster layout: organised
+    single, hit1, _, _ = _scan(one)
+    dual, hit2, _, _ = _scan(replace(one, dual_returns=True))
+    rings, cols = single.shape
+    assert dual.shape == (rings, 2 * cols) and hit2.sum() == 2 * hit1.sum()
+    p1, p2 = single.points.reshape(rings, cols, 3), dual.points.reshape(rings, 2 * cols, 3)
+    np.testing.assert_array_equal(p2[:, 0::2], p1)
+    np.testing.assert_array_equal(p2[:, 1::2], p1)
+    np.testing.assert_array_equal(dual.valid.reshape(rings, 2 * cols)[:, 1::2], single.valid.reshape(rings, cols))
