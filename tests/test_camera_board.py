@@ -243,3 +243,21 @@ def test_why_a_board_was_not_found(shift, width, expected):
     u, v = np.meshgrid(np.linspace(0, width, 20), np.linspace(0, width, 20))
     q = np.c_[u.ravel(), v.ravel()] + shift
     assert not_found_reason(q, (W, H), BOARD, what="its LIDAR points").startswith(expected)
+
+
+def test_a_part_of_a_larger_pattern_is_not_read_as_the_board(clean):
+    """board.corners set short (9x9 for this 10x10 pattern, whose white border is half a square):
+    a detector may return a 9x9 part of the pattern (mrgingham did, on one of 24 images of the
+    bench capture), each corner then a square from the one it is taken for. Whichever 9x9 part,
+    the pattern going on past one of its sides rejects it; the whole 10x10 grid passes."""
+    from clcgraph.frontend.camera_board import _validate, pattern_goes_on
+
+    options = DetectionOptions()
+    for px, q in clean:
+        full = q.reshape(10, 10, 2)
+        assert pattern_goes_on(px, q, 10, 10) is None
+        assert isinstance(_validate(q, px, 10, 10, options, "none"), np.ndarray)
+        for i0, j0 in ((0, 0), (0, 1), (1, 0), (1, 1)):
+            part = full[i0:i0 + 9, j0:j0 + 9].reshape(-1, 2)
+            r = _validate(part, px, 9, 9, options, "none")
+            assert not isinstance(r, np.ndarray) and "goes on past the grid's" in r.reason, (i0, j0, r)

@@ -143,6 +143,29 @@ def check_grid(corners: np.ndarray, nx: int, ny: int, imagersize: tuple[int, int
     return None
 
 
+def _saddles(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int, out: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per corner of a canonical (ny*nx, 2) grid extended ``out`` steps on every side (linearly:
+    (ny+2*out, nx+2*out)), the saddle contrast from the intensities at the centres of its four
+    squares, |(a + c) - (b + d)| / 2 - (|a - c| + |b - d|) / 2: the squares' contrast at a true
+    corner, ~0 where two of its squares are the board's border; NaN where a centre is outside the
+    image. Also the squares' centres' inside-the-image mask, (ny+2*out+1, nx+2*out+1)."""
+    from scipy.ndimage import map_coordinates
+
+    g = corners.reshape(ny, nx, 2)
+    for _ in range(out + 1):  # the corners and, one step beyond them, the squares' far sides
+        g = np.pad(g, ((1, 1), (1, 1), (0, 0)))
+        g[0, 1:-1], g[-1, 1:-1] = 2 * g[1, 1:-1] - g[2, 1:-1], 2 * g[-2, 1:-1] - g[-3, 1:-1]
+        g[:, 0], g[:, -1] = 2 * g[:, 1] - g[:, 2], 2 * g[:, -2] - g[:, -3]
+    centres = 0.25 * (g[:-1, :-1] + g[1:, :-1] + g[:-1, 1:] + g[1:, 1:])
+    h, w = gray.shape
+    inside = np.all((centres >= 0) & (centres <= [w - 1, h - 1]), axis=-1)
+    v = map_coordinates(gray.astype(np.float32), [centres[..., 1].ravel(), centres[..., 0].ravel()],
+                        order=1, mode="nearest").reshape(centres.shape[:2])
+    v[~inside] = np.nan
+    a, b, cc, d = v[:-1, :-1], v[:-1, 1:], v[1:, 1:], v[1:, :-1]  # each corner's four squares
+    return np.abs(a + cc - b - d) / 2 - (np.abs(a - cc) + np.abs(b - d)) / 2, inside
+
+
 def off_board_side(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int) -> str | None:
     """The side ("left column", ...) of a canonical (ny*nx, 2) grid that is one square off the
     chessboard, or None.
@@ -150,43 +173,54 @@ def off_board_side(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int) -> s
     A detector can read a board cut off by the image's edge as whole: OpenCV's sector-based one
     took the pattern's outer edge, where the squares meet the white border, for a row of corners,
     and the grid came out one square off (34 px; the last row lay beyond the image). A true
-    corner has light squares on one diagonal and dark on the other: per corner, from the
-    intensities at the centres of its four squares (the outer squares' centres one step beyond
-    the grid), the saddle contrast |(a + c) - (b + d)| / 2 - (|a - c| + |b - d|) / 2 is the square
-    contrast at a true corner and ~0 where two of its squares are the border. A side whose median
-    is under half the interior corners' is not on the pattern, but that alone is also what
+    corner has light squares on one diagonal and dark on the other (``_saddles``). A side whose
+    median is under half the interior corners' is not on the pattern, but that alone is also what
     something in front of the board's edge does: the grid is off only where the pattern can go
     on past the image's edge, on the opposite side (one of its outer squares is not in the image)."""
-    from scipy.ndimage import map_coordinates
-
     if nx < 3 or ny < 3:
         return None
-    c = corners.reshape(ny, nx, 2)
-    g = np.pad(c, ((1, 1), (1, 1), (0, 0)))  # the grid extended one step on every side
-    g[0, 1:-1], g[-1, 1:-1] = 2 * c[0] - c[1], 2 * c[-1] - c[-2]
-    g[:, 0], g[:, -1] = 2 * g[:, 1] - g[:, 2], 2 * g[:, -2] - g[:, -3]
-    centres = 0.25 * (g[:-1, :-1] + g[1:, :-1] + g[:-1, 1:] + g[1:, 1:])  # (ny+1, nx+1, 2): the squares'
-    h, w = gray.shape
-    inside = np.all((centres >= 0) & (centres <= [w - 1, h - 1]), axis=-1)
-    v = map_coordinates(gray.astype(np.float32), [centres[..., 1].ravel(), centres[..., 0].ravel()],
-                        order=1, mode="nearest").reshape(ny + 1, nx + 1)
-    v[~inside] = np.nan
-    a, b, cc, d = v[:-1, :-1], v[:-1, 1:], v[1:, 1:], v[1:, :-1]  # (ny, nx): each corner's four squares
-    score = np.abs(a + cc - b - d) / 2 - (np.abs(a - cc) + np.abs(b - d)) / 2
-    interior = score[1:-1, 1:-1]
-    if not np.any(np.isfinite(interior)):
+    score, inside = _saddles(gray, corners, nx, ny, 0)
+    typical = _typical(score[1:-1, 1:-1])
+    if typical is None:
         return None
-    typical = np.nanmedian(interior)
-    if not typical > 0:
-        return None
-    sides = {"top row": (score[0], inside[-1]), "bottom row": (score[-1], inside[0]),
-             "left column": (score[:, 0], inside[:, -1]), "right column": (score[:, -1], inside[:, 0])}
-    for name, (side, opposite_outer_squares_seen) in sides.items():
+    opposite = {"top row": inside[-1], "bottom row": inside[0], "left column": inside[:, -1],
+                "right column": inside[:, 0]}
+    sides = {"top row": score[0], "bottom row": score[-1], "left column": score[:, 0], "right column": score[:, -1]}
+    for name, side in sides.items():
         judged = side[np.isfinite(side)]
-        if len(judged) and np.median(judged) < 0.5 * typical \
-                and not np.all(opposite_outer_squares_seen):
+        if len(judged) and np.median(judged) < 0.5 * typical and not np.all(opposite[name]):
             return name
     return None
+
+
+def pattern_goes_on(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int) -> str | None:
+    """The side ("left column", ...) past which the chessboard goes on, or None: a grid of fewer
+    inner corners than the board has read off part of it (``board.corners`` set short, e.g. the
+    squares counted less one too many), each corner then a square or more from the one it is taken
+    for. One step past a true grid's outer corners lies the pattern's edge, two of each corner's
+    squares the border (saddle contrast ~0); past a part of the pattern, more true corners (the
+    contrast of the interior's). Judged on a side's corners whose four squares are in the image."""
+    if nx < 3 or ny < 3:
+        return None
+    score, _ = _saddles(gray, corners, nx, ny, 1)
+    typical = _typical(score[2:-2, 2:-2])
+    if typical is None:
+        return None
+    ring = {"top row": score[0, 1:-1], "bottom row": score[-1, 1:-1], "left column": score[1:-1, 0],
+            "right column": score[1:-1, -1]}  # the corners one step past the grid's sides
+    for name, side in ring.items():
+        judged = side[np.isfinite(side)]
+        if len(judged) >= 2 and np.median(judged) > 0.5 * typical:
+            return name
+    return None
+
+
+def _typical(interior: np.ndarray) -> float | None:
+    """The interior corners' median saddle contrast, or None if there is none to compare with."""
+    if not np.any(np.isfinite(interior)):
+        return None
+    typical = float(np.nanmedian(interior))
+    return typical if typical > 0 else None
 
 
 def blur_sigma_px(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int) -> float:
@@ -242,6 +276,10 @@ def _validate(corners: np.ndarray | None, gray: np.ndarray, nx: int, ny: int, op
     if side is not None:
         return Rejected(f"a board cut off by the image's edge, read as whole: the grid's {side} of corners is "
                         "not on the chessboard (one square off)", "detection")
+    side = pattern_goes_on(gray, c, nx, ny)
+    if side is not None:
+        return Rejected(f"the chessboard goes on past the grid's {side}: more inner corners than the {nx}x{ny} of "
+                        "board.corners (a part of the pattern read as the board)", "detection")
     sigma = blur_sigma_px(gray, c, nx, ny)
     if sigma > options.max_blur_sigma_px:
         return Rejected(f"blurred board (edge sigma {sigma:.2f} px > {options.max_blur_sigma_px})",

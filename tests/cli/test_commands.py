@@ -151,6 +151,14 @@ def test_a_sensor_that_found_no_board_anywhere_names_the_board_setting_to_check(
     lidar = [Rejected("scan: plane 1.79 m across, larger than the board", "segmentation", 0, k) for k in range(3)]
     with pytest.raises(DegenerateError, match=r"^/l: no board found in any of its 3 scans .*board.size_m \[1.2, 1\]"):
         _check_every_sensor_found_a_board(sensors, [], seen, lidar + rejected, board)
+    # a part of a larger pattern found in one image: the count itself is short, said as such
+    from clcgraph.errors import InputError
+
+    part = [Rejected("the chessboard goes on past the grid's left column: more inner corners than the 9x7 of "
+                     "board.corners (a part of the pattern read as the board)", "detection", 1, 5)]
+    with pytest.raises(InputError, match=r"^/c: the chessboard in 1 of its 6 images has more inner corners than "
+                                         r"board.corners \[9, 7\]"):
+        _check_every_sensor_found_a_board(sensors, [], [], rejected + part, board)
 
 
 def test_a_topic_of_raw_lidar_packets_says_to_play_it_through_the_driver(monkeypatch):
