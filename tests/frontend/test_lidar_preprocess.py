@@ -205,10 +205,7 @@ def test_a_dual_return_cloud_keeps_one_return_per_ray_and_finds_the_same_boards(
     """A second return of each ray is not a second measurement: prepare keeps the first of each
     ray in the cloud's order (not the nearer: two noisy returns of one surface would bias it toward
     the LIDAR), and the segmentation then finds the boards of the single-return scans, to the point."""
-    from clcgraph.frontend.lidar_board import segment_many
-    from clcgraph.config import Config
-    from clcgraph.types import LidarBoardObservation
-    from lidar_board_scans import BOARD, board_scans
+    from lidar_board_scans import board_scans
 
     scans, _ = board_scans(LidarModel.preset("vlp16"), 6, tilt_max_deg=40.0, distance_m=(2.5, 6.0))
     rng = np.random.default_rng(1)
@@ -218,11 +215,21 @@ def test_a_dual_return_cloud_keeps_one_return_per_ray_and_finds_the_same_boards(
     R = prepare(dual[0])
     n = len(single[0].points)
     assert len(R.index) == n and np.all(R.index < n)  # one per ray, each the first
+    _assert_the_same_boards(single, dual, at_least=5)
+
+
+def _assert_the_same_boards(single, dual, *, at_least: int) -> None:
+    """The segmentation of the dual-return scans finds the boards of the single-return ones, to the point."""
+    from clcgraph.config import Config
+    from clcgraph.frontend.lidar_board import segment_many
+    from clcgraph.types import LidarBoardObservation
+    from lidar_board_scans import BOARD
+
     cfg = Config()
     a = segment_many(single, cfg.segmentation, cfg.lidar, BOARD)
     b = segment_many(dual, cfg.segmentation, cfg.lidar, BOARD)
     found = [isinstance(x, LidarBoardObservation) for x in a]
-    assert sum(found) >= 5 and found == [isinstance(x, LidarBoardObservation) for x in b]
+    assert sum(found) >= at_least and found == [isinstance(x, LidarBoardObservation) for x in b]
     for x, y in zip(a, b):
         if isinstance(x, LidarBoardObservation):
             np.testing.assert_array_equal(x.points, y.points)
@@ -234,11 +241,8 @@ def test_an_organised_dual_return_cloud_finds_the_boards_of_its_first_returns():
     scans are those of the single-return clouds of the same draws."""
     from dataclasses import replace
 
-    from clcgraph.config import Config
-    from clcgraph.frontend.lidar_board import segment_many
     from clcgraph.frontend.lidar_preprocess import average_scans
-    from clcgraph.types import LidarBoardObservation
-    from lidar_board_scans import BOARD, board_scans
+    from lidar_board_scans import board_scans
 
     model = LidarModel.preset("os1-64", npoints_per_rotation=1024)
     single, _ = board_scans(model, 5, tilt_max_deg=40.0, distance_m=(2.5, 6.0))
@@ -248,17 +252,10 @@ def test_an_organised_dual_return_cloud_finds_the_boards_of_its_first_returns():
     rows, cols = divmod(R2.index, 2048)
     assert len(R2.index) == len(R1.index) and np.all(cols % 2 == 0)  # one per ray: the first column of each pair
     np.testing.assert_array_equal(rows * 1024 + cols // 2, R1.index)
-    cfg = Config()
-    a = segment_many(single, cfg.segmentation, cfg.lidar, BOARD)
-    b = segment_many(dual, cfg.segmentation, cfg.lidar, BOARD)
-    found = [isinstance(x, LidarBoardObservation) for x in a]
-    assert sum(found) >= 4 and found == [isinstance(x, LidarBoardObservation) for x in b]
-    for x, y in zip(a, b):
-        if isinstance(x, LidarBoardObservation):
-            np.testing.assert_array_equal(x.points, y.points)
+    _assert_the_same_boards(single, dual, at_least=4)
     # a bag's scans averaged: the same ranges whatever the layout
-    avg1, n1 = average_scans(single[:1] * 2)
-    avg2, n2 = average_scans(dual[:1] * 2)
+    avg1, _ = average_scans(single[:1] * 2)
+    avg2, _ = average_scans(dual[:1] * 2)
     np.testing.assert_array_equal(avg2.points[R2.index], avg1.points[R1.index])
 
 
