@@ -90,7 +90,9 @@ def bags_and_models(bags: Sequence[str], models: Sequence[str]) -> tuple[list[st
     is_model = [str(b).endswith((".cameramodel", ".yaml", ".yml")) and Path(b).name != "metadata.yaml" for b in bags]
     models = [b for b, m in zip(bags, is_model) if m] + list(models)
     bags = [b for b, m in zip(bags, is_model) if not m]
-    stray = [m for m in models if str(m).endswith((".bag", ".mcap", ".db3", ".db3.zstd", ".mcap.zstd"))]
+    from .frontend.bag import ROS2_STORAGE_SUFFIXES
+
+    stray = [m for m in models if str(m).endswith((".bag", *ROS2_STORAGE_SUFFIXES))]
     if stray:
         raise InputError(f"{stray[0]} is a bag, given where the camera models go: put every bag after --bag "
                          "(or quote the glob: --bag 'capture/*.bag')")
@@ -462,11 +464,13 @@ def _check_every_sensor_found_a_board(sensors, lidar_obs, camera_obs, rejected, 
     (it could not be calibrated: the solve would only say it cannot be connected), with its
     commonest reason and the board setting to check: the pattern for a camera, the size for a LIDAR.
     An InputError where a camera's images showed a part of a larger pattern (board.corners short)."""
+    from .frontend.camera_board import PATTERN_GOES_ON
+
     for i, (found, missed, n, text) in _misses(sensors, lidar_obs, camera_obs, rejected).items():
         if found:
             continue
         s = sensors[i]
-        more = sum("goes on past the grid" in r.reason for r in rejected if r.sensor == i and r.stage == "detection")
+        more = sum(r.reason.startswith(PATTERN_GOES_ON) for r in rejected if r.sensor == i and r.stage == "detection")
         if s.is_camera and more:  # a part of the pattern was found: the count itself is short
             raise InputError(f"{s.topic}: the chessboard in {more} of its {missed} images has more inner corners than "
                              f"board.corners [{board.corners_x}, {board.corners_y}] (the pattern goes on past the "

@@ -187,6 +187,10 @@ def _one_line(e: BaseException) -> str:
     return f"{type(e).__name__}: {s[0]}" if s else type(e).__name__
 
 
+# A ROS2 bag's storage files, inside its directory (compressed whole: ros2 bag record --compression-mode file)
+ROS2_STORAGE_SUFFIXES = (".db3", ".mcap", ".db3.zstd", ".mcap.zstd")
+
+
 def _bag_root(path) -> Path:
     p = Path(path)
     if not p.exists():
@@ -194,8 +198,8 @@ def _bag_root(path) -> Path:
             n = len(glob.glob(str(p)))
             raise InputError(f"{p}: a pattern ({n} match{'es' if n != 1 else ''}), not one bag; give one bag file")
         raise InputError(f"{p}: no such bag file or directory")
-    if p.is_file() and (p.suffix in (".db3", ".mcap") or p.name.endswith((".db3.zstd", ".mcap.zstd"))):
-        return p.parent  # a ROS2 bag's storage file (compressed whole: ros2 bag record --compression-mode file)
+    if p.is_file() and p.name.endswith(ROS2_STORAGE_SUFFIXES):
+        return p.parent
     return p
 
 

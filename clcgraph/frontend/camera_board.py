@@ -193,6 +193,10 @@ def off_board_side(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int) -> s
     return None
 
 
+# how a detection of a part of a larger pattern is rejected (api names board.corners from it)
+PATTERN_GOES_ON = "the chessboard goes on past the grid's"
+
+
 def pattern_goes_on(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int) -> str | None:
     """The side ("left column", ...) past which the chessboard goes on, or None: a grid of fewer
     inner corners than the board has read off part of it (``board.corners`` set short, e.g. the
@@ -278,7 +282,7 @@ def _validate(corners: np.ndarray | None, gray: np.ndarray, nx: int, ny: int, op
                         "not on the chessboard (one square off)", "detection")
     side = pattern_goes_on(gray, c, nx, ny)
     if side is not None:
-        return Rejected(f"the chessboard goes on past the grid's {side}: more inner corners than the {nx}x{ny} of "
+        return Rejected(f"{PATTERN_GOES_ON} {side}: more inner corners than the {nx}x{ny} of "
                         "board.corners (a part of the pattern read as the board)", "detection")
     sigma = blur_sigma_px(gray, c, nx, ny)
     if sigma > options.max_blur_sigma_px:

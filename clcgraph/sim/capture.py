@@ -107,10 +107,11 @@ def _observe(rig: Rig, T_board, static, rng, stamps, sway=(0.0, 0.0)):
     # a swaying board's scenes: the same person holding it (their draws from one seed), moved with it
     person_seed = int(rng.integers(1 << 62)) if any(sway) else None
 
+    c = rig.board.corners().mean(axis=0)
+
     def at_message():  # (scene, board pose) of one message
         if not any(sway):
             return still, T_board
-        c = rig.board.corners().mean(axis=0)
         D = np.eye(4)
         D[:3, :3] = R_from_r(np.radians(sway[1]) * rng.normal(size=3))
         D[:3, 3] = c - D[:3, :3] @ c + sway[0] * rng.normal(size=3)  # turned about the board's centre
@@ -133,9 +134,7 @@ def _observe(rig: Rig, T_board, static, rng, stamps, sway=(0.0, 0.0)):
         for m, t in enumerate(stamps["camera"][j]):
             if m == 0 or any(sway):
                 scene, T = at_message()
-                img, corners = render(C.sensor, C.T_base_sensor, scene, rig.board, T, rng, topic=C.topic,
-                                      colour=C.encoding != "mono8", noise_sigma=0.0, gain=C.gain,
-                                      blur_sigma_px=C.blur_px)
+                img, corners = _render(C, scene, rig.board, T, rng, noise_sigma=0.0)  # noise per frame below
             if m == 0 and _in_image(corners, C.sensor) and _corners_unoccluded(scene, rig.board, T, C.T_base_sensor):
                 seen.add(C.topic)
                 truth_corners[C.topic] = corners
@@ -350,10 +349,14 @@ def _write_move(w, rig, T_a, T_b, static, rng, stamps, t0_ns, move_s):
         for t in stamps["camera"][j]:
             Tm = board_at(t)
             scene = make_scene(rig.board, Tm, rng, static=static, person=rig.person, arm=rig.arm)
-            img, _ = render(C.sensor, C.T_base_sensor, scene, rig.board, Tm, rng, topic=C.topic, stamp_ns=t,
-                            colour=C.encoding != "mono8", noise_sigma=C.pixel_noise, gain=C.gain,
-                            blur_sigma_px=C.blur_px)
+            img, _ = _render(C, scene, rig.board, Tm, rng, stamp_ns=t, noise_sigma=C.pixel_noise)
             _write_image(w, C, img)
+
+
+def _render(C, scene, board, T_board, rng, *, noise_sigma: float, stamp_ns: int = 0):
+    """render() of rig camera ``C`` as the rig describes it (colour, exposure gain, blur)."""
+    return render(C.sensor, C.T_base_sensor, scene, board, T_board, rng, topic=C.topic, stamp_ns=stamp_ns,
+                  colour=C.encoding != "mono8", noise_sigma=noise_sigma, gain=C.gain, blur_sigma_px=C.blur_px)
 
 
 def _write_image(w: BagWriter, C, image) -> None:

@@ -189,8 +189,7 @@ def load_rig(path) -> Rig:
         if info and sensor.lensmodel not in cameras.ROS_DISTORTION:
             raise InputError(f"{path}: {where}.camera_info needs an OPENCV4/5/8 model (ROS's plumb_bob, "
                              f"rational_polynomial), not {sensor.lensmodel}")
-        exposure = {k: _number(C, k, default, where, path) for k, default in (("gain", 1.0), ("pixel_noise", 2.0),
-                                                                              ("blur_px", 0.0))}
+        exposure = {k: _number(C, k, getattr(RigCamera, k), where, path) for k in ("gain", "pixel_noise", "blur_px")}
         if exposure["gain"] <= 0 or exposure["pixel_noise"] < 0 or exposure["blur_px"] < 0:
             raise InputError(f"{path}: {where}: gain must be > 0, pixel_noise and blur_px >= 0")
         T = _pose(C, where, path)
