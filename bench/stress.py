@@ -220,6 +220,12 @@ CAPTURES = [
             rig={"lidars": [dict(TOP, dual_returns=True), dict(BUMPER, dual_returns=True)],
                  "cameras": [CAM_FRONT, CAM_COLOUR]},
             simulate={"n_poses": 16, "pair_boards": 3}),
+    Capture("uneven-beams-hesai", "LIDARs whose beams are not evenly spaced, as most real units' are: a roof "
+            "VLP-32C (0.33 deg apart about the horizon, 9.7 deg at the bottom) and a bumper Hesai Pandar40P in "
+            "its driver's layout (absolute float64 point times, ring 0 the top beam), and a camera",
+            rig={"lidars": [dict(TOP, model="vlp32c"), dict(BUMPER, model="pandar40p", layout="hesai")],
+                 "cameras": [CAM_FRONT]},
+            simulate={"n_poses": 16, "pair_boards": 3}),
     Capture("drive-long", "targetless: a 30 s drive", drive={"duration": 30.0}),
 ]
 

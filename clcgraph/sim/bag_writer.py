@@ -60,6 +60,13 @@ _LAYOUTS = {
          ("ring", 26, _UINT16), ("ambient", 28, _UINT16), ("range", 32, _UINT32)],
         48,
     ),
+    # Hesai's drivers (PointXYZIT): each point's absolute time in float64 seconds, the ring
+    # numbered from the top beam down (sim/lidar.py numbers it so)
+    "hesai": (
+        [("x", 0, _FLOAT32), ("y", 4, _FLOAT32), ("z", 8, _FLOAT32),
+         ("intensity", 16, _FLOAT32), ("timestamp", 24, _FLOAT64), ("ring", 32, _UINT16)],
+        48,
+    ),
     # what a PCL filter node (crop box, voxel) republishes: pcl::PointXYZI, no ring or time
     "pcl_xyzi": (
         [("x", 0, _FLOAT32), ("y", 4, _FLOAT32), ("z", 8, _FLOAT32), ("intensity", 16, _FLOAT32)],
@@ -210,7 +217,8 @@ class BagWriter:
 
         layout "velodyne": unorganised unless ``organised`` (then, like "ouster", it needs
         ``scan.shape``); "ouster": organised, needs ``scan.shape`` =
-        (rings, columns) with points row-major. Invalid points (``~scan.valid``) keep
+        (rings, columns) with points row-major; "hesai": as velodyne, times absolute (float64 s);
+        "pcl_xyzi": x, y, z, intensity of the valid points. Invalid points (``~scan.valid``) keep
         NaN in the velodyne layout and (0,0,0) in the ouster layout, so the reader's valid
         mask equals ``scan.valid``. Coordinates and times are stored as float32 (ouster
         time as uint32 ns). Missing ring / time / intensity are written as zeros.
@@ -255,6 +263,8 @@ class BagWriter:
             pts = np.where(valid[:, None], pts, np.nan)  # the driver's invalid marker
         if "time" in arr.dtype.names:
             arr["time"] = time_s
+        if "timestamp" in arr.dtype.names:
+            arr["timestamp"] = scan.stamp_ns // 1_000_000_000 + (scan.stamp_ns % 1_000_000_000 * 1e-9 + np.asarray(time_s))
         arr["x"], arr["y"], arr["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
         arr["intensity"] = intensity
         if "ring" in arr.dtype.names:

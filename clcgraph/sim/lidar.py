@@ -23,6 +23,14 @@ _VLP16 = np.linspace(-15.0, 15.0, 16)
 _HDL32 = np.linspace(-30.67, 10.67, 32)
 _OS1 = np.linspace(-22.5, 22.5, 64)
 _OS1_128 = np.linspace(-22.5, 22.5, 128)
+# Real units' beams are not evenly spaced: dense about the horizon, sparse at the ends (the
+# manuals' tables). VLP-32C: 0.33 deg apart from -4.7 to +1.7 deg, 9.7 deg apart at the bottom.
+_VLP32C = (-25.0, -15.639, -11.31, -8.843, -7.254, -6.148, -5.333, -4.667, -4.0, -3.667, -3.333, -3.0, -2.667,
+           -2.333, -2.0, -1.667, -1.333, -1.0, -0.667, -0.333, 0.0, 0.333, 0.667, 1.0, 1.333, 1.667, 2.333,
+           3.333, 4.667, 7.0, 10.333, 15.0)
+# Hesai Pandar40P: 0.33 deg apart from -6 to +1.7 deg, 1 deg below to -14, then -19 and -25
+_PANDAR40P = tuple(sorted((15.0, 11.0, 8.0, 5.0, 3.0, 2.0, *(np.arange(5, -19, -1) / 3).round(3).tolist(),
+                           -7.0, -8.0, -9.0, -10.0, -11.0, -12.0, -13.0, -14.0, -19.0, -25.0)))
 
 
 @dataclass(frozen=True)
@@ -64,13 +72,17 @@ class LidarModel:
 
     @staticmethod
     def preset(name: str, **overrides) -> "LidarModel":
-        """"vlp16" (16 x 1800), "hdl32"/"32ring" (32 x 1800), "os1-64" (64 x 2048), "os1-128" (128 x 2048)."""
+        """"vlp16" (16 x 1800), "hdl32"/"32ring" (32 x 1800), "os1-64" (64 x 2048), "os1-128" (128 x 2048),
+        "vlp32c" (32 x 1800) and "pandar40p" (40 x 1800, Hesai's layout): the last two with their
+        real, unevenly spaced beams."""
         table = {
             "vlp16": LidarModel("vlp16", tuple(_VLP16), 1800, 0.01),
             "hdl32": LidarModel("hdl32", tuple(_HDL32), 1800, 0.015),
             "32ring": LidarModel("32ring", tuple(_HDL32), 1800, 0.015),
             "os1-64": LidarModel("os1-64", tuple(_OS1), 2048, 0.01, layout="ouster"),
             "os1-128": LidarModel("os1-128", tuple(_OS1_128), 2048, 0.01, layout="ouster"),
+            "vlp32c": LidarModel("vlp32c", _VLP32C, 1800, 0.015),
+            "pandar40p": LidarModel("pandar40p", _PANDAR40P, 1800, 0.01, layout="hesai"),
         }
         if name not in table:
             raise KeyError(f"unknown LIDAR model {name!r}; known: {', '.join(table)}")
@@ -128,6 +140,8 @@ def simulate_scan(model: LidarModel, T_world_lidar: np.ndarray, scene, rng, *, s
                 for x in (pts, valid, intensity, ring, time_s, hit_board))
             return LidarScan(topic, stamp_ns, pts, valid, intensity, ring, time_s, (rings, 2 * cols)), hit_board
         return LidarScan(topic, stamp_ns, pts, valid, intensity, ring, time_s, (rings, cols)), hit_board
+    if model.layout == "hesai":  # Hesai numbers its channels from the top beam down
+        ring = rings - 1 - ring
     order = np.arange(rings * cols).reshape(rings, cols).T.ravel()  # firing order: column by column
     if model.dual_returns:  # each column's second returns right after its first ones
         pts = np.concatenate([pts, pts])

@@ -142,6 +142,20 @@ def test_a_pcl_filters_xyzi_cloud_reads_without_rings_and_they_come_from_elevati
     np.testing.assert_array_equal(ring_of(got), scan.ring[scan.valid])
 
 
+def test_a_hesai_cloud_reads_with_its_absolute_float64_times_and_rings_as_numbered(tmp_path):
+    """Hesai's PointXYZIT: each point's absolute time in float64 seconds (the reader makes it
+    relative to the header stamp, to the microsecond) and rings as the driver numbers them."""
+    scan = _scan(np.random.default_rng(4), T0 + 123_456_789, "/hesai")
+    with BagWriter(tmp_path / "h.bag", format="ros1") as w:
+        w.write_pointcloud("/hesai", scan, frame_id="lidar0", layout="hesai")
+    raw = bag.first_raw_message(tmp_path / "h.bag", "/hesai")
+    assert [(f.name, f.datatype) for f in raw.fields][3:] == [("intensity", 7), ("timestamp", 8), ("ring", 4)]
+    got = bag.first_messages(tmp_path / "h.bag", ["/hesai"])["/hesai"]
+    np.testing.assert_array_equal(got.points[got.valid], scan.points[scan.valid])
+    np.testing.assert_array_equal(got.ring[got.valid], scan.ring[scan.valid])
+    np.testing.assert_allclose(got.time_s[got.valid], scan.time_s[scan.valid], atol=1e-6)
+
+
 def test_info_first_frame_window_and_merge(written):
     paths, stamps, scans, _, _ = written
     p = paths[("ros1", False)]
