@@ -226,6 +226,11 @@ CAPTURES = [
             rig={"lidars": [dict(TOP, model="vlp32c"), dict(BUMPER, model="pandar40p", layout="hesai")],
                  "cameras": [CAM_FRONT]},
             simulate={"n_poses": 16, "pair_boards": 3}),
+    Capture("boards-on-the-ground", "every board resting on the ground, its lowest corner touching it (people "
+            "steady a large board on the floor; the simulator otherwise holds it >= 0.15 m above): ground returns "
+            "run up to the board's edge, and the roof LIDAR sees a low board only from a few metres away",
+            rig={"lidars": [TOP, BUMPER], "cameras": [CAM_FRONT, CAM_COLOUR]},
+            simulate={"n_poses": 16, "pair_boards": 3, "boards_on_ground": True}),
     Capture("drive-long", "targetless: a 30 s drive", drive={"duration": 30.0}),
 ]
 

@@ -46,6 +46,7 @@ from .scene import make_scene, planned_tilt, random_board_pose, static_meshes
 log = logging.getLogger(__name__)
 
 T0_NS = 1_700_000_000_000_000_000
+_RESTING_GAP_M = 0.002  # a board resting on the ground: its lowest corner this far above it
 _PAIR_ATTEMPTS = 1000  # board poses drawn for a pair (pair_boards) before it is judged never to see one together
 DEMO_RIG = Path(__file__).resolve().parents[2] / "data" / "synthetic" / "demo-rig.yaml"
 DEMO_DIR = DEMO_RIG.parent / "demo"
@@ -96,6 +97,14 @@ def _lowest_z(rig: Rig, T: np.ndarray) -> float:
     xmin, xmax, ymin, ymax = rig.board.extent()
     corners = np.array([[x, y, 0.0] for x in (xmin, xmax) for y in (ymin, ymax)])
     return float((corners @ T[:3, :3].T + T[:3, 3])[:, 2].min())
+
+
+def _rested_on_ground(rig: Rig, T: np.ndarray) -> np.ndarray:
+    """``T`` moved straight down (or up) until the board's lowest corner touches the ground: a
+    person steadying the board on the floor."""
+    T = T.copy()
+    T[2, 3] -= _lowest_z(rig, T) - _RESTING_GAP_M
+    return T
 
 
 def _observe(rig: Rig, T_board, static, rng, stamps, sway=(0.0, 0.0)):
@@ -209,7 +218,8 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
              camera_hz: float = 5.0, clutter: bool = True, compress: bool = False, log_delays: bool = True,
              vertical_boards: bool = False, max_distance_m: float | None = None, planned_tilts: bool = False,
              pair_boards: int = 0, indoor: bool = False, split_s: float | None = None,
-             clock_offsets_s: dict | None = None, hand_sway=(0.0, 0.0), force: bool = False) -> dict:
+             clock_offsets_s: dict | None = None, hand_sway=(0.0, 0.0), boards_on_ground: bool = False,
+             force: bool = False) -> dict:
     """Simulate a capture session of the rig in ``rig_yaml`` into ``out_dir`` (replaced atomically).
     ``compress``: lz4-compressed ROS1 bags (as `rosbag record --lz4` writes them); ROS2: the storage
     file zstd-compressed (`ros2 bag record --compression-mode file --compression-format zstd`).
@@ -229,6 +239,8 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
     ``clock_offsets_s``: {topic: s}: that sensor's header stamps on another clock (``BagWriter``).
     ``hand_sway``: (m, deg) a bag per pose: the held board's position and angle about its centre
     differ by these standard deviations from message to message (a person's hands are not still).
+    ``boards_on_ground``: every board rests on the ground, its lowest corner touching it (as people
+    steady a large board), instead of being held >= 0.15 m above it.
     ``force``: replace ``out_dir`` even if it is not a previous simulated session.
 
     Returns the truth dict that is also written to ``out_dir/truth.yaml``.
@@ -271,7 +283,11 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
                 aim = None if pair is None else _aim(rig, pair, rng)
                 T_board = _board_pose(rng, rig, tilt_max_deg, vertical_boards, max_distance_m,
                                       planned_tilt(k) if planned_tilts else None, aim=aim)
-                if _lowest_z(rig, T_board) < 0.15 or (pair is not None and not _may_see(rig, T_board, pair, site)):
+                if boards_on_ground:
+                    T_board = _rested_on_ground(rig, T_board)
+                elif _lowest_z(rig, T_board) < 0.15:
+                    continue
+                if pair is not None and not _may_see(rig, T_board, pair, site):
                     continue
                 if continuous:
                     stamps = _ticks(phases, t_ns, t_ns + int(hold_s * 1e9), camera_hz)

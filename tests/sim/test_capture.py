@@ -202,3 +202,23 @@ board: {corners: [10, 10], square_m: 0.1, size_m: [1.3, 1.3]}
     for p in [("/l", "/front"), ("/l", "/left"), ("/l", "/rear"), ("/front", "/left")]:
         assert together[p] >= 2, together
     assert together[("/front", "/rear")] == together[("/left", "/rear")] == 0
+
+
+def test_boards_on_ground_rest_a_corner_on_it_and_the_bumper_lidar_sees_them(tmp_path):
+    """``boards_on_ground``: every board's lowest corner touches the ground (2 mm above it), where
+    the simulator otherwise keeps boards >= 0.15 m above it; the scans show them."""
+    rig = tmp_path / "rig.yaml"
+    rig.write_text("""
+lidars:
+  - {topic: /roof, model: vlp16, frame_id: r, xyz: [0, 0, 1.9], rpy_deg: [0, 0, 0]}
+  - {topic: /bumper, model: vlp16, frame_id: b, xyz: [1.5, 0, 0.6], rpy_deg: [0, 0, 0]}
+board: {corners: [10, 10], square_m: 0.1, size_m: [1.3, 1.3]}
+""")
+    truth = simulate(rig, tmp_path / "s", n_poses=4, seed=3, clutter=False, boards_on_ground=True)
+    r = load_rig(rig)
+    x0, x1, y0, y1 = r.board.extent()
+    corners = np.array([[x, y, 0.0, 1.0] for x in (x0, x1) for y in (y0, y1)])
+    for s in truth["snapshots"]:
+        T = r.lidars[0].T_base_sensor @ T_from_rt(np.array(s["rt_lidar0_board"]))
+        assert (corners @ T.T)[:, 2].min() == pytest.approx(0.002, abs=1e-9)
+    assert sum("/bumper" in s["seen_by_topics"] for s in truth["snapshots"]) >= 3
