@@ -231,6 +231,12 @@ CAPTURES = [
             "run up to the board's edge, and the roof LIDAR sees a low board only from a few metres away",
             rig={"lidars": [TOP, BUMPER], "cameras": [CAM_FRONT, CAM_COLOUR]},
             simulate={"n_poses": 16, "pair_boards": 3, "boards_on_ground": True}),
+    Capture("small-lab", "a small lab: walls 5.5-6 m from the rig's centre all round, boards 2.5-3 m from the "
+            "sensor they are shown to, so a wall stands a few decimetres to 3 m behind each board (returns right "
+            "behind its edges; the board never leaves the walls' neighbourhood)",
+            rig={"lidars": [TOP, BUMPER], "cameras": [CAM_FRONT, CAM_COLOUR]},
+            simulate={"n_poses": 16, "pair_boards": 3, "indoor": True, "room_m": (5.5, 6.0),
+                      "max_distance_m": 3.0}),
     Capture("drive-long", "targetless: a 30 s drive", drive={"duration": 30.0}),
 ]
 

@@ -217,7 +217,7 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
              tilt_max_deg: float = 40.0, tf_error=(1.0, 0.03), hold_s: float = 2.0, move_s: float = 1.0,
              camera_hz: float = 5.0, clutter: bool = True, compress: bool = False, log_delays: bool = True,
              vertical_boards: bool = False, max_distance_m: float | None = None, planned_tilts: bool = False,
-             pair_boards: int = 0, indoor: bool = False, split_s: float | None = None,
+             pair_boards: int = 0, indoor: bool = False, room_m=(6.0, 9.0), split_s: float | None = None,
              clock_offsets_s: dict | None = None, hand_sway=(0.0, 0.0), boards_on_ground: bool = False,
              force: bool = False) -> dict:
     """Simulate a capture session of the rig in ``rig_yaml`` into ``out_dir`` (replaced atomically).
@@ -233,7 +233,8 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
     ``pair_boards``: each pose held, while some pair of sensors has seen the board together on
     fewer poses than this, where that pair (the fewest so far) both see it: before its camera, or
     around one of its LIDARs (``_pair_to_show``); 0: wherever >= 2 sensors see it.
-    ``indoor``: in a hall closed all round (``scene.static_meshes``): every LIDAR ray returns.
+    ``indoor``: in a hall closed all round (``scene.static_meshes``): every LIDAR ray returns;
+    ``room_m``: how far its walls are from the rig (6-9 m; a small lab's: boards close to a wall).
     ``split_s``: a continuous ROS1 session cut into files of this many seconds, as `rosbag record
     --split --duration` writes a long recording (``bag_writer.split_ros1_bag``).
     ``clock_offsets_s``: {topic: s}: that sensor's header stamps on another clock (``BagWriter``).
@@ -261,7 +262,7 @@ def simulate(rig_yaml, out_dir, *, n_poses: int = 20, seed: int = 0, format: str
     delays = LogDelays(seed=seed) if log_delays else None
     offsets = {t: int(round(s * 1e9)) for t, s in (clock_offsets_s or {}).items()}
     with atomic_dir(out_dir, kind="session", force=force) as tmp:
-        static = static_meshes(rng, clutter=clutter, indoor=indoor)
+        static = static_meshes(rng, clutter=clutter, indoor=indoor, room_m=room_m)
         tf = _tf_static(rig, rng, tf_error)
         ext = ".bag" if format == "ros1" else ""
         snapshots = []

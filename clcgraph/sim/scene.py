@@ -40,15 +40,16 @@ def cylinder_mesh(r, h, x, y):
     return m
 
 
-def static_meshes(rng, *, clutter: bool = True, walls_m=(12.0, 25.0), indoor: bool = False) -> list:
+def static_meshes(rng, *, clutter: bool = True, walls_m=(12.0, 25.0), indoor: bool = False,
+                  room_m=(6.0, 9.0)) -> list:
     """Ground, walls and clutter (legacy open3d meshes) of one calibration site. ``indoor``: a hall
-    closed all round, walls at 6-9 m up to a ceiling 3.4-4 m high: every ray of a LIDAR returns
-    (outdoors the sky and the gaps between walls return nothing)."""
+    closed all round, walls at ``room_m`` (6-9 m) up to a ceiling 3.4-4 m high: every ray of a
+    LIDAR returns (outdoors the sky and the gaps between walls return nothing)."""
     meshes = [box_mesh(200, 200, 0.1, 0, 0, -0.1)]  # ground, top at z = 0
     ceiling = rng.uniform(3.4, 4.0) if indoor else None
     if indoor:
         meshes.append(box_mesh(200, 200, 0.1, 0, 0, ceiling))
-        walls_m = (6.0, 9.0)
+        walls_m = tuple(room_m)
     if not clutter and not indoor:
         return meshes
     n_walls = 8
