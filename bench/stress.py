@@ -237,6 +237,12 @@ CAPTURES = [
             rig={"lidars": [TOP, BUMPER], "cameras": [CAM_FRONT, CAM_COLOUR]},
             simulate={"n_poses": 16, "pair_boards": 3, "indoor": True, "room_m": (5.5, 6.0),
                       "max_distance_m": 3.0}),
+    Capture("counter-clockwise-lidars", "LIDARs spinning the other way (counter-clockwise seen from above: the "
+            "azimuth rises along each ring, where every other capture's falls as a Velodyne's does), one unorganised, "
+            "one organised",
+            rig={"lidars": [dict(TOP, clockwise=False), dict(BUMPER, clockwise=False)],
+                 "cameras": [CAM_FRONT, CAM_COLOUR]},
+            simulate={"n_poses": 16, "pair_boards": 3}),
     Capture("drive-long", "targetless: a 30 s drive", drive={"duration": 30.0}),
 ]
 

@@ -63,6 +63,9 @@ class LidarModel:
     # again (strongest = last); velodyne layout: after each firing's returns (as Hesai drivers
     # publish it); ouster layout: organised, each column followed by its second returns' column
     dual_returns: bool = False
+    # the way the head spins, seen from above (+z): clockwise (Velodyne, Hesai) or not; either
+    # way the columns come in firing order, so the azimuth falls or rises along each ring
+    clockwise: bool = True
 
     def ring_errors(self) -> tuple[np.ndarray, np.ndarray]:
         """(range bias (rings,) m, elevation error (rings,) deg): this unit's fixed errors."""
@@ -97,7 +100,8 @@ class LidarModel:
         driver reports them, or (``true``) as the beams really leave (ring elevation errors)."""
         el = np.asarray(self.elevations_deg, float) + (self.ring_errors()[1] if true else 0.0)
         el = np.radians(el)[:, None]
-        az = np.pi - 2 * np.pi * np.arange(self.npoints_per_rotation) / self.npoints_per_rotation
+        turned = 2 * np.pi * np.arange(self.npoints_per_rotation) / self.npoints_per_rotation
+        az = np.pi - turned if self.clockwise else turned - np.pi
         az = az[None, :]
         return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) * np.ones_like(az)], -1)
 

@@ -222,3 +222,16 @@ board: {corners: [10, 10], square_m: 0.1, size_m: [1.3, 1.3]}
         T = r.lidars[0].T_base_sensor @ T_from_rt(np.array(s["rt_lidar0_board"]))
         assert (corners @ T.T)[:, 2].min() == pytest.approx(0.002, abs=1e-9)
     assert sum("/bumper" in s["seen_by_topics"] for s in truth["snapshots"]) >= 3
+
+
+def test_a_counter_clockwise_lidar_fires_its_columns_with_rising_azimuth():
+    """``clockwise: false``: the same rays, fired in the other order (time still rises along a ring)."""
+    from clcgraph.sim.lidar import LidarModel
+
+    cw = LidarModel.preset("vlp16")
+    ccw = dataclasses.replace(cw, clockwise=False)
+    az_cw, az_ccw = (np.unwrap(np.arctan2(m.directions()[0, :, 1], m.directions()[0, :, 0])) for m in (cw, ccw))
+    step = 2 * np.pi / cw.npoints_per_rotation
+    np.testing.assert_allclose(np.diff(az_cw), -step)
+    np.testing.assert_allclose(np.diff(az_ccw), step)
+    assert np.allclose(np.sort(np.mod(az_cw, 2 * np.pi)), np.sort(np.mod(az_ccw, 2 * np.pi)))
