@@ -373,7 +373,18 @@ def _first_detection_pass(images, options, board, timings):
     from .frontend.camera_board import BoardDetection
 
     with StageClock(timings)("detect"):
-        return BoardDetection(images, options, board)
+        detection = BoardDetection(images, options, board)
+        # a board.corners off by a few finds nothing anywhere: said at once, with the count the
+        # images show, instead of after the retries (tens of seconds) as "no board found"
+        shown = detection.grid_shown_instead()
+        if shown is not None:
+            m, topics, checked = shown
+            topic = max(set(topics), key=topics.count)
+            raise InputError(f"{topic}: its images show a whole {m}x{m} grid of inner corners ({len(topics)} of the "
+                             f"{checked} images checked), none the {board.corners_x}x{board.corners_y} of board.corners: "
+                             f"set board.corners: [{m}, {m}] (inner corners, where four squares meet: one fewer than "
+                             "the squares along each side)")
+        return detection
 
 
 def _scans_by_lidar(snaps, lidar_topics) -> dict:

@@ -261,3 +261,19 @@ def test_a_part_of_a_larger_pattern_is_not_read_as_the_board(clean):
             part = full[i0:i0 + 9, j0:j0 + 9].reshape(-1, 2)
             r = _validate(part, px, 9, 9, options, "none")
             assert not isinstance(r, np.ndarray) and "goes on past the grid's" in r.reason, (i0, j0, r)
+
+
+@pytest.mark.parametrize("declared", [9, 11])
+def test_a_wrong_corner_count_is_answered_with_the_count_the_images_show(clean, declared):
+    """board.corners off by one or two (squares counted for corners, or a miscount): no image has
+    the declared grid, and the images show the board's whole 10x10 one, which is what to set."""
+    from clcgraph.frontend.camera_board import BoardDetection
+
+    imgs = [Image("/cam", k, px, "mono8") for k, (px, _) in enumerate(clean)]
+    wrong = BoardGeometry.from_spec(corners=[declared, declared], square_m=0.1, size_m=[1.6, 1.6])
+    d = BoardDetection(imgs, DetectionOptions(), wrong)
+    assert not any(isinstance(r, np.ndarray) for r in d.results)
+    assert d.grid_shown_instead() == (10, ["/cam"] * 5, 5)
+    assert BoardDetection(imgs, DetectionOptions(), BOARD).grid_shown_instead() is None  # found: nothing to say
+    blank = [Image("/cam", k, np.full((H, W), 128, np.uint8), "mono8") for k in range(3)]
+    assert BoardDetection(blank, DetectionOptions(), BOARD).grid_shown_instead() is None  # no board at all

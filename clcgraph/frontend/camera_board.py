@@ -487,6 +487,27 @@ class BoardDetection:
             log.debug("%s @%d: %s", self.images[k].topic, self.images[k].stamp_ns, r.reason)
         return r
 
+    def grid_shown_instead(self, *, sample: int = 24, reach: int = 2) -> tuple[int, list[str], int] | None:
+        """After a mrgingham first pass that found no board in any image: the square grid of m x m
+        inner corners (m within ``reach`` of board.corners, m != it) shown whole (the pattern ends
+        at its sides: ``pattern_goes_on``) in >= 2 of up to ``sample`` images spread over the
+        list: (m, the topics of the images showing it, images checked), else None (the boards too
+        small for a first pass, say: the retries look for them). A board has one such m: a grid
+        one short of the board's is a part of its pattern, not whole."""
+        n = self.board.corners_x
+        if self.detector != MRGINGHAM or not self.images or any(isinstance(r, np.ndarray) for r in self.results):
+            return None
+        picked = np.unique(np.linspace(0, len(self.images) - 1, min(sample, len(self.images))).round().astype(int))
+        for m in sorted({n + d for d in range(-reach, reach + 1)} - {n}, key=lambda m: (abs(m - n), m)):
+            if m < 3:
+                continue
+            found = _run_mrgingham([self.grays[k] for k in picked], m, self.options.jobs)
+            shown = [self.images[k].topic for k, c in zip(picked, found) if c is not None and isinstance(
+                _validate(c + _OFFSET_PX["mrgingham"], self.grays[k], m, m, self.options, ""), np.ndarray)]
+            if len(shown) >= 2:
+                return m, shown, len(picked)
+        return None
+
     def retry(self, regions: list | None = None) -> list[np.ndarray | Rejected]:
         """Retry the missed images (mrgingham, then the OpenCV fallback); returns ``results``.
 
