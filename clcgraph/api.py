@@ -474,19 +474,22 @@ def _check_every_sensor_found_a_board(sensors, lidar_obs, camera_obs, rejected, 
     """DegenerateError naming the first sensor that found no board in any of its scans or images
     (it could not be calibrated: the solve would only say it cannot be connected), with its
     commonest reason and the board setting to check: the pattern for a camera, the size for a LIDAR.
-    An InputError where a camera's images showed a part of a larger pattern (board.corners short)."""
-    from .frontend.camera_board import PATTERN_GOES_ON
+    An InputError where a camera's images showed a part of a larger pattern (board.corners short) or a
+    grid past its edge (board.corners too large)."""
+    from .frontend.camera_board import PATTERN_ENDS, PATTERN_GOES_ON
 
     for i, (found, missed, n, text) in _misses(sensors, lidar_obs, camera_obs, rejected).items():
         if found:
             continue
         s = sensors[i]
-        more = sum(r.reason.startswith(PATTERN_GOES_ON) for r in rejected if r.sensor == i and r.stage == "detection")
-        if s.is_camera and more:  # a part of the pattern was found: the count itself is short
-            raise InputError(f"{s.topic}: the chessboard in {more} of its {missed} images has more inner corners than "
-                             f"board.corners [{board.corners_x}, {board.corners_y}] (the pattern goes on past the "
-                             "grid found): count the inner corners, where four squares meet, along the board's "
-                             "width and height")
+        mine = [r.reason for r in rejected if r.sensor == i and r.stage == "detection"]
+        more, fewer = (sum(r.startswith(words) for r in mine) for words in (PATTERN_GOES_ON, PATTERN_ENDS))
+        if s.is_camera and (more or fewer):  # a grid off the pattern by its count: the count itself is wrong
+            raise InputError(f"{s.topic}: the chessboard in {more or fewer} of its {missed} images has "
+                             f"{'more' if more else 'fewer'} inner corners than board.corners "
+                             f"[{board.corners_x}, {board.corners_y}] (the pattern "
+                             f"{'goes on past the grid found' if more else 'ends inside the grid found'}): count the "
+                             "inner corners, where four squares meet, along the board's width and height")
         what = "images" if s.is_camera else "scans"
         setting = (f"board.corners [{board.corners_x}, {board.corners_y}] (inner corners along the board's width "
                    f"and height)" if s.is_camera else

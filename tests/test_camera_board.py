@@ -214,7 +214,7 @@ def test_a_side_hidden_in_view_keeps_its_board(clean):
     """The same lack of alternation along a side, made by something in front of the board's edge,
     keeps a board whose other side's outer squares are in the image (the pattern cannot go on
     past the image there); cropped so they are not, it is the cut-off board above."""
-    from clcgraph.frontend.camera_board import off_board_side
+    from clcgraph.frontend.camera_board import off_board_side, side_without_corners
 
     px, q = clean[0]
     assert off_board_side(px, q, 10, 10) is None
@@ -224,6 +224,7 @@ def test_a_side_hidden_in_view_keeps_its_board(clean):
     polygon = np.r_[g[3:, 0] + 0.3 * step[3:], (g[3:, 0] + 1.6 * step[3:])[::-1]].astype(np.int32)
     cv2.fillPoly(hidden, [polygon], 160)  # a grey arm over 7 of the 11 outer squares on the left
     assert off_board_side(hidden, q, 10, 10) is None
+    assert side_without_corners(hidden, q, 10, 10) is None  # 3 of its 10 corners are still corners
     right = int(np.ceil(g[:, -1, 0].max())) + 3  # the image ends just past the right column of corners
     assert off_board_side(hidden[:, :right], q, 10, 10) == "left column"
 
@@ -277,3 +278,20 @@ def test_a_wrong_corner_count_is_answered_with_the_count_the_images_show(clean, 
     assert BoardDetection(imgs, DetectionOptions(), BOARD).grid_shown_instead() is None  # found: nothing to say
     blank = [Image("/cam", k, np.full((H, W), 128, np.uint8), "mono8") for k in range(3)]
     assert BoardDetection(blank, DetectionOptions(), BOARD).grid_shown_instead() is None  # no board at all
+
+
+def test_a_grid_with_a_row_along_the_patterns_edge_is_rejected(clean):
+    """board.corners one too many: OpenCV's sector-based detector completed a 9x6 board's grid to
+    10x6 with a column along the pattern's edge, where its outer squares meet the white border (2
+    of 16 simulated images). Such a row has no corner along it: rejected, naming the count; the
+    board's own grid passes."""
+    from clcgraph.frontend.camera_board import PATTERN_ENDS, _validate, side_without_corners
+
+    for px, q in clean:
+        g = q.reshape(10, 10, 2)
+        edge = 2 * g[0] - g[1]  # a step out from the top row: the pattern's top edge (its outer squares end there)
+        grid = np.concatenate([edge[None], g]).reshape(-1, 2)  # 10 wide, 11 high
+        assert side_without_corners(px, q, 10, 10) is None
+        assert side_without_corners(px, grid, 10, 11) in ("top row", "bottom row")
+        r = _validate(grid, px, 10, 11, DetectionOptions(), "none")
+        assert not isinstance(r, np.ndarray) and r.reason.startswith(PATTERN_ENDS), r

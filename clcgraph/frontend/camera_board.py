@@ -193,8 +193,31 @@ def off_board_side(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int) -> s
     return None
 
 
+def side_without_corners(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int) -> str | None:
+    """The side ("left column", ...) of a canonical (ny*nx, 2) grid none of whose corners is one (90 %
+    of them under half the interior corners' saddle contrast), or None: a grid of more inner
+    corners than the board has, which OpenCV's sector-based detector completes with a row along
+    the pattern's edge, where the outer squares meet the white border (a whole board in view,
+    board.corners one too many: 2 of 16 images of a 9x6 board read as 10x6). A side hidden in part
+    (an arm across it) keeps the corners it shows."""
+    if nx < 3 or ny < 3:
+        return None
+    score, _ = _saddles(gray, corners, nx, ny, 0)
+    typical = _typical(score[1:-1, 1:-1])
+    if typical is None:
+        return None
+    for name, side in {"top row": score[0], "bottom row": score[-1], "left column": score[:, 0],
+                       "right column": score[:, -1]}.items():
+        judged = side[np.isfinite(side)]
+        if len(judged) >= 3 and np.quantile(judged, 0.9) < 0.5 * typical:
+            return name
+    return None
+
+
 # how a detection of a part of a larger pattern is rejected (api names board.corners from it)
 PATTERN_GOES_ON = "the chessboard goes on past the grid's"
+# ... and one of more corners than the pattern has
+PATTERN_ENDS = "no chessboard corner along the grid's"
 
 
 def pattern_goes_on(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int) -> str | None:
@@ -284,6 +307,10 @@ def _validate(corners: np.ndarray | None, gray: np.ndarray, nx: int, ny: int, op
     if side is not None:
         return Rejected(f"{PATTERN_GOES_ON} {side}: more inner corners than the {nx}x{ny} of "
                         "board.corners (a part of the pattern read as the board)", "detection")
+    side = side_without_corners(gray, c, nx, ny)
+    if side is not None:
+        return Rejected(f"{PATTERN_ENDS} {side}: the pattern's edge read as corners (fewer inner corners than the "
+                        f"{nx}x{ny} of board.corners?)", "detection")
     sigma = blur_sigma_px(gray, c, nx, ny)
     if sigma > options.max_blur_sigma_px:
         return Rejected(f"blurred board (edge sigma {sigma:.2f} px > {options.max_blur_sigma_px})",

@@ -159,6 +159,12 @@ def test_a_sensor_that_found_no_board_anywhere_names_the_board_setting_to_check(
     with pytest.raises(InputError, match=r"^/c: the chessboard in 1 of its 6 images has more inner corners than "
                                          r"board.corners \[9, 7\]"):
         _check_every_sensor_found_a_board(sensors, [], [], rejected + part, board)
+    # a grid with a row along the pattern's edge: the count is too large
+    past = [Rejected("no chessboard corner along the grid's top row: the pattern's edge read as corners (fewer inner "
+                     "corners than the 9x7 of board.corners?)", "detection", 1, 5)]
+    with pytest.raises(InputError, match=r"^/c: the chessboard in 1 of its 6 images has fewer inner corners than "
+                                         r"board.corners \[9, 7\] \(the pattern ends inside the grid found\)"):
+        _check_every_sensor_found_a_board(sensors, [], [], rejected + past, board)
 
 
 def test_a_topic_of_raw_lidar_packets_says_to_play_it_through_the_driver(monkeypatch):
