@@ -81,7 +81,7 @@ def corner_orderings(board) -> list[np.ndarray]:
     return [np.rot90(grid, k).ravel() for k in turns]
 
 
-def _pnp(corners_px, sensor, board, max_px: float):
+def board_pose_from_corners(corners_px, sensor, board, max_px: float):
     """rt_camera_board from one camera observation's corners, or a reason string."""
     import cv2
 
@@ -130,7 +130,7 @@ def _reduce(problem: Problem, options) -> tuple[list[_Obs], list[Rejected]]:
     turns = [(perm, _turn(problem.board, perm)) for perm in orders[1:]]
     for o in problem.camera_observations:
         s = problem.sensors[o.sensor]
-        rt = _pnp(o.corners_px, s, problem.board, options.seed_max_corner_px)
+        rt = board_pose_from_corners(o.corners_px, s, problem.board, options.seed_max_corner_px)
         if isinstance(rt, str):
             rejected.append(Rejected(rt, "seed", o.sensor, o.snapshot))
             continue

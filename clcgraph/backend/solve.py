@@ -37,7 +37,7 @@ import numpy as np
 from ..errors import DegenerateError, SolveError
 from ..geometry import R_from_r, drt_dxi, pose3_from_rt, rt_from_pose3, tangent_covariance_from_rt
 from ..types import Problem, Rejected, Result
-from . import board_size, consider, consistency
+from . import board_check, consider, consistency
 from . import graph as G
 from . import noise as N
 from .convergence import MAX_UNCONVERGED_STEP_SIGMA, optimize_lm, public, step_sigma
@@ -609,8 +609,10 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
                            rt_lidar0_board=rt_board.copy(), noise=noise, rms=rms, rejected=tuple(rejected),
                            residuals=_residual_arrays(problem, lid, cam, active)))
 
-    if options.lidar_edges:  # a board.size_m the LIDARs' edges contradict is said as such, before its effects are
-        board_size.check(problem, board_size.size_seen(problem, active, rt_sensor, rt_board))
+    # a board described otherwise than the sensors see it is said as such, before its effects are
+    if options.lidar_edges:
+        board_check.check_size(problem, board_check.size_seen(problem, active, rt_sensor, rt_board))
+    board_check.check_scale(problem, board_check.scale_seen(problem, active, rt_sensor))
     t = time.perf_counter()
     cov = _covariance(problem, g, values, rt_sensor, options)
     times["covariance"] = time.perf_counter() - t

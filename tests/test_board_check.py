@@ -1,13 +1,15 @@
-"""board.size_m against the board the LIDARs' edges show (backend/board_size.py): measured at the
-truth to the millimetre, a board described 3 cm a side too large or too small is refused in one
-line naming the LIDAR and the size it sees, the right description is not."""
+"""The board as described against what the sensors see (backend/board_check.py). board.size_m
+against the LIDARs' edges: measured at the truth to the millimetre, a board described 3 cm a side
+too large or too small is refused in one line naming the LIDAR and the size it sees.
+board.square_m against the LIDARs' planes: squares declared 2 % or 0.5 % off are refused naming
+the camera and the square size its boards show. The right description passes both."""
 
 import dataclasses
 
 import numpy as np
 import pytest
 
-from clcgraph.backend import board_size
+from clcgraph.backend import board_check
 from clcgraph.backend import graph as G
 from clcgraph.backend.solve import calibrate
 from clcgraph.config import SolveOptions
@@ -23,8 +25,9 @@ def simulated():
     return simulate_problem(rig=make_rig(2, 1), n_snapshots=14, seed=5, sigma_lidar_m=0.01)
 
 
-def _described(problem, size_m):
-    return dataclasses.replace(problem, board=BoardGeometry.from_spec(corners=[10, 10], square_m=0.1, size_m=size_m))
+def _described(problem, size_m, square_m=0.1):
+    return dataclasses.replace(problem, board=BoardGeometry.from_spec(corners=[10, 10], square_m=square_m,
+                                                                      size_m=size_m))
 
 
 @pytest.mark.parametrize("size_m, offset_mm", [((1.3, 1.3), 0.0), ((1.36, 1.36), -30.0), ((1.24, 1.3), None)])
@@ -33,7 +36,7 @@ def test_the_sides_offset_is_the_size_error_at_the_truth(simulated, size_m, offs
     over the boards to 2 mm (the sides' quantisation averaged), whatever the side."""
     problem, truth = simulated
     p = _described(problem, size_m)
-    seen = board_size.size_seen(p, G.Active.all(p), truth.rt_lidar0_sensor, truth.rt_lidar0_board)
+    seen = board_check.size_seen(p, G.Active.all(p), truth.rt_lidar0_sensor, truth.rt_lidar0_board)
     for lidar in (0, 1):
         for axis in (0, 1):
             s = seen[(lidar, axis)]
@@ -51,3 +54,20 @@ def test_a_board_measured_3cm_a_side_wrong_is_refused_naming_the_lidar_and_the_s
                                          rf"(left and right|top and bottom) edges lie (2[7-9]|3[0-3]) mm {words} "):
         calibrate(_described(problem, size_m), SolveOptions())
     calibrate(problem, SolveOptions())  # the board as it is passes
+
+
+@pytest.mark.parametrize("square_m, words", [(0.098, r"[12]\.\d % nearer"), (0.1005, r"0\.\d % farther")])
+def test_squares_declared_off_are_refused_naming_the_camera_and_the_squares_seen(simulated, square_m, words):
+    """A camera puts every board (1 - 0.1 / square_m) nearer (farther): against the LIDARs'
+    planes of the same boards, 2-8 m away, that is a slope, whatever the camera's shift."""
+    problem, truth = simulated
+    p = _described(problem, (1.3, 1.3), square_m)
+    fits = board_check.scale_seen(p, G.Active.all(p), truth.rt_lidar0_sensor)
+    right = board_check.scale_seen(problem, G.Active.all(problem), truth.rt_lidar0_sensor)
+    (camera,) = [i for i, s in enumerate(p.sensors) if s.is_camera]
+    assert fits[camera].slope == pytest.approx(square_m / 0.1, abs=1.5e-3) and fits[camera].boards >= 8
+    assert right[camera].slope == pytest.approx(1.0, abs=1.5e-3)
+    with pytest.raises(InputError, match=rf"^/cam\d: its boards lie {words} by their corners than by the LIDARs' "
+                                         r"planes .*: the squares are (99\.[5-9]|100\.[0-5]) mm, not the .* mm of "
+                                         r"board.square_m"):
+        calibrate(p, SolveOptions())
