@@ -166,6 +166,19 @@ def _saddles(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int, out: int) 
     return np.abs(a + cc - b - d) / 2 - (np.abs(a - cc) + np.abs(b - d)) / 2, inside
 
 
+def _side_contrasts(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int, out: int):
+    """(the interior corners' typical saddle contrast or None, {side name: the finite contrasts of
+    the corners ``out`` steps past that side of the grid, 0: its own outer row or column}, the
+    squares' inside-the-image mask) of a canonical (ny*nx, 2) grid (``_saddles``)."""
+    score, inside = _saddles(gray, corners, nx, ny, out)
+    k = out + 1
+    typical = _typical(score[k:-k, k:-k])
+    rows, cols = score.shape
+    sides = {"top row": score[0, out:cols - out], "bottom row": score[-1, out:cols - out],
+             "left column": score[out:rows - out, 0], "right column": score[out:rows - out, -1]}
+    return typical, {name: side[np.isfinite(side)] for name, side in sides.items()}, inside
+
+
 def off_board_side(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int) -> str | None:
     """The side ("left column", ...) of a canonical (ny*nx, 2) grid that is one square off the
     chessboard, or None.
@@ -179,15 +192,12 @@ def off_board_side(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int) -> s
     on past the image's edge, on the opposite side (one of its outer squares is not in the image)."""
     if nx < 3 or ny < 3:
         return None
-    score, inside = _saddles(gray, corners, nx, ny, 0)
-    typical = _typical(score[1:-1, 1:-1])
+    typical, sides, inside = _side_contrasts(gray, corners, nx, ny, 0)
     if typical is None:
         return None
     opposite = {"top row": inside[-1], "bottom row": inside[0], "left column": inside[:, -1],
                 "right column": inside[:, 0]}
-    sides = {"top row": score[0], "bottom row": score[-1], "left column": score[:, 0], "right column": score[:, -1]}
-    for name, side in sides.items():
-        judged = side[np.isfinite(side)]
+    for name, judged in sides.items():
         if len(judged) and np.median(judged) < 0.5 * typical and not np.all(opposite[name]):
             return name
     return None
@@ -202,13 +212,10 @@ def side_without_corners(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int
     (an arm across it) keeps the corners it shows."""
     if nx < 3 or ny < 3:
         return None
-    score, _ = _saddles(gray, corners, nx, ny, 0)
-    typical = _typical(score[1:-1, 1:-1])
+    typical, sides, _ = _side_contrasts(gray, corners, nx, ny, 0)
     if typical is None:
         return None
-    for name, side in {"top row": score[0], "bottom row": score[-1], "left column": score[:, 0],
-                       "right column": score[:, -1]}.items():
-        judged = side[np.isfinite(side)]
+    for name, judged in sides.items():
         if len(judged) >= 3 and np.quantile(judged, 0.9) < 0.5 * typical:
             return name
     return None
@@ -229,14 +236,10 @@ def pattern_goes_on(gray: np.ndarray, corners: np.ndarray, nx: int, ny: int) -> 
     contrast of the interior's). Judged on a side's corners whose four squares are in the image."""
     if nx < 3 or ny < 3:
         return None
-    score, _ = _saddles(gray, corners, nx, ny, 1)
-    typical = _typical(score[2:-2, 2:-2])
+    typical, ring, _ = _side_contrasts(gray, corners, nx, ny, 1)  # the corners one step past the grid's sides
     if typical is None:
         return None
-    ring = {"top row": score[0, 1:-1], "bottom row": score[-1, 1:-1], "left column": score[1:-1, 0],
-            "right column": score[1:-1, -1]}  # the corners one step past the grid's sides
-    for name, side in ring.items():
-        judged = side[np.isfinite(side)]
+    for name, judged in ring.items():
         if len(judged) >= 2 and np.median(judged) > 0.5 * typical:
             return name
     return None
