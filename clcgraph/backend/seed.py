@@ -82,7 +82,8 @@ def corner_orderings(board) -> list[np.ndarray]:
 
 
 def board_pose_from_corners(corners_px, sensor, board, max_px: float):
-    """rt_camera_board from one camera observation's corners, or a reason string."""
+    """rt_camera_board from one camera observation's corners, or a reason string (one where its
+    corners reproject more than ``max_px`` off; inf: not checked)."""
     import cv2
 
     q = np.asarray(corners_px, float)
@@ -98,6 +99,8 @@ def board_pose_from_corners(corners_px, sensor, board, max_px: float):
         return "PnP failed"
     good, rvec, tvec = cv2.solvePnP(obj, img, np.eye(3), None, rvec, tvec, True, cv2.SOLVEPNP_ITERATIVE)
     rt = np.r_[rvec.ravel(), tvec.ravel()]
+    if max_px == np.inf:  # no reprojection check asked for
+        return rt
     pred = cameras.project(transform(rt, board.corners()[ok]), sensor.lensmodel, sensor.intrinsics)
     err = np.linalg.norm(pred - q[ok], axis=1).max()
     if not np.isfinite(err) or err > max_px:
