@@ -71,3 +71,5 @@ def test_squares_declared_off_are_refused_naming_the_camera_and_the_squares_seen
                                          r"planes .*: the squares are (99\.[5-9]|100\.[0-5]) mm, not the .* mm of "
                                          r"board.square_m"):
         calibrate(p, SolveOptions())
+    # a focal length stated as known only to 3 %: the slope is within what the sigmas include
+    board_check.check_scale(p, fits, SolveOptions(camera_focal_scale_sigma=0.03))

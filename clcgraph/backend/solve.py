@@ -612,7 +612,7 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
     # a board described otherwise than the sensors see it is said as such, before its effects are
     if options.lidar_edges:
         board_check.check_size(problem, board_check.size_seen(problem, active, rt_sensor, rt_board))
-    board_check.check_scale(problem, board_check.scale_seen(problem, active, rt_sensor))
+    board_check.check_scale(problem, board_check.scale_seen(problem, active, rt_sensor), options)
     t = time.perf_counter()
     cov = _covariance(problem, g, values, rt_sensor, options)
     times["covariance"] = time.perf_counter() - t
