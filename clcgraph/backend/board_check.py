@@ -26,8 +26,8 @@ the bench capture square_m 0.098 for 0.1 gave every camera 108-117 mm off at 16-
 d_lidar + b over the camera's boards, a - 1 is the scale error (b takes the camera's shift).
 Refused where it stands out of its standard error (4 sigma, >= 5 boards; the focal length's
 stated uncertainty added) and exceeds 0.2 %. A camera model's focal length off by that much does
-the same, and the message says so (and how to state a focal length known only to a few %). Boards all
-at one distance cannot tell it: the real ACFR boards at 2.9-3.5 m give a = 0.980 +- 0.012 and
+the same, and the message says so (and how to state a focal length known only to a few %).
+Boards all at one distance cannot tell it: the real ACFR boards at 2.9-3.5 m give a = 0.980 +- 0.012 and
 0.982 +- 0.022 (runs 1, 2), not refused; the bench capture's right squares 0.9998-1.0004 (+-
 0.0002-0.0003), 0.098 and 0.102 0.978-0.980 and 1.020-1.021.
 
@@ -45,7 +45,7 @@ import numpy as np
 from ..errors import InputError
 from ..factors.lidar_edge import edge_sides, lidar_edge_residuals
 from ..geometry import T_from_rt, pose3_from_rt
-from .graph import _pose, lidar_face
+from .graph import lidar_face
 from .seed import board_pose_from_corners
 
 TOLERANCE_M = 0.010  # a side's offset allowed either way: a board measured to the centimetre
@@ -73,7 +73,8 @@ def size_seen(problem, active, rt_sensor: np.ndarray, rt_board: np.ndarray) -> d
     for o, m in zip(problem.lidar_observations, active.lidar):
         if m is None or not m.any() or o.edge_rays is None or not len(o.edge_rays):
             continue
-        T_s, T_b = _pose(problem, rt_sensor, o.sensor), pose3_from_rt(rt_board[o.snapshot])
+        T_s = None if o.sensor == problem.reference else pose3_from_rt(rt_sensor[o.sensor])
+        T_b = pose3_from_rt(rt_board[o.snapshot])
         face = lidar_face(board, T_s, T_b)
         keep, axis, bounds, _, rng = edge_sides(T_s, T_b, o.edge_rays, board, face_m=face)
         if not keep.any():
