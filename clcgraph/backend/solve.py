@@ -609,7 +609,8 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
                            rt_lidar0_board=rt_board.copy(), noise=noise, rms=rms, rejected=tuple(rejected),
                            residuals=_residual_arrays(problem, lid, cam, active)))
 
-    # a board described otherwise than the sensors see it is said as such, before its effects are
+    # a board described otherwise than the sensors see it is named as such, before the checks below
+    # blame the capture for its effects
     if options.lidar_edges:
         board_check.check_size(problem, board_check.size_seen(problem, active, rt_sensor, rt_board))
     board_check.check_scale(problem, board_check.scale_seen(problem, active, rt_sensor), options)
