@@ -278,6 +278,14 @@ def test_a_wrong_corner_count_is_answered_with_the_count_the_images_show(clean, 
     assert BoardDetection(imgs, DetectionOptions(), BOARD).grid_shown_instead() is None  # found: nothing to say
     blank = [Image("/cam", k, np.full((H, W), 128, np.uint8), "mono8") for k in range(3)]
     assert BoardDetection(blank, DetectionOptions(), BOARD).grid_shown_instead() is None  # no board at all
+    # the solve's first pass stops there, in one line naming the camera and the count to set
+    from clcgraph.api import _first_detection_pass
+    from clcgraph.errors import InputError
+
+    with pytest.raises(InputError, match=rf"^/cam: its images show a whole 10x10 grid of inner corners \(5 of the 5 "
+                                         rf"images checked\), none the {declared}x{declared} of board.corners: set "
+                                         r"board.corners: \[10, 10\]"):
+        _first_detection_pass(imgs, DetectionOptions(), wrong, None)
 
 
 def test_a_grid_with_a_row_along_the_patterns_edge_is_rejected(clean):
