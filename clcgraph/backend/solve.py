@@ -173,8 +173,9 @@ def _active_residuals(lid, cam, active):
     return (np.concatenate(rl) if rl else np.zeros(0)), (np.concatenate(rc) if rc else np.zeros(0))
 
 
-def _reject(problem, active, lid, cam, sig_l, sig_c, options, rt_sensor, rt_board) -> list[Rejected]:
-    """Mark outliers in ``active`` (in place); return the new whole-observation rejections.
+def _reject(problem, active, lid, cam, sig, options, rt_sensor, rt_board) -> list[Rejected]:
+    """Mark outliers in ``active`` (in place) against each sensor's robust sigma ``sig`` (per sensor, m
+    or px); return the new whole-observation rejections.
 
     Whole observations first, the worst per snapshot, and nothing else that round: one bad
     observation drags its board and so the residuals of the good ones. Only once no
@@ -183,8 +184,8 @@ def _reject(problem, active, lid, cam, sig_l, sig_c, options, rt_sensor, rt_boar
     """
     new = []
     members: dict[int, list] = {}  # snapshot -> [(kind, j, joint z)]
-    for kind, obs, res, masks, sig in (("lidar", problem.lidar_observations, lid, active.lidar, sig_l),
-                                       ("camera", problem.camera_observations, cam, active.camera, sig_c)):
+    for kind, obs, res, masks in (("lidar", problem.lidar_observations, lid, active.lidar),
+                                  ("camera", problem.camera_observations, cam, active.camera)):
         for j, (o, r, m) in enumerate(zip(obs, res, masks)):
             if m is None or r is None or not m.any():
                 continue
@@ -201,7 +202,7 @@ def _reject(problem, active, lid, cam, sig_l, sig_c, options, rt_sensor, rt_boar
                                     "outlier", o.sensor, k))
             continue
         # the culprit is the one the others predict worst (its "deleted residual")
-        scored = [(_deleted_z(problem, active, rt_sensor, rt_board, k, kind, j, sig_l, sig_c, options), kind, j)
+        scored = [(_deleted_z(problem, active, rt_sensor, rt_board, k, kind, j, sig, options), kind, j)
                   for kind, j, _ in group]
         scored.sort(reverse=True)
         z, kind, j = scored[0]
@@ -220,10 +221,10 @@ def _reject(problem, active, lid, cam, sig_l, sig_c, options, rt_sensor, rt_boar
         return new
     for j, (o, r, m) in enumerate(zip(problem.lidar_observations, lid, active.lidar)):
         if m is not None and r is not None:
-            active.lidar[j] = np.abs(r) <= options.outlier_sigma * G.sigma_of(sig_l, o.sensor)
+            active.lidar[j] = np.abs(r) <= options.outlier_sigma * G.sigma_of(sig, o.sensor)
     for j, (o, r, m) in enumerate(zip(problem.camera_observations, cam, active.camera)):
         if m is not None and r is not None:
-            lim = options.outlier_sigma * G.sigma_of(sig_c, o.sensor)
+            lim = options.outlier_sigma * G.sigma_of(sig, o.sensor)
             active.camera[j] = np.all(np.isfinite(o.corners_px), axis=1) & np.all(np.abs(r) <= lim, axis=1)
     # an observation that lost most of its points is wrong as a whole
     for kind, obs, masks in (("lidar", problem.lidar_observations, active.lidar),
@@ -245,7 +246,7 @@ def _deactivate(active, kind: str, j: int) -> None:
     (active.lidar if kind == "lidar" else active.camera)[j] = None
 
 
-def _deleted_z(problem, active, rt_sensor, rt_board, k, kind, j, sig_l, sig_c, options) -> float:
+def _deleted_z(problem, active, rt_sensor, rt_board, k, kind, j, sig, options) -> float:
     """RMS/sigma of observation (kind, j) of snapshot k at the board pose fitted to the
     snapshot's OTHER observations, with the sensor poses held."""
     import gtsam
@@ -257,7 +258,7 @@ def _deleted_z(problem, active, rt_sensor, rt_board, k, kind, j, sig_l, sig_c, o
     for o_j, (o, m) in enumerate(zip(problem.camera_observations, active.camera)):
         if o.snapshot == k and m is not None and not (kind == "camera" and o_j == j):
             sub.camera[o_j] = m
-    g, v = G.build(problem, sub, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig_l, sigma_camera_px=sig_c,
+    g, v = G.build(problem, sub, rt_sensor, rt_board, lidar="range", sigma_lidar_m=sig, sigma_camera_px=sig,
                    options=options)
     held = gtsam.noiseModel.Isotropic.Sigma(6, 1e-9)
     for i in range(len(problem.sensors)):
@@ -273,9 +274,9 @@ def _deleted_z(problem, active, rt_sensor, rt_board, k, kind, j, sig_l, sig_c, o
     r = G.residual_of(problem, kind, j, poses, b)  # this observation's alone: not every snapshot's
     if kind == "lidar":
         r = r[active.lidar[j]]
-        return float(np.sqrt(np.mean(r**2)) / G.sigma_of(sig_l, problem.lidar_observations[j].sensor))
+        return float(np.sqrt(np.mean(r**2)) / G.sigma_of(sig, problem.lidar_observations[j].sensor))
     r = r[active.camera[j]].ravel()
-    return float(np.sqrt(np.mean(r**2)) / G.sigma_of(sig_c, problem.camera_observations[j].sensor))
+    return float(np.sqrt(np.mean(r**2)) / G.sigma_of(sig, problem.camera_observations[j].sensor))
 
 
 def _unit_errors(problem, rebuild, values, nominal, rt_sensor, options) -> dict:
@@ -533,7 +534,7 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
         new, before = [], _mask_signature(active)
         if options.reject_outliers:
             robust = _robust_sigmas(problem, active, _per_sensor_residuals(problem, lid, cam, active), options)
-            new = _reject(problem, active, lid, cam, robust, robust, options, rt_sensor, rt_board)
+            new = _reject(problem, active, lid, cam, robust, options, rt_sensor, rt_board)
             rejected += new
         old = sig.copy()
         if options.reestimate_noise:
