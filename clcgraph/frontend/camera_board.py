@@ -376,8 +376,14 @@ def _scratch_dir() -> str | None:
     return "/dev/shm" if os.access("/dev/shm", os.W_OK) else None
 
 
+# Added to the detectors' output to get mrcal's convention (measured against rendered
+# truth in tests/test_camera_board.py).
+_OFFSET_PX = {"mrgingham": np.zeros(2), "opencv": np.zeros(2)}
+
+
 def _run_mrgingham(grays: list[np.ndarray], n: int, jobs: int) -> list[np.ndarray | None]:
-    """Corners (N,2) or None per image of an n x n grid, from ONE mrgingham run over all the images.
+    """Corners (N,2, mrcal's pixel convention) or None per image of an n x n grid, from ONE mrgingham
+    run over all the images.
 
     The images are written uncompressed (PGM: a memory copy; PNG compression cost 6x the detector)."""
     import cv2
@@ -408,7 +414,7 @@ def _run_mrgingham(grays: list[np.ndarray], n: int, jobs: int) -> list[np.ndarra
         if f[1] == "-":
             continue
         pts[f[0]].append((float(f[1]), float(f[2])))
-    return [np.array(pts[n], dtype=float) if pts[n] else None for n in names]
+    return [np.array(pts[n], dtype=float) + _OFFSET_PX["mrgingham"] if pts[n] else None for n in names]
 
 
 # ---------------------------------------------------------------- opencv
@@ -424,12 +430,12 @@ def _opencv_one(args) -> np.ndarray | None:
     ok, c = cv2.findChessboardCornersSB(gray, (nx, ny), flags=flags)
     if not ok or c is None:
         return None
-    return c.reshape(-1, 2).astype(float)
+    return c.reshape(-1, 2).astype(float) + _OFFSET_PX["opencv"]
 
 
 def _run_opencv(grays: list[np.ndarray], nx: int, ny: int, jobs: int, *, quick_first: bool,
                 exhaustive=True) -> list[np.ndarray | None]:
-    """Corners (N,2) or None per image, from OpenCV's sector-based detector. ``exhaustive``: per image
+    """Corners (N,2, mrcal's pixel convention) or None per image, from OpenCV's sector-based detector. ``exhaustive``: per image
     (or one for all), whether it searches exhaustively (CALIB_CB_EXHAUSTIVE: more board hypotheses,
     for a board anywhere among clutter; on a miss it costs 2x). ``quick_first``: search without
     OpenCV's own refinement (CALIB_CB_ACCURACY, on an upsampled image) first, with it only where
@@ -460,11 +466,6 @@ def _opencv_all(args: list, jobs: int) -> list[np.ndarray | None]:
 def not_found_text(board: BoardGeometry) -> str:
     """The detector's own reason when it finds no grid (api.explain_not_found says more after a solve)."""
     return f"no full {board.corners_x}x{board.corners_y} chessboard found"
-
-
-# Added to the detectors' output to get mrcal's convention (measured against rendered
-# truth in tests/test_camera_board.py).
-_OFFSET_PX = {"mrgingham": np.zeros(2), "opencv": np.zeros(2)}
 
 
 def detect_corners(images: list[Image], options, board: BoardGeometry, *,
@@ -502,10 +503,9 @@ class BoardDetection:
         self.grays = [to_gray8(im.pixels) for im in self.images]
         nx, ny, jobs = board.corners_x, board.corners_y, options.jobs
         if self.detector == MRGINGHAM:
-            raw = [None if c is None else c + _OFFSET_PX["mrgingham"] for c in _run_mrgingham(self.grays, nx, jobs)]
+            raw = _run_mrgingham(self.grays, nx, jobs)
         else:
-            raw = [None if c is None else c + _OFFSET_PX["opencv"]
-                   for c in _run_opencv(self.grays, nx, ny, jobs, quick_first=options.refine_subpix)]
+            raw = _run_opencv(self.grays, nx, ny, jobs, quick_first=options.refine_subpix)
         self.results = [self._validated(k, c) for k, c in enumerate(raw)]
         # only mrgingham's misses are retried (OpenCV has searched the whole image already)
         self.missed = [k for k, c in enumerate(raw) if c is None] if self.detector == MRGINGHAM else []
@@ -533,7 +533,7 @@ class BoardDetection:
                 continue
             found = _run_mrgingham([self.grays[k] for k in picked], m, self.options.jobs)
             shown = [self.images[k].topic for k, c in zip(picked, found) if c is not None and isinstance(
-                _validate(c + _OFFSET_PX["mrgingham"], self.grays[k], m, m, self.options, ""), np.ndarray)]
+                _validate(c, self.grays[k], m, m, self.options, ""), np.ndarray)]
             if len(shown) >= 2:
                 return m, shown, len(picked)
         return None
@@ -590,7 +590,7 @@ class BoardDetection:
             if c is None:
                 still.append(k)
             else:
-                self.results[k] = self._validated(k, back(k, c + _OFFSET_PX["mrgingham"], crops[k][4]))
+                self.results[k] = self._validated(k, back(k, c, crops[k][4]))
         # ... and where it still finds nothing, OpenCV's sector-based detector may, in the
         # upsampled image too (its grid passes the same checks). The full detector is slow, so
         # it runs only where OpenCV's quick check sees a board, except in low-resolution images
@@ -608,7 +608,7 @@ class BoardDetection:
             for (k, f), c in zip(tries, _run_opencv([crop(k, f) for k, f in tries], nx, ny, jobs,
                                                     exhaustive=anywhere, quick_first=False)):
                 if c is not None:
-                    self.results[k] = self._validated(k, back(k, c + _OFFSET_PX["opencv"], f))
+                    self.results[k] = self._validated(k, back(k, c, f))
                     still.remove(k)
         return self.results
 
