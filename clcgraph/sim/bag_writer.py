@@ -48,7 +48,7 @@ FORMATS = ("ros1", "ros2-sqlite3", "ros2-mcap")
 _INT8, _UINT8, _INT16, _UINT16, _INT32, _UINT32, _FLOAT32, _FLOAT64 = range(1, 9)
 
 # (name, offset, datatype, numpy type) per layout, and the point_step
-_LAYOUTS = {
+LAYOUTS = {
     "velodyne": (
         [("x", 0, _FLOAT32), ("y", 4, _FLOAT32), ("z", 8, _FLOAT32),
          ("intensity", 16, _FLOAT32), ("ring", 20, _UINT16), ("time", 24, _FLOAT32)],
@@ -223,9 +223,9 @@ class BagWriter:
         mask equals ``scan.valid``. Coordinates and times are stored as float32 (ouster
         time as uint32 ns). Missing ring / time / intensity are written as zeros.
         """
-        if layout not in _LAYOUTS:
-            raise InputError(f"pointcloud layout {layout!r} unknown; use {', '.join(_LAYOUTS)}")
-        fields, point_step = _LAYOUTS[layout]
+        if layout not in LAYOUTS:
+            raise InputError(f"pointcloud layout {layout!r} unknown; use {', '.join(LAYOUTS)}")
+        fields, point_step = LAYOUTS[layout]
         if layout == "pcl_xyzi":  # dense: a filter drops the invalid points (and the cloud's layout)
             keep = np.asarray(scan.valid, bool)
             scan = dataclasses.replace(scan, points=np.asarray(scan.points)[keep], valid=keep[keep], shape=None,

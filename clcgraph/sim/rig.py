@@ -57,6 +57,7 @@ from ..config import Config, ConfigError, read_yaml
 from ..errors import InputError
 from ..geometry import T_from_xyz_rpy
 from ..types import BoardGeometry, Sensor
+from .bag_writer import LAYOUTS
 from .camera import BAYER_ENCODINGS
 from .lidar import LidarModel
 from .scene import PERSON_PLACES
@@ -162,8 +163,8 @@ def load_rig(path) -> Rig:
         except KeyError as e:
             raise InputError(f"{path}: {where}.model: {e.args[0]}") from None
         over = {k2: L[k2] for k2 in _LIDAR_MODEL_KEYS if k2 in L}
-        if over.get("layout", model.layout) not in ("velodyne", "ouster", "hesai", "pcl_xyzi"):
-            raise InputError(f"{path}: {where}.layout must be velodyne, ouster, hesai or pcl_xyzi")
+        if over.get("layout", model.layout) not in LAYOUTS:
+            raise InputError(f"{path}: {where}.layout must be one of {', '.join(LAYOUTS)}")
         if over.get("dual_returns") and over.get("layout", model.layout) == "pcl_xyzi":
             raise InputError(f"{path}: {where}.dual_returns needs a driver's layout (velodyne, ouster or hesai)")
         model = replace(model, **over)
