@@ -1,5 +1,5 @@
 """The board as described against what the sensors see: board.size_m against the LIDARs' edges,
-board.square_m against the LIDARs' planes.
+board.square_m against the LIDARs' planes, board.pattern_offset_m against both.
 
 **Size.** The edge factors hold each side of the board where board.size_m puts it. A board
 measured wrong (its border left out, the wrong sheet's size) moves every side the same way: each
@@ -31,20 +31,38 @@ Boards all at one distance cannot tell it: the real ACFR boards at 2.9-3.5 m giv
 0.982 +- 0.022 (runs 1, 2), not refused; the bench capture's right squares 0.9998-1.0004 (+-
 0.0002-0.0003), 0.098 and 0.102 0.978-0.980 and 1.020-1.021.
 
+**Pattern offset.** board.pattern_offset_m places the pattern, which the cameras see, against
+the outline, which the LIDARs' edges see. Described wrong, the two disagree within the board's
+plane on every board a camera and a LIDAR both saw; a camera's shift takes up most of it where
+its boards all face it alike (3 cm off along the width moved the bench capture's cameras 27 mm at
+a 1-sigma of 5 mm, written as a result). So the offset's correction is estimated beside the
+sensors' poses, one Gauss-Newton step from the final solution with two more unknowns (the
+corners' change per metre of it from a rebuilt graph, as consider.py's terms): the boards'
+turns and the LIDARs' own view of the outline separate it from the cameras' shifts. Refused
+beyond 5 mm (a pattern placed by hand) and 4 standard errors (>= 5 boards). On the bench
+capture a right description gives (0.0 +- 0.8, 1.2 +- 1.1) mm, 3 cm along the width 29.9 +- 3.4
+mm, 1 cm 9.3 +- 1.1 mm; the real ACFR runs (3.0 +- 2.6, -1.5 +- 2.5) and (3.5 +- 3.7, -1.2 +-
+3.6) mm, not refused.
+
 SYNOPSIS
+    check_offset(problem, offset_seen(problem, lin, rebuild))   # InputError naming board.pattern_offset_m
     check_size(problem, size_seen(problem, active, rt_sensor, rt_board))   # InputError naming the LIDAR
     check_scale(problem, scale_seen(problem, active, rt_sensor), options)  # InputError naming the camera
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 
+from .. import cameras
 from ..errors import InputError
 from ..factors.lidar_edge import edge_sides, lidar_edge_residuals
-from ..geometry import T_from_rt, pose3_from_rt
+from ..geometry import T_from_rt, compose_rt, invert_rt, pose3_from_rt, rt_from_pose3, transform
+from . import graph as G
+from .consider import moved_graph
 from .graph import lidar_face
 from .seed import board_pose_from_corners
 
@@ -52,6 +70,7 @@ TOLERANCE_M = 0.010  # a side's offset allowed either way: a board measured to t
 GROWTH_RAD = 0.002  # outward, per metre of range: the part of a beam's footprint still returning
 MIN_BOARDS = 5
 MIN_SIGMAS = 4.0
+OFFSET_TOLERANCE_M = 0.005  # a pattern placed on its board by hand, to half a centimetre
 SCALE_TOLERANCE = 0.002  # a pattern's scale error below which no check refuses (0.2 mm on a 0.1 m square)
 
 
@@ -188,3 +207,77 @@ def check_scale(problem, fits: dict, options) -> None:
             f"{sq * 1e3:g} mm of board.square_m (a pattern printed scaled?), or this camera model's focal length is "
             f"{abs(off) * 100:.1f} % {'long' if off > 0 else 'short'}; measure the squares across the whole pattern "
             f"(a focal length known only to a few %: --set solve.camera_focal_scale_sigma={max(abs(off), 0.001):.3f})")
+
+
+@dataclass(frozen=True)
+class OffsetFit:
+    shift_m: np.ndarray  # (2,) the pattern's centre less where board.pattern_offset_m puts it (along the width, height)
+    se_m: np.ndarray  # (2,) its standard errors
+    boards: int  # snapshots seen by a camera and by a LIDAR's outline
+
+
+_STEP_M = 1e-3  # the pattern's trial shift (the corners are linear in it far below the noise)
+
+
+def _pattern_moved(problem, values, axis: int, h: float):
+    """``problem`` with every camera's corners where they would be with the pattern ``h`` (m)
+    farther along the board's ``axis`` than the board's description puts it (the outline, which
+    the LIDARs see, in place), at the poses ``values``."""
+    corners = problem.board.corners()
+    moved = corners.copy()
+    moved[:, axis] += h
+    T = {i: rt_from_pose3(values.atPose3(G.sensor_key(i))) for i in range(len(problem.sensors)) if i != problem.reference}
+    out = []
+    for o in problem.camera_observations:
+        key = G.board_key(o.snapshot)
+        if not values.exists(key):
+            out.append(o)
+            continue
+        s = problem.sensors[o.sensor]
+        rt_c_b = compose_rt(invert_rt(T[o.sensor]), rt_from_pose3(values.atPose3(key)))
+        dq = cameras.project(transform(rt_c_b, moved), s.lensmodel, s.intrinsics) - \
+            cameras.project(transform(rt_c_b, corners), s.lensmodel, s.intrinsics)
+        out.append(dataclasses.replace(o, corners_px=o.corners_px + dq))
+    return dataclasses.replace(problem, camera_observations=tuple(out))
+
+
+def offset_seen(problem, lin, build) -> OffsetFit | None:
+    """The pattern's offset on the board as the cameras' corners and the LIDARs' outlines of the
+    same boards see it: one Gauss-Newton step from the final solution (``lin``: its
+    noise.Linearization; ``build``: the final graph's rebuild of a problem, as consider's) with
+    the offset's correction as two more unknowns beside the sensors; None without a board that a
+    camera and a LIDAR's outline both saw."""
+    cams = {o.snapshot for o in problem.camera_observations}
+    boards = len(cams & {o.snapshot for o in problem.lidar_observations
+                         if o.edge_rays is not None and len(o.edge_rays)})
+    if not boards or lin.rows is None:
+        return None
+    cols: dict = {}
+    for a in (0, 1):
+        for f, factor in moved_graph(problem, _pattern_moved(problem, lin.values, a, _STEP_M), lin, build).items():
+            db = (factor.linearize(lin.values).jacobian()[1] - lin.rows[lin.factors[f][3].start][2]) / _STEP_M
+            cols.setdefault(f, np.zeros((len(db), 2)))[:, a] = db
+    if not cols:
+        return None
+    S, r, _ = lin.with_known(cols, 2).reduced()
+    C = np.linalg.inv(S)
+    return OffsetFit((C @ r)[-2:], np.sqrt(np.diag(C)[-2:]), boards)
+
+
+def check_offset(problem, fit: OffsetFit | None) -> None:
+    """InputError where the boards' patterns sit off board.pattern_offset_m beyond a pattern placed by
+    hand (OFFSET_TOLERANCE_M) and their standard error (module docstring)."""
+    if fit is None or fit.boards < MIN_BOARDS:
+        return
+    off = np.abs(fit.shift_m) > np.maximum(OFFSET_TOLERANCE_M, MIN_SIGMAS * fit.se_m)
+    if not off.any():
+        return
+    stated = np.asarray(problem.board.pattern_offset_m, float)
+    seen = stated + fit.shift_m
+    where = " and ".join(f"{abs(fit.shift_m[a]) * 1e3:.0f} mm {('along the width', 'along the height')[a]} "
+                         f"(+-{fit.se_m[a] * 1e3:.1f})" for a in (0, 1) if off[a])
+    raise InputError(
+        f"board.pattern_offset_m: the cameras' corners and the LIDARs' outlines of the same {fit.boards} boards put "
+        f"the pattern's centre {where} off where [{stated[0]:g}, {stated[1]:g}] puts it: measure the pattern's "
+        f"centre from the board's centre (along the width, the height) and set board.pattern_offset_m "
+        f"(these captures show [{seen[0]:.3f}, {seen[1]:.3f}])")

@@ -634,6 +634,7 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
         return rebuild
 
     rebuild = rebuilder(sig, effect_sig)
+    board_check.check_offset(problem, board_check.offset_seen(problem, lin, rebuild))
 
     # the consider terms' errors as columns of the final linearization: the jackknife's expected
     # ratio and the consistency checks count them in
