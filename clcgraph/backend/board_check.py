@@ -1,19 +1,29 @@
-"""The board as described against what the sensors see: board.size_m against the LIDARs' edges,
-board.square_m against the LIDARs' planes, board.pattern_offset_m against both.
+"""The board as described against what the sensors see: board.size_m and board.pattern_offset_m
+against the LIDARs' outlines and the cameras' corners, board.square_m against the LIDARs' planes.
 
-**Size.** The edge factors hold each side of the board where board.size_m puts it. A board
-measured wrong (its border left out, the wrong sheet's size) moves every side the same way: each
-edge interval then lies inside the declared side (the board is smaller) or outside it (larger),
-on every board, whatever its pose, where a board misplaced within its plane moves opposite sides
-opposite ways. So the median of the boards' outward offsets per LIDAR and side direction measures
-the error: declared width + 2 x offset is the width the LIDAR sees. Physics adds an outward bias
-only: a beam partly on the board still returns from it, so the board looks larger by part of the
-footprint (on the real ACFR Ouster 3-6 mm a side at 3.8 m; divergences are 2-3 mrad). The check
-allows 10 mm a side either way (a board measured to the centimetre) and outward 2 mrad more per
-metre of range, and asks the offset to stand out of its standard error across the boards (4
-sigma, >= 5 boards): a 3 cm error a side on the bench capture gave -26 mm (se 1.2) where the
-right size gives +0.7 to +2.8 mm. A board described larger than it is by more than the outline
-fit accepts (tens of cm) leaves few intervals to measure; the solve's own checks refuse those.
+**Size and pattern offset.** The edge factors hold each side of the board where board.size_m and
+board.pattern_offset_m put it against the pattern, which the cameras see. A board measured wrong
+(its border left out, the wrong sheet's size) moves opposite sides opposite ways on every board;
+a pattern offset described wrong moves the outline against the pattern within the board's plane.
+Both are estimated beside the sensors' poses: one Gauss-Newton step from the final solution with
+their corrections as four more unknowns (the measurements' change per metre of each from a
+rebuilt graph, as consider.py's terms; the edges' Huber weights held, as in the step itself).
+A camera's shift takes up most of a wrong offset where its boards all face it alike (3 cm along
+the width moved the bench capture's cameras 27 mm at a 1-sigma of 5 mm, written as a result);
+the boards' turns and the LIDARs' own view of the outline separate the two. Physics adds an
+outward bias to the size only: a beam partly on the board still returns from it, so the board
+looks larger by part of the footprint (on the real ACFR Ouster 3-6 mm a side at 3.8 m;
+divergences are 2-3 mrad). Refused where a correction stands out of 4 standard errors (>= 5
+boards) and beyond 10 mm a side for the size (a board measured to the centimetre; outward 2 mrad
+more per metre of the outlines' median range) or 5 mm for the offset (a pattern placed by hand).
+On the bench capture (1.3 m board, 24 boards at 2-9 m): the right description gives a size +1.5
+/ +3.0 mm (+-0.9 / 1.7) and an offset (-0.1, -0.6) mm (+-0.8 / 1.2); described 1.36, 1.34,
+1.25, 1.2, 1.45 or 1.6 m, the size shown is 1.28-1.32 m (the sides 15-30 cm inside a board
+described too large still pull: the frontend keeps their intervals); the offset 3 cm / 1 cm
+along the width off, -30.1 +- 3.4 / -9.5 +- 1.1 mm. The real ACFR runs: size +7.3 / +11.7 and
++7.0 / +11.5 mm, offset (2.5, -2.4) and (3.3, -2.4) mm (+-2.6-3.7), not refused. A board
+described 20 cm smaller than it is (its border left out) fails earlier: the segmentation takes
+its planes for larger than a board.
 
 **Scale.** A camera's view of the pattern fixes the board's distance only through the square
 size: squares declared 2 % small put every board 2 % nearer (a pattern printed at 98 %, "fit to
@@ -31,22 +41,8 @@ Boards all at one distance cannot tell it: the real ACFR boards at 2.9-3.5 m giv
 0.982 +- 0.022 (runs 1, 2), not refused; the bench capture's right squares 0.9998-1.0004 (+-
 0.0002-0.0003), 0.098 and 0.102 0.978-0.980 and 1.020-1.021.
 
-**Pattern offset.** board.pattern_offset_m places the pattern, which the cameras see, against
-the outline, which the LIDARs' edges see. Described wrong, the two disagree within the board's
-plane on every board a camera and a LIDAR both saw; a camera's shift takes up most of it where
-its boards all face it alike (3 cm off along the width moved the bench capture's cameras 27 mm at
-a 1-sigma of 5 mm, written as a result). So the offset's correction is estimated beside the
-sensors' poses, one Gauss-Newton step from the final solution with two more unknowns (the
-corners' change per metre of it from a rebuilt graph, as consider.py's terms): the boards'
-turns and the LIDARs' own view of the outline separate it from the cameras' shifts. Refused
-beyond 5 mm (a pattern placed by hand) and 4 standard errors (>= 5 boards). On the bench
-capture a right description gives (0.0 +- 0.8, 1.2 +- 1.1) mm, 3 cm along the width 29.9 +- 3.4
-mm, 1 cm 9.3 +- 1.1 mm; the real ACFR runs (3.0 +- 2.6, -1.5 +- 2.5) and (3.5 +- 3.7, -1.2 +-
-3.6) mm, not refused.
-
 SYNOPSIS
-    check_offset(problem, offset_seen(problem, lin, rebuild))   # InputError naming board.pattern_offset_m
-    check_size(problem, size_seen(problem, active, rt_sensor, rt_board))   # InputError naming the LIDAR
+    check_board(problem, board_seen(problem, g, lin, rebuild, beam_rad))   # InputError naming board.size_m / .pattern_offset_m
     check_scale(problem, scale_seen(problem, active, rt_sensor), options)  # InputError naming the camera
 """
 
@@ -59,11 +55,9 @@ import numpy as np
 
 from .. import cameras
 from ..errors import InputError
-from ..factors.lidar_edge import edge_sides, lidar_edge_residuals
-from ..geometry import T_from_rt, compose_rt, invert_rt, pose3_from_rt, rt_from_pose3, transform
+from ..geometry import T_from_rt, compose_rt, invert_rt, rt_from_pose3, transform
 from . import graph as G
 from .consider import moved_graph
-from .graph import lidar_face
 from .seed import board_pose_from_corners
 
 TOLERANCE_M = 0.010  # a side's offset allowed either way: a board measured to the centimetre
@@ -72,66 +66,6 @@ MIN_BOARDS = 5
 MIN_SIGMAS = 4.0
 OFFSET_TOLERANCE_M = 0.005  # a pattern placed on its board by hand, to half a centimetre
 SCALE_TOLERANCE = 0.002  # a pattern's scale error below which no check refuses (0.2 mm on a 0.1 m square)
-
-
-@dataclass(frozen=True)
-class SideOffset:
-    offset_m: float  # median over the boards of each board's median outward offset of that direction's sides
-    se_m: float  # its standard error (MAD across the boards)
-    boards: int
-    range_m: float  # the median range to those edges
-
-
-def size_seen(problem, active, rt_sensor: np.ndarray, rt_board: np.ndarray) -> dict:
-    """{(LIDAR index, axis 0 width / 1 height): SideOffset} of the active observations' edge rays at
-    the given poses."""
-    board = problem.board
-    x0, x1, y0, y1 = board.extent()
-    centre = np.array([(x0 + x1) / 2, (y0 + y1) / 2])
-    per: dict = {}
-    for o, m in zip(problem.lidar_observations, active.lidar):
-        if m is None or not m.any() or o.edge_rays is None or not len(o.edge_rays):
-            continue
-        T_s = None if o.sensor == problem.reference else pose3_from_rt(rt_sensor[o.sensor])
-        T_b = pose3_from_rt(rt_board[o.snapshot])
-        face = lidar_face(board, T_s, T_b)
-        keep, axis, bounds, _, rng = edge_sides(T_s, T_b, o.edge_rays, board, face_m=face)
-        if not keep.any():
-            continue
-        axis, bounds, rng = axis[keep], bounds[keep], rng[keep]
-        err = lidar_edge_residuals(T_s, T_b, o.edge_rays[keep], axis, bounds, face_m=face)
-        out = err * np.sign(bounds - centre[axis])
-        for a in (0, 1):
-            on = axis == a
-            if on.any():
-                per.setdefault((o.sensor, a), []).append((float(np.median(out[on])), float(np.median(rng[on]))))
-    seen = {}
-    for key, v in per.items():
-        off, rng = np.array(v).T
-        med = float(np.median(off))
-        seen[key] = SideOffset(med, 1.4826 * float(np.median(np.abs(off - med))) / np.sqrt(len(off)), len(off),
-                               float(np.median(rng)))
-    return seen
-
-
-def check_size(problem, seen: dict) -> None:
-    """InputError where a LIDAR's edges put the board's sides off board.size_m beyond what a
-    measurement or a beam explains (module docstring)."""
-    board = problem.board
-    size = (board.width_m, board.height_m)
-    for (i, a), s in sorted(seen.items()):
-        allowed = TOLERANCE_M + (GROWTH_RAD * s.range_m if s.offset_m > 0 else 0.0)
-        if s.boards < MIN_BOARDS or abs(s.offset_m) <= max(allowed, MIN_SIGMAS * s.se_m):
-            continue
-        other = seen.get((i, 1 - a))
-        seen_size = [size[0] + 2 * (s.offset_m if a == 0 else other.offset_m if other else 0.0),
-                     size[1] + 2 * (s.offset_m if a == 1 else other.offset_m if other else 0.0)]
-        raise InputError(
-            f"{problem.sensors[i].topic}: its scans show the board {seen_size[0]:.2f} x {seen_size[1]:.2f} m, "
-            f"board.size_m says [{size[0]:g}, {size[1]:g}]: the board's {('left and right', 'top and bottom')[a]} "
-            f"edges lie {abs(s.offset_m) * 1e3:.0f} mm {'outside' if s.offset_m > 0 else 'inside'} where it puts them "
-            f"(median of {s.boards} boards, +-{s.se_m * 1e3:.1f} mm); measure the physical board, its white border "
-            "included, and set board.size_m (width x height)")
 
 
 @dataclass(frozen=True)
@@ -210,13 +144,19 @@ def check_scale(problem, fits: dict, options) -> None:
 
 
 @dataclass(frozen=True)
-class OffsetFit:
-    shift_m: np.ndarray  # (2,) the pattern's centre less where board.pattern_offset_m puts it (along the width, height)
-    se_m: np.ndarray  # (2,) its standard errors
-    boards: int  # snapshots seen by a camera and by a LIDAR's outline
+class BoardFit:
+    """The board's pattern offset and size as the sensors see them, less the description's."""
+
+    offset_m: np.ndarray  # (2,) the pattern's centre less where board.pattern_offset_m puts it (width, height)
+    offset_se_m: np.ndarray  # (2,) its standard errors
+    size_m: np.ndarray  # (2,) the board's width and height less board.size_m's
+    size_se_m: np.ndarray  # (2,)
+    boards_both: int  # snapshots seen by a camera and by a LIDAR's outline (the offset's)
+    boards_outline: int  # snapshots whose outline a LIDAR saw (the size's)
+    range_m: float  # the median range to those outlines
 
 
-_STEP_M = 1e-3  # the pattern's trial shift (the corners are linear in it far below the noise)
+_STEP_M = 1e-3  # the trial shift and growth (the measurements are linear in them far below the noise)
 
 
 def _pattern_moved(problem, values, axis: int, h: float):
@@ -241,43 +181,91 @@ def _pattern_moved(problem, values, axis: int, h: float):
     return dataclasses.replace(problem, camera_observations=tuple(out))
 
 
-def offset_seen(problem, lin, build) -> OffsetFit | None:
-    """The pattern's offset on the board as the cameras' corners and the LIDARs' outlines of the
-    same boards see it: one Gauss-Newton step from the final solution (``lin``: its
-    noise.Linearization; ``build``: the final graph's rebuild of a problem, as consider's) with
-    the offset's correction as two more unknowns beside the sensors; None without a board that a
-    camera and a LIDAR's outline both saw."""
-    cams = {o.snapshot for o in problem.camera_observations}
-    boards = len(cams & {o.snapshot for o in problem.lidar_observations
-                         if o.edge_rays is not None and len(o.edge_rays)})
-    if not boards or lin.rows is None:
+def _grown_edges(problem, g, lin, axis: int, h: float, beam_rad: float) -> dict:
+    """{factor index of ``g``: its edge factor with the board ``h`` (m) wider (``axis`` 0) or taller
+    (1) than board.size_m, about the same centre} for g's edge factors (Robust: lidar_edge_factor)."""
+    import gtsam
+
+    spec = problem.board.spec()
+    spec["size_m"] = [w + (h if a == axis else 0.0) for a, w in enumerate(spec["size_m"])]
+    grown = dataclasses.replace(problem, board=type(problem.board).from_spec(**spec))
+    obs = {(o.sensor, o.snapshot): o for o in problem.lidar_observations}
+    out = {}
+    for f, (i, k, _, _) in enumerate(lin.factors):
+        factor = g.at(f)
+        if i is None or k is None or not isinstance(factor.noiseModel(), gtsam.noiseModel.Robust):
+            continue
+        T_s = None if i == problem.reference else lin.values.atPose3(G.sensor_key(i))
+        out[f] = G.edge_factor(grown, obs[(i, k)], T_s, lin.values.atPose3(G.board_key(k)), beam_rad=beam_rad)
+    return out
+
+
+def _db(factor, moved, lin, f: int) -> np.ndarray:
+    """The change of ``factor``'s whitened b (index ``f`` of ``lin``) when its measurements move as
+    in ``moved``, at lin's values. A robust factor keeps its weight (as the Gauss-Newton step that
+    ``lin`` is does, iteratively reweighted): the Huber's own change of weight with its error would
+    count a block far out on it at half its slope."""
+    import gtsam
+
+    model = factor.noiseModel()
+    if not isinstance(model, gtsam.noiseModel.Robust):
+        return moved.linearize(lin.values).jacobian()[1] - lin.rows[lin.factors[f][3].start][2]
+    e0 = factor.unwhitenedError(lin.values)
+    w = model.robust().weight(float(np.linalg.norm(model.noise().whiten(e0))))
+    return -np.sqrt(w) * model.noise().whiten(moved.unwhitenedError(lin.values) - e0)
+
+
+def board_seen(problem, g, lin, build, beam_rad: float) -> BoardFit | None:
+    """The board's pattern offset and size as the cameras' corners and the LIDARs' outlines see
+    them: one Gauss-Newton step from the final solution (``g``, ``lin``: its graph and
+    noise.Linearization; ``build``: the final graph's rebuild of a problem, as consider's;
+    ``beam_rad``: the edge factors') with their corrections as four more unknowns beside the
+    sensors; None without an outline seen."""
+    outlined = [o for o in problem.lidar_observations if o.edge_rays is not None and len(o.edge_rays)]
+    if not outlined or lin.rows is None:
         return None
     cols: dict = {}
-    for a in (0, 1):
-        for f, factor in moved_graph(problem, _pattern_moved(problem, lin.values, a, _STEP_M), lin, build).items():
-            db = (factor.linearize(lin.values).jacobian()[1] - lin.rows[lin.factors[f][3].start][2]) / _STEP_M
-            cols.setdefault(f, np.zeros((len(db), 2)))[:, a] = db
+    moved = [moved_graph(problem, _pattern_moved(problem, lin.values, a, _STEP_M), lin, build) for a in (0, 1)]
+    moved += [_grown_edges(problem, g, lin, a, _STEP_M, beam_rad) for a in (0, 1)]
+    for c, factors in enumerate(moved):
+        for f, factor in factors.items():
+            cols.setdefault(f, np.zeros((g.at(f).dim(), 4)))[:, c] = _db(g.at(f), factor, lin, f) / _STEP_M
     if not cols:
         return None
-    S, r, _ = lin.with_known(cols, 2).reduced()
+    S, r, _ = lin.with_known(cols, 4).reduced()  # each correction with a unit prior (1 m): free
     C = np.linalg.inv(S)
-    return OffsetFit((C @ r)[-2:], np.sqrt(np.diag(C)[-2:]), boards)
+    x, se = (C @ r)[-4:], np.sqrt(np.diag(C)[-4:])
+    seen = {o.snapshot for o in outlined}
+    return BoardFit(x[:2], se[:2], -x[2:], se[2:],  # the grown description's: the board is smaller
+                    len(seen & {o.snapshot for o in problem.camera_observations}), len(seen),
+                    float(np.median([np.median(np.linalg.norm(o.points, axis=1)) for o in outlined])))
 
 
-def check_offset(problem, fit: OffsetFit | None) -> None:
-    """InputError where the boards' patterns sit off board.pattern_offset_m beyond a pattern placed by
-    hand (OFFSET_TOLERANCE_M) and their standard error (module docstring)."""
-    if fit is None or fit.boards < MIN_BOARDS:
+def check_board(problem, fit: BoardFit | None) -> None:
+    """InputError where the outlines show the board's size off board.size_m beyond a board measured
+    to the centimetre (a beam's footprint allowed outward), or its pattern off
+    board.pattern_offset_m beyond one placed by hand; each beyond 4 standard errors too."""
+    if fit is None:
         return
-    off = np.abs(fit.shift_m) > np.maximum(OFFSET_TOLERANCE_M, MIN_SIGMAS * fit.se_m)
-    if not off.any():
-        return
-    stated = np.asarray(problem.board.pattern_offset_m, float)
-    seen = stated + fit.shift_m
-    where = " and ".join(f"{abs(fit.shift_m[a]) * 1e3:.0f} mm {('along the width', 'along the height')[a]} "
-                         f"(+-{fit.se_m[a] * 1e3:.1f})" for a in (0, 1) if off[a])
-    raise InputError(
-        f"board.pattern_offset_m: the cameras' corners and the LIDARs' outlines of the same {fit.boards} boards put "
-        f"the pattern's centre {where} off where [{stated[0]:g}, {stated[1]:g}] puts it: measure the pattern's "
-        f"centre from the board's centre (along the width, the height) and set board.pattern_offset_m "
-        f"(these captures show [{seen[0]:.3f}, {seen[1]:.3f}])")
+    board = problem.board
+    size = np.array([board.width_m, board.height_m])
+    allowed = np.where(fit.size_m > 0, 2 * (TOLERANCE_M + GROWTH_RAD * fit.range_m), 2 * TOLERANCE_M)
+    off = np.abs(fit.size_m) > np.maximum(allowed, MIN_SIGMAS * fit.size_se_m)
+    if fit.boards_outline >= MIN_BOARDS and off.any():
+        seen = size + fit.size_m
+        raise InputError(
+            f"board.size_m: the LIDARs' outlines of {fit.boards_outline} boards show the board {seen[0]:.2f} x "
+            f"{seen[1]:.2f} m (+-{fit.size_se_m[0] * 1e3:.0f}, {fit.size_se_m[1] * 1e3:.0f} mm), not the "
+            f"[{size[0]:g}, {size[1]:g}] it says: measure the physical board, its white border included, and set "
+            "board.size_m (width x height)")
+    off = np.abs(fit.offset_m) > np.maximum(OFFSET_TOLERANCE_M, MIN_SIGMAS * fit.offset_se_m)
+    if fit.boards_both >= MIN_BOARDS and off.any():
+        stated = np.asarray(board.pattern_offset_m, float)
+        seen = stated + fit.offset_m
+        where = " and ".join(f"{abs(fit.offset_m[a]) * 1e3:.0f} mm {('along the width', 'along the height')[a]} "
+                             f"(+-{fit.offset_se_m[a] * 1e3:.1f})" for a in (0, 1) if off[a])
+        raise InputError(
+            f"board.pattern_offset_m: the cameras' corners and the LIDARs' outlines of the same {fit.boards_both} "
+            f"boards put the pattern's centre {where} off where [{stated[0]:g}, {stated[1]:g}] puts it: measure "
+            "the pattern's centre from the board's centre (along the width, the height) and set "
+            f"board.pattern_offset_m (these captures show [{seen[0]:.3f}, {seen[1]:.3f}])")

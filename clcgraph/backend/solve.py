@@ -610,17 +610,7 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
                            rt_lidar0_board=rt_board.copy(), noise=noise, rms=rms, rejected=tuple(rejected),
                            residuals=_residual_arrays(problem, lid, cam, active)))
 
-    # a board described otherwise than the sensors see it is named as such, before the checks below
-    # blame the capture for its effects
-    if options.lidar_edges:
-        board_check.check_size(problem, board_check.size_seen(problem, active, rt_sensor, rt_board))
-    board_check.check_scale(problem, board_check.scale_seen(problem, active, rt_sensor), options)
-    t = time.perf_counter()
-    cov = _covariance(problem, g, values, rt_sensor, options)
-    times["covariance"] = time.perf_counter() - t
-    t = time.perf_counter()
     effect_sig = None if effects is None else N.effect_sigmas(problem, effects)
-
     # made once: a move remakes only those of the observations whose edge rays it moves (a ring
     # elevation's, of one LIDAR)
     edges = G.lidar_edge_factors(problem, active, rt_sensor, rt_board, options)
@@ -634,7 +624,16 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
         return rebuild
 
     rebuild = rebuilder(sig, effect_sig)
-    board_check.check_offset(problem, board_check.offset_seen(problem, lin, rebuild))
+
+    # a board described otherwise than the sensors see it is named as such, before the checks below
+    # blame the capture for its effects
+    if options.lidar_edges:
+        board_check.check_board(problem, board_check.board_seen(problem, g, lin, rebuild, options.lidar_edge_beam_rad))
+    board_check.check_scale(problem, board_check.scale_seen(problem, active, rt_sensor), options)
+    t = time.perf_counter()
+    cov = _covariance(problem, g, values, rt_sensor, options)
+    times["covariance"] = time.perf_counter() - t
+    t = time.perf_counter()
 
     # the consider terms' errors as columns of the final linearization: the jackknife's expected
     # ratio and the consistency checks count them in
