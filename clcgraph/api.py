@@ -303,7 +303,7 @@ def read_problem(bags, topics: Sequence[str], models: Sequence[str | Path] = (),
             else:
                 camera_obs.append(CameraBoardObservation(sensor=i, snapshot=k, corners_px=np.asarray(r, float)))
 
-    _check_every_sensor_found_a_board(sensors, lidar_obs, camera_obs, rejected, board)
+    _check_every_sensor_found_a_board(sensors, lidar_obs, camera_obs, rejected, board, cfg.solve.min_shared_snapshots)
     # The seed's rule: a snapshot counts only if >= 2 sensors saw the board.
     seen: dict[int, int] = {}
     for o in [*lidar_obs, *camera_obs]:
@@ -470,16 +470,16 @@ def _why_missed(sensors, lidar_obs, camera_obs, rejected) -> str:
     return ("; ".join(parts) + "; ") if parts else ""
 
 
-def _check_every_sensor_found_a_board(sensors, lidar_obs, camera_obs, rejected, board) -> None:
-    """DegenerateError naming the first sensor that found no board in any of its scans or images
-    (it could not be calibrated: the solve would only say it cannot be connected), with its
-    commonest reason and the board setting to check: the pattern for a camera, the size for a LIDAR.
-    An InputError where a camera's images showed a part of a larger pattern (board.corners short) or a
-    grid past its edge (board.corners too large)."""
+def _check_every_sensor_found_a_board(sensors, lidar_obs, camera_obs, rejected, board, need: int = 1) -> None:
+    """DegenerateError naming the first sensor that found fewer than ``need`` boards (the seed's
+    min_shared_snapshots: it could not be calibrated, and the solve would only say it cannot be
+    connected), with its commonest reason for the rest and the board setting to check: the pattern
+    for a camera, the size for a LIDAR. An InputError where a camera's images showed a part of a
+    larger pattern (board.corners short) or a grid past its edge (board.corners too large)."""
     from .frontend.camera_board import PATTERN_ENDS, PATTERN_GOES_ON
 
     for i, (found, missed, n, text) in _misses(sensors, lidar_obs, camera_obs, rejected).items():
-        if found:
+        if found >= need:
             continue
         s = sensors[i]
         mine = [r.reason for r in rejected if r.sensor == i and r.stage == "detection"]
@@ -494,7 +494,9 @@ def _check_every_sensor_found_a_board(sensors, lidar_obs, camera_obs, rejected, 
         setting = (f"board.corners [{board.corners_x}, {board.corners_y}] (inner corners along the board's width "
                    f"and height)" if s.is_camera else
                    f"board.size_m [{board.width_m:g}, {board.height_m:g}] (the physical board, its border included)")
-        raise DegenerateError(f'{s.topic}: no board found in any of its {missed} {what} ({n} like "{text[:90]}"); '
+        where = (f"only {found} board{'s' if found > 1 else ''} found in its {found + missed} {what}" if found else
+                 f"no board found in any of its {missed} {what}")
+        raise DegenerateError(f'{s.topic}: {where} ({n} like "{text[:90]}"); '
                               f"is {setting} right, and was the board in its view? "
                               f"`clcgraph {'detect' if s.is_camera else 'segment'}` shows each")
 

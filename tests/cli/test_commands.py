@@ -131,7 +131,8 @@ def test_why_boards_were_missed_quotes_the_commonest_reason_with_its_numbers():
 def test_a_sensor_that_found_no_board_anywhere_names_the_board_setting_to_check():
     """A camera that found no board in any image (a pattern other than board.corners says) is
     named with its commonest reason and the setting, before the solve could only say it cannot
-    be connected; a LIDAR likewise with board.size_m. One that found any board passes."""
+    be connected; a LIDAR likewise with board.size_m. One that found fewer boards than the seed
+    needs likewise; one that found enough passes."""
     from types import SimpleNamespace
 
     import pytest
@@ -151,6 +152,12 @@ def test_a_sensor_that_found_no_board_anywhere_names_the_board_setting_to_check(
     lidar = [Rejected("scan: plane 1.79 m across, larger than the board", "segmentation", 0, k) for k in range(3)]
     with pytest.raises(DegenerateError, match=r"^/l: no board found in any of its 3 scans .*board.size_m \[1.2, 1\]"):
         _check_every_sensor_found_a_board(sensors, [], seen, lidar + rejected, board)
+    # fewer than the seed needs to connect it (a board described smaller than it is: most planes too large)
+    one = [SimpleNamespace(sensor=0, snapshot=5)]
+    _check_every_sensor_found_a_board(sensors, one, seen, lidar + rejected, board)
+    with pytest.raises(DegenerateError, match=r'^/l: only 1 board found in its 4 scans \(3 like "plane 1.79 m across, '
+                                              r'larger than the board"\); is board.size_m \[1.2, 1\]'):
+        _check_every_sensor_found_a_board(sensors, one, [*seen] * 3, lidar + rejected, board, 3)
     # a part of a larger pattern found in one image: the count itself is short, said as such
     from clcgraph.errors import InputError
 
