@@ -441,7 +441,7 @@ def _board_regions(sensors, lidar_obs, cam_images, detection, cfg, board, n_snap
 def _misses(sensors, lidar_obs, camera_obs, rejected) -> dict[int, tuple[int, int, int, str]]:
     """{sensor: (boards found, scans or images that missed it, how many of those for its most
     common reason, that reason quoted)}, for the sensors that missed any: reasons that differ
-    only in their numbers counted together, the first one quoted."""
+    only in their numbers (a scan's: in its first plane's) counted together, the first one quoted."""
     import re
     from collections import Counter
 
@@ -451,6 +451,8 @@ def _misses(sensors, lidar_obs, camera_obs, rejected) -> dict[int, tuple[int, in
     for r in rejected:
         if r.sensor is not None and r.stage in ("segmentation", "detection"):
             text = r.reason.split(": ", 1)[-1] if r.stage == "segmentation" else r.reason
+            # a scan's planes are listed after "no board-like plane": counted by its first
+            text = "; ".join(text.split("; ")[:2])
             kind = re.sub(r"\d+(\.\d+)?", "#", text)
             why.setdefault(r.sensor, Counter())[kind] += 1
             example.setdefault((r.sensor, kind), text)
@@ -496,7 +498,7 @@ def _check_every_sensor_found_a_board(sensors, lidar_obs, camera_obs, rejected, 
                    f"board.size_m [{board.width_m:g}, {board.height_m:g}] (the physical board, its border included)")
         where = (f"only {found} board{'s' if found > 1 else ''} found in its {found + missed} {what}" if found else
                  f"no board found in any of its {missed} {what}")
-        raise DegenerateError(f'{s.topic}: {where} ({n} like "{text[:90]}"); '
+        raise DegenerateError(f'{s.topic}: {where} ({n} like "{text[:120]}"); '
                               f"is {setting} right, and was the board in its view? "
                               f"`clcgraph {'detect' if s.is_camera else 'segment'}` shows each")
 
