@@ -9,9 +9,9 @@ of the same edge setting: CPU time ~ Nobs^exponent (CPU: wall time on a loaded m
 Goals on the 2-core reference machine (issue 16): <= 0.5 s (24 poses) and <= 10 s (240 x 8), growing
 linearly (exponent ~1); each goal's row prints the measured time, the goal and their ratio.
 A second table splits each solve into its stages (calibrate's ``stats["time_s"]``, wall s of the
-best run): seed, the LMs, the noise/outlier rounds, the noise components (REML), Marginals, the
-jackknife (with the consider terms' known columns), the consider terms, the consistency checks and
-the units' error sensitivities (for `compare`).
+best run): seed, the LMs, the noise/outlier rounds, the noise components (REML), the board checks
+(backend/board_check.py), Marginals, the jackknife (with the consider terms' known columns), the
+consider terms, the consistency checks and the units' error sensitivities (for `compare`).
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ CASES = [  # (snapshots, lidars, cameras, repeats, target_s)
     (240, 3, 5, 1, 10.0),
 ]
 STAGES = [("seed", "seed"), ("lm", "LM"), ("noise_and_outliers", "noise rounds"), ("noise_components", "REML"),
-          ("covariance", "marginals"), ("jackknife", "jackknife"), ("consider", "consider"),
+          ("board_checks", "board checks"), ("covariance", "marginals"), ("jackknife", "jackknife"), ("consider", "consider"),
           ("consistency", "consistency"), ("unit_error_sensitivities", "unit errors")]
 
 
