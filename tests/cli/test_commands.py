@@ -158,6 +158,11 @@ def test_a_sensor_that_found_no_board_anywhere_names_the_board_setting_to_check(
     with pytest.raises(DegenerateError, match=r'^/l: only 1 board found in its 4 scans \(3 like "plane 1.79 m across, '
                                               r'larger than the board"\); is board.size_m \[1.2, 1\]'):
         _check_every_sensor_found_a_board(sensors, one, [*seen] * 3, lidar + rejected, board, 3)
+    # a camera with too few boards and one grid read past the pattern's edge: the few boards said, not the count
+    past_one = [Rejected("no chessboard corner along the grid's top row: the pattern's edge read as corners (fewer "
+                         "inner corners than the 9x7 of board.corners?)", "detection", 1, 6)]
+    with pytest.raises(DegenerateError, match=r'^/c: only 1 board found in its 7 images \(5 like "no full 9x7'):
+        _check_every_sensor_found_a_board(sensors, [*one] * 3, seen, rejected + past_one, board, 3)
     # a part of a larger pattern found in one image: the count itself is short, said as such
     from clcgraph.errors import InputError
 
