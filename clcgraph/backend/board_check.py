@@ -6,8 +6,9 @@ board.pattern_offset_m put it against the pattern, which the cameras see. A boar
 (its border left out, the wrong sheet's size) moves opposite sides opposite ways on every board;
 a pattern offset described wrong moves the outline against the pattern within the board's plane.
 Both are estimated beside the sensors' poses: one Gauss-Newton step from the final solution with
-their corrections as four more unknowns (the measurements' change per metre of each from a
-rebuilt graph, as consider.py's terms; the edges' Huber weights held, as in the step itself).
+their corrections as four more unknowns (the measurements' change per metre of each: the
+corner factors' own Jacobian columns for a translation of the pattern in its plane, the edge
+intervals' sides moved out by half the growth, their Huber weights held as in the step itself).
 A camera's shift takes up most of a wrong offset where its boards all face it alike (3 cm along
 the width moved the bench capture's cameras 27 mm at a 1-sigma of 5 mm, written as a result);
 the boards' turns and the LIDARs' own view of the outline separate the two. Physics adds an
@@ -19,8 +20,9 @@ more per metre of the outlines' median range) or 5 mm for the offset (a pattern 
 On the bench capture (1.3 m board, 24 boards at 2-9 m): the right description gives a size +1.5
 / +3.0 mm (+-0.9 / 1.7) and an offset (-0.1, -0.6) mm (+-0.8 / 1.2); described 1.36, 1.34,
 1.25, 1.2, 1.45 or 1.6 m, the size shown is 1.28-1.32 m; the offset 3 cm / 1 cm along the
-width off, -30.1 +- 3.4 / -9.5 +- 1.1 mm. The real ACFR runs: size +7.3 / +11.7 and
-+7.0 / +11.5 mm, offset (2.5, -2.4) and (3.3, -2.4) mm (+-2.6-3.7), not refused. A board
+width off, -30.0 +- 3.4 / -9.5 +- 1.1 mm. The real ACFR runs: size +7.4 / +11.6 and
++7.1 / +11.5 mm, offset (2.5, -2.0) and (3.3, -2.3) mm (+-2.6-3.7), not refused. 34 ms of the
+24-pose bench solve. A board
 described 20 cm smaller than it is (its border left out) fails earlier: the segmentation takes
 its planes for larger than a board.
 
@@ -41,22 +43,20 @@ Boards all at one distance cannot tell it: the real ACFR boards at 2.9-3.5 m giv
 0.0002-0.0003), 0.098 and 0.102 0.978-0.980 and 1.020-1.021.
 
 SYNOPSIS
-    check_board(problem, board_seen(problem, g, lin, rebuild, beam_rad))   # InputError naming board.size_m / .pattern_offset_m
+    check_board(problem, board_seen(problem, g, lin))   # InputError naming board.size_m / .pattern_offset_m
     check_scale(problem, scale_seen(problem, active, rt_sensor), options)  # InputError naming the camera
 """
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 
-from .. import cameras
 from ..errors import InputError
-from ..geometry import T_from_rt, compose_rt, invert_rt, rt_from_pose3, transform
+from ..factors.lidar_edge import edge_sides
+from ..geometry import T_from_rt
 from . import graph as G
-from .consider import moved_graph
 from .seed import board_pose_from_corners
 
 TOLERANCE_M = 0.010  # a side's offset allowed either way: a board measured to the centimetre
@@ -155,82 +155,68 @@ class BoardFit:
     range_m: float  # the median range to those outlines
 
 
-_STEP_M = 1e-3  # the trial shift and growth (the measurements are linear in them far below the noise)
-
-
-def _pattern_moved(problem, values, axis: int, h: float):
-    """``problem`` with every camera's corners where they would be with the pattern ``h`` (m)
-    farther along the board's ``axis`` than the board's description puts it (the outline, which
-    the LIDARs see, in place), at the poses ``values``."""
-    corners = problem.board.corners()
-    moved = corners.copy()
-    moved[:, axis] += h
-    T = {i: rt_from_pose3(values.atPose3(G.sensor_key(i))) for i in range(len(problem.sensors)) if i != problem.reference}
-    out = []
-    for o in problem.camera_observations:
-        key = G.board_key(o.snapshot)
-        if not values.exists(key):
-            out.append(o)
-            continue
-        s = problem.sensors[o.sensor]
-        rt_c_b = compose_rt(invert_rt(T[o.sensor]), rt_from_pose3(values.atPose3(key)))
-        dq = cameras.project(transform(rt_c_b, moved), s.lensmodel, s.intrinsics) - \
-            cameras.project(transform(rt_c_b, corners), s.lensmodel, s.intrinsics)
-        out.append(dataclasses.replace(o, corners_px=o.corners_px + dq))
-    return dataclasses.replace(problem, camera_observations=tuple(out))
-
-
-def _grown_edges(problem, g, lin, axis: int, h: float, beam_rad: float) -> dict:
-    """{factor index of ``g``: its edge factor with the board ``h`` (m) wider (``axis`` 0) or taller
-    (1) than board.size_m, about the same centre} for g's edge factors (Robust: lidar_edge_factor)."""
+def _pattern_columns(problem, g, lin) -> dict:
+    """{factor index: (rows, 2) the change of its whitened b per metre of the pattern shifted along
+    the board's width, height} for the camera factors of ``g`` (``lin``: its noise.Linearization).
+    The corners are seen at the board's pose, or at T_b C D C^-1 where the observation has its own
+    D (C a translation): a right perturbation of that pose by a translation within the board's
+    plane moves every corner as the shifted pattern would, so the columns are the factor's own
+    Jacobian's (whitened: lin.rows) for D's or the board's translation."""
     import gtsam
 
-    spec = problem.board.spec()
-    spec["size_m"] = [w + (h if a == axis else 0.0) for a, w in enumerate(spec["size_m"])]
-    grown = dataclasses.replace(problem, board=type(problem.board).from_spec(**spec))
+    out = {}
+    for f, (i, k, _, terms) in enumerate(lin.factors):
+        if i is None or k is None or not problem.sensors[i].is_camera:
+            continue
+        A = lin.rows[terms.start][1]
+        kinds = [chr(gtsam.Symbol(key).chr()) for key in g.at(f).keys()]
+        at = 6 * kinds.index("e" if "e" in kinds else "b")
+        out[f] = A[:, at + 3:at + 5]
+    return out
+
+
+def _size_columns(problem, g, lin) -> dict:
+    """{factor index: (rows, 2) the change of its whitened b per metre of the board grown along its
+    width, height} for the edge factors of ``g`` (robust, lidar_edge_factor): each interval's side
+    moves out by half of it (err = its midpoint less the side's bound; the sides as edge_sides assigns
+    them at lin's values), whitened by the factor's sigmas and its Huber weight held (as the
+    Gauss-Newton step that ``lin`` is does)."""
+    import gtsam
+
+    board = problem.board
+    x0, x1, y0, y1 = board.extent()
+    centre = np.array([(x0 + x1) / 2, (y0 + y1) / 2])
     obs = {(o.sensor, o.snapshot): o for o in problem.lidar_observations}
     out = {}
     for f, (i, k, _, _) in enumerate(lin.factors):
         factor = g.at(f)
-        if i is None or k is None or not isinstance(factor.noiseModel(), gtsam.noiseModel.Robust):
+        model = factor.noiseModel()
+        if i is None or k is None or not isinstance(model, gtsam.noiseModel.Robust):
             continue
         T_s = None if i == problem.reference else lin.values.atPose3(G.sensor_key(i))
-        made = G.edge_factor(grown, obs[(i, k)], T_s, lin.values.atPose3(G.board_key(k)), beam_rad=beam_rad)
-        if made is not None and made.dim() == factor.dim():  # the same intervals, sides moved
-            out[f] = made
+        T_b = lin.values.atPose3(G.board_key(k))
+        keep, axis, bounds, _, _ = edge_sides(T_s, T_b, obs[(i, k)].edge_rays, board,
+                                              face_m=G.lidar_face(board, T_s, T_b))
+        if np.count_nonzero(keep) != factor.dim():  # sides assigned otherwise since the factor was made
+            continue
+        axis, side = axis[keep], np.sign(bounds[keep] - centre[axis[keep]])
+        w = model.robust().weight(float(np.linalg.norm(model.noise().whiten(factor.unwhitenedError(lin.values)))))
+        cols = np.zeros((len(axis), 2))
+        cols[np.arange(len(axis)), axis] = side / 2  # d err = -side / 2 per metre; b = -whitened err
+        out[f] = np.sqrt(w) * cols / model.noise().sigmas()[:, None]
     return out
 
 
-def _db(factor, moved, lin, f: int) -> np.ndarray:
-    """The change of ``factor``'s whitened b (index ``f`` of ``lin``) when its measurements move as
-    in ``moved``, at lin's values. A robust factor keeps its weight (as the Gauss-Newton step that
-    ``lin`` is does, iteratively reweighted): the Huber's own change of weight with its error would
-    count a block far out on it at half its slope."""
-    import gtsam
-
-    model = factor.noiseModel()
-    if not isinstance(model, gtsam.noiseModel.Robust):
-        return moved.linearize(lin.values).jacobian()[1] - lin.rows[lin.factors[f][3].start][2]
-    e0 = factor.unwhitenedError(lin.values)
-    w = model.robust().weight(float(np.linalg.norm(model.noise().whiten(e0))))
-    return -np.sqrt(w) * model.noise().whiten(moved.unwhitenedError(lin.values) - e0)
-
-
-def board_seen(problem, g, lin, build, beam_rad: float) -> BoardFit | None:
+def board_seen(problem, g, lin) -> BoardFit | None:
     """The board's pattern offset and size as the cameras' corners and the LIDARs' outlines see
     them: one Gauss-Newton step from the final solution (``g``, ``lin``: its graph and
-    noise.Linearization; ``build``: the final graph's rebuild of a problem, as consider's;
-    ``beam_rad``: the edge factors') with their corrections as four more unknowns beside the
-    sensors; None without an outline seen."""
+    noise.Linearization) with their corrections as four more unknowns beside the sensors; None
+    without an outline seen."""
     outlined = [o for o in problem.lidar_observations if o.edge_rays is not None and len(o.edge_rays)]
     if not outlined or lin.rows is None:
         return None
-    cols: dict = {}
-    moved = [moved_graph(problem, _pattern_moved(problem, lin.values, a, _STEP_M), lin, build) for a in (0, 1)]
-    moved += [_grown_edges(problem, g, lin, a, _STEP_M, beam_rad) for a in (0, 1)]
-    for c, factors in enumerate(moved):
-        for f, factor in factors.items():
-            cols.setdefault(f, np.zeros((g.at(f).dim(), 4)))[:, c] = _db(g.at(f), factor, lin, f) / _STEP_M
+    cols = {f: np.c_[c, np.zeros((len(c), 2))] for f, c in _pattern_columns(problem, g, lin).items()}
+    cols.update({f: np.c_[np.zeros((len(c), 2)), c] for f, c in _size_columns(problem, g, lin).items()})
     if not cols:
         return None
     S, r, _ = lin.with_known(cols, 4).reduced()  # each correction with a unit prior (1 m): free

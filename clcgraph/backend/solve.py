@@ -629,7 +629,7 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
     # blame the capture for its effects
     t = time.perf_counter()
     if options.lidar_edges:
-        board_check.check_board(problem, board_check.board_seen(problem, g, lin, rebuild, options.lidar_edge_beam_rad))
+        board_check.check_board(problem, board_check.board_seen(problem, g, lin))
     board_check.check_scale(problem, board_check.scale_seen(problem, active, rt_sensor), options)
     times["board_checks"] = time.perf_counter() - t
     t = time.perf_counter()
