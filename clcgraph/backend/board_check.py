@@ -156,8 +156,8 @@ class BoardFit:
 
 
 def _pattern_columns(problem, g, lin) -> dict:
-    """{factor index: (rows, 2) the change of its whitened b per metre of the pattern shifted along
-    the board's width, height} for the camera factors of ``g`` (``lin``: its noise.Linearization).
+    """{factor index: (rows, 2) its whitened error's change per metre of the pattern shifted along
+    the board's width, height (Jacobian columns)} for the camera factors of ``g`` (``lin``: its noise.Linearization).
     The corners are seen at the board's pose, or at T_b C D C^-1 where the observation has its own
     D (C a translation): a right perturbation of that pose by a translation within the board's
     plane moves every corner as the shifted pattern would, so the columns are the factor's own
@@ -176,8 +176,8 @@ def _pattern_columns(problem, g, lin) -> dict:
 
 
 def _size_columns(problem, g, lin) -> dict:
-    """{factor index: (rows, 2) the change of its whitened b per metre of the board grown along its
-    width, height} for the edge factors of ``g`` (robust, lidar_edge_factor): each interval's side
+    """{factor index: (rows, 2) its whitened error's change per metre of the board grown along its
+    width, height (Jacobian columns)} for the edge factors of ``g`` (robust, lidar_edge_factor): each interval's side
     moves out by half of it (err = its midpoint less the side's bound; the sides as edge_sides assigns
     them at lin's values), whitened by the factor's sigmas and its Huber weight held (as the
     Gauss-Newton step that ``lin`` is does)."""
@@ -202,7 +202,7 @@ def _size_columns(problem, g, lin) -> dict:
         axis, side = axis[keep], np.sign(bounds[keep] - centre[axis[keep]])
         w = model.robust().weight(float(np.linalg.norm(model.noise().whiten(factor.unwhitenedError(lin.values)))))
         cols = np.zeros((len(axis), 2))
-        cols[np.arange(len(axis)), axis] = side / 2  # d err = -side / 2 per metre; b = -whitened err
+        cols[np.arange(len(axis)), axis] = -side / 2  # d err / d growth, as a Jacobian column
         out[f] = np.sqrt(w) * cols / model.noise().sigmas()[:, None]
     return out
 
@@ -223,7 +223,7 @@ def board_seen(problem, g, lin) -> BoardFit | None:
     C = np.linalg.inv(S)
     x, se = (C @ r)[-4:], np.sqrt(np.diag(C)[-4:])
     seen = {o.snapshot for o in outlined}
-    return BoardFit(x[:2], se[:2], -x[2:], se[2:],  # the grown description's: the board is smaller
+    return BoardFit(x[:2], se[:2], x[2:], se[2:],
                     len(seen & {o.snapshot for o in problem.camera_observations}), len(seen),
                     float(np.median([np.median(np.linalg.norm(o.points, axis=1)) for o in outlined])))
 
