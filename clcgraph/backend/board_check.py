@@ -17,6 +17,10 @@ looks larger by part of the footprint (on the real ACFR Ouster 3-6 mm a side at 
 divergences are 2-3 mrad). Refused where a correction stands out of 4 standard errors (>= 5
 boards) and beyond 10 mm a side for the size (a board measured to the centimetre; outward 2 mrad
 more per metre of the outlines' median range) or 5 mm for the offset (a pattern placed by hand).
+The squares are checked first (the scale check below): with no scale unknown here, squares
+0.2 % large on the bench capture read as an offset of 8 mm along the height (+-1.7), refused
+with the offset's message (which names the squares as the other cause); the cameras were
+11-13 mm off at 3-4 mm sigma there, so the refusal stands.
 On the bench capture (1.3 m board, 24 boards at 2-9 m): the right description gives a size +1.5
 / +3.0 mm (+-0.9 / 1.7) and an offset (-0.1, -0.6) mm (+-0.8 / 1.2); described 1.36, 1.34,
 1.25, 1.2, 1.45 or 1.6 m, the size shown is 1.28-1.32 m; the offset 3 cm / 1 cm along the
@@ -255,4 +259,5 @@ def check_board(problem, fit: BoardFit | None) -> None:
             f"board.pattern_offset_m: the cameras' corners and the LIDARs' outlines of the same {fit.boards_both} "
             f"boards put the pattern's centre {where} off where [{stated[0]:g}, {stated[1]:g}] puts it: measure "
             "the pattern's centre from the board's centre (along the width, the height) and set "
-            f"board.pattern_offset_m (these captures show [{seen[0]:.3f}, {seen[1]:.3f}])")
+            f"board.pattern_offset_m (these captures show [{seen[0]:.3f}, {seen[1]:.3f}]); squares a few tenths "
+            "of a percent off board.square_m look alike")

@@ -628,9 +628,11 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
     # a board described otherwise than the sensors see it is named as such, before the checks below
     # blame the capture for its effects
     t = time.perf_counter()
+    # the squares first: a pattern printed scaled moves every board along its view, which the
+    # board check (which has no scale unknown) would read partly as an offset
+    board_check.check_scale(problem, board_check.scale_seen(problem, active, rt_sensor), options)
     if options.lidar_edges:
         board_check.check_board(problem, board_check.board_seen(problem, g, lin))
-    board_check.check_scale(problem, board_check.scale_seen(problem, active, rt_sensor), options)
     times["board_checks"] = time.perf_counter() - t
     t = time.perf_counter()
     cov = _covariance(problem, g, values, rt_sensor, options)
