@@ -56,8 +56,8 @@ CASES = [  # (snapshots, lidars, cameras, repeats, target_s)
     (240, 3, 5, 1, 10.0),
 ]
 STAGES = [("seed", "seed"), ("lm", "LM"), ("noise_and_outliers", "noise rounds"), ("noise_components", "REML"),
-          ("board_checks", "board checks"), ("covariance", "marginals"), ("jackknife", "jackknife"), ("consider", "consider"),
-          ("consistency", "consistency"), ("unit_error_sensitivities", "unit errors")]
+          ("board_checks", "board checks"), ("covariance", "marginals"), ("jackknife", "jackknife"),
+          ("consider", "consider"), ("consistency", "consistency"), ("unit_error_sensitivities", "unit errors")]
 
 
 def _table(head, rows) -> list[str]:
