@@ -435,9 +435,10 @@ def _opencv_one(args) -> np.ndarray | None:
 
 def _run_opencv(grays: list[np.ndarray], nx: int, ny: int, jobs: int, *, quick_first: bool,
                 exhaustive=True) -> list[np.ndarray | None]:
-    """Corners (N,2, mrcal's pixel convention) or None per image, from OpenCV's sector-based detector. ``exhaustive``: per image
-    (or one for all), whether it searches exhaustively (CALIB_CB_EXHAUSTIVE: more board hypotheses,
-    for a board anywhere among clutter; on a miss it costs 2x). ``quick_first``: search without
+    """Corners (N,2, mrcal's pixel convention) or None per image, from OpenCV's sector-based
+    detector. ``exhaustive``: per image (or one for all), whether it searches exhaustively
+    (CALIB_CB_EXHAUSTIVE: more board hypotheses, for a board anywhere among clutter; on a miss it
+    costs 2x). ``quick_first``: search without
     OpenCV's own refinement (CALIB_CB_ACCURACY, on an upsampled image) first, with it only where
     that missed; for whole images whose corners will be refined (refine_corners). There it takes
     4-5x the time (1.4-1.8 s against 0.33 s per real ACFR 1920x1208 image) and the refined corners
