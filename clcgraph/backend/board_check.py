@@ -223,9 +223,14 @@ def board_seen(problem, g, lin) -> BoardFit | None:
     cols.update({f: np.c_[np.zeros((len(c), 2)), c] for f, c in _size_columns(problem, g, lin).items()})
     if not cols:
         return None
-    S, r, _ = lin.with_known(cols, 4).reduced()  # each correction with a unit prior (1 m): free
-    C = np.linalg.inv(S)
+    try:
+        S, r, _ = lin.with_known(cols, 4).reduced()  # each correction with a unit prior (1 m): free
+        C = np.linalg.inv(S)
+    except np.linalg.LinAlgError:  # a sensor's direction undetermined: the covariance names it, next
+        return None
     x, se = (C @ r)[-4:], np.sqrt(np.diag(C)[-4:])
+    if not np.all(np.isfinite(x) & np.isfinite(se)):
+        return None
     seen = {o.snapshot for o in outlined}
     return BoardFit(x[:2], se[:2], x[2:], se[2:],
                     len(seen & {o.snapshot for o in problem.camera_observations}), len(seen),
