@@ -266,13 +266,25 @@ def _in_plane(points: np.ndarray, n: np.ndarray) -> np.ndarray:
     return np.c_[points @ u, points @ np.cross(n, u)]
 
 
-def _extents(points: np.ndarray, n: np.ndarray) -> tuple[float, float]:
-    """(diameter, width): the largest in-plane extent over 36 directions, and the smallest."""
+def _spans(points: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """(36,) the in-plane extents along directions 5 deg apart (the 19th is at right angles to the first)."""
     q = _in_plane(points, n)
     ang = np.linspace(0, np.pi, 36, endpoint=False)
     proj = q @ np.stack([np.cos(ang), np.sin(ang)])
-    span = proj.max(axis=0) - proj.min(axis=0)
+    return proj.max(axis=0) - proj.min(axis=0)
+
+
+def _extents(points: np.ndarray, n: np.ndarray) -> tuple[float, float]:
+    """(diameter, width): the largest in-plane extent over 36 directions, and the smallest."""
+    span = _spans(points, n)
     return float(span.max()), float(span.min())
+
+
+def _bounding_rectangle(points: np.ndarray, n: np.ndarray) -> tuple[float, float]:
+    """(shorter, longer) side of the smallest-area in-plane rectangle around the points (5 deg steps)."""
+    span = _spans(points, n)
+    i = int(np.argmin(span * np.roll(span, 18)))
+    return tuple(sorted((float(span[i]), float(span[(i + 18) % 36]))))
 
 
 def _chord_and_height(pts: np.ndarray, ring: np.ndarray, n: np.ndarray) -> tuple[float, float]:
@@ -411,7 +423,8 @@ def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: floa
         return (f"{at}: only {keep.sum()} of its {len(pts)} returns fit a {sx:.2f} x {sy:.2f} m rectangle where "
                 f"the scan shows no board missing"), (n, d, rms), keep, outline
     if beyond > o.max_outside_fraction:
-        return (f"{at} is {_extents(pts, n)[0]:.2f} m across, {beyond:.0%} of it outside any "
+        w, h = _bounding_rectangle(pts, n)  # what the plane measures, to set against board.size_m
+        return (f"{at}, {w:.2f} x {h:.2f} m ({_extents(pts, n)[0]:.2f} m across), {beyond:.0%} of it outside any "
                 f"{sx:.2f} x {sy:.2f} m rectangle: a wall, car, person or the board touching something"), (n, d, rms), keep, \
             outline
     # coplanar things crossing the board plane (a body, a hand) drift off it away from the crossing

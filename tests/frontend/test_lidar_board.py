@@ -7,6 +7,7 @@ measured against the ray caster's truth."""
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -116,6 +117,9 @@ def test_board_size_is_the_physical_board():
     d_wrong, e_wrong, _, _, _ = score(scans, hits, poses, wrong)
     too_big = [r for r in wrong if isinstance(r, Rejected) and "outside any 1.10 x 1.10 m rectangle" in r.reason]
     assert d_wrong <= 0.8 * e_wrong and len(too_big) >= 0.2 * e_wrong, (d_wrong, e_wrong, len(too_big))
+    # and each says what it measures: the true board's 1.3 m (a board the rings cross only in part, less)
+    sides = np.array([re.search(r" m, ([\d.]+) x ([\d.]+) m \(", r.reason).groups() for r in too_big], float)
+    assert np.all(np.abs(np.median(sides, axis=0) - 1.3) < 0.04), sides
 
     # (without the person: with one standing 0.5 m behind a board this small, a tilted board's
     # plane meets the body just beyond its edge, which the rectangle check rejects in ~1 of 5 scans)
