@@ -464,10 +464,20 @@ def _misses(sensors, lidar_obs, camera_obs, rejected) -> dict[int, tuple[int, in
     return out
 
 
+def _quoted(text: str, n: int) -> str:
+    """``text`` cut to at most ``n`` characters (then "...") at a clause's end in its second half,
+    else at a word's."""
+    if len(text) <= n:
+        return text
+    cut = max(text.rfind(sep, 0, n - 3) for sep in (": ", "; ", ", "))
+    cut = cut if cut > n // 2 else text.rfind(" ", 0, n - 3)
+    return text[:cut if cut > 0 else n - 3] + "..."
+
+
 def _why_missed(sensors, lidar_obs, camera_obs, rejected) -> str:
     """Per sensor, how many boards it found and its most common reason for the rest, e.g. a board
     size that does not match the config: '/l: 2 found, 14 like "plane 1.79 m across, ..."'."""
-    parts = [f'{sensors[i].topic}: {found} found, {n} like "{text[:90]}"'
+    parts = [f'{sensors[i].topic}: {found} found, {n} like "{_quoted(text, 90)}"'
              for i, (found, _, n, text) in _misses(sensors, lidar_obs, camera_obs, rejected).items()]
     return ("; ".join(parts) + "; ") if parts else ""
 
@@ -500,7 +510,7 @@ def _check_every_sensor_found_a_board(sensors, lidar_obs, camera_obs, rejected, 
                    f"board.size_m [{board.width_m:g}, {board.height_m:g}] (the physical board, its border included)")
         where = (f"only {found} board{'s' if found > 1 else ''} found in its {found + missed} {what}" if found else
                  f"no board found in any of its {missed} {what}")
-        raise DegenerateError(f'{s.topic}: {where} ({n} like "{text[:120]}"); '
+        raise DegenerateError(f'{s.topic}: {where} ({n} like "{_quoted(text, 120)}"); '
                               f"is {setting} right, and was the board in its view? "
                               f"`clcgraph {'detect' if s.is_camera else 'segment'}` shows each")
 

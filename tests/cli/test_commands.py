@@ -126,6 +126,12 @@ def test_why_boards_were_missed_quotes_the_commonest_reason_with_its_numbers():
     rejected = [Rejected(f"scan: plane {1.7 + k / 100:.2f} m across, larger than the board", "segmentation", 0, k)
                 for k in range(3)] + [Rejected("scan: no plane", "segmentation", 0, 9)]
     assert _why_missed(sensors, [], [], rejected) == '/l: 0 found, 3 like "plane 1.70 m across, larger than the board"; '
+    # a long reason is quoted to a clause's end
+    long = [Rejected("scan: no board-like plane; plane at 8.7 m, 1.36 x 1.41 m (1.70 m across), 11% of it outside "
+                     "any 1.10 x 1.10 m rectangle: a wall, car, person or the board touching something", "segmentation",
+                     0, 1)]
+    assert _why_missed(sensors, [], [], long) == ('/l: 0 found, 1 like "no board-like plane; plane at 8.7 m, 1.36 x '
+                                                  '1.41 m (1.70 m across)..."; ')
 
 
 def test_a_sensor_that_found_no_board_anywhere_names_the_board_setting_to_check():
