@@ -43,8 +43,9 @@ Refused where it stands out of its standard error (4 sigma, >= 5 boards; the foc
 stated uncertainty added) and exceeds 0.2 %. The standard error is the larger of the fit's and
 the leave-one-board-out jackknife's: stress seed 42's dim, blurred colour camera has its
 farthest board 61 px across, its corners' scale 2e-3 off, and that board alone pulled the
-slope to 0.9976 +- 0.0004 (right squares refused); the jackknife gives 0.9972 +- 0.0040. A camera model's focal length off by that much does
-the same, and the message says so (and how to state a focal length known only to a few %).
+slope to 0.9976 +- 0.0004 (right squares refused); at the true poses the jackknife gives
+0.9972 +- 0.0040. A camera model's focal length off by that much does the same, and the
+message says so (and how to state a focal length known only to a few %).
 Boards all at one distance cannot tell it: the real ACFR boards at 2.9-3.5 m give a = 0.980 +- 0.012 and
 0.982 +- 0.022 (runs 1, 2), not refused; the bench capture's right squares 0.9998-1.0004 (+-
 0.0002-0.0003), 0.098 and 0.102 0.978-0.980 and 1.020-1.021.
