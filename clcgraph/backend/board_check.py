@@ -179,8 +179,8 @@ class BoardFit:
 
 def _pattern_columns(problem, g, lin) -> dict:
     """{factor index: (rows, 2) its whitened error's change per metre of the pattern shifted along
-    the board's width, height (Jacobian columns)} for the camera factors of ``g`` (``lin``: its noise.Linearization).
-    The corners are seen at the board's pose, or at T_b C D C^-1 where the observation has its own
+    the board's width, height (Jacobian columns)} for the camera factors of ``g`` (``lin``: its
+    noise.Linearization). The corners are seen at the board's pose, or at T_b C D C^-1 where the observation has its own
     D (C a translation): a right perturbation of that pose by a translation within the board's
     plane moves every corner as the shifted pattern would, so the columns are the factor's own
     Jacobian's (whitened: lin.rows) for D's or the board's translation."""
@@ -199,9 +199,9 @@ def _pattern_columns(problem, g, lin) -> dict:
 
 def _size_columns(problem, g, lin) -> dict:
     """{factor index: (rows, 2) its whitened error's change per metre of the board grown along its
-    width, height (Jacobian columns)} for the edge factors of ``g`` (robust, lidar_edge_factor): each interval's side
-    moves out by half of it (err = its midpoint less the side's bound; the sides as edge_sides assigns
-    them at lin's values), whitened by the factor's sigmas and its Huber weight held (as the
+    width, height (Jacobian columns)} for the edge factors of ``g`` (robust, lidar_edge_factor):
+    each interval's side moves out by half of it (err = its midpoint less the side's bound; the
+    sides as edge_sides assigns them at lin's values), whitened by the factor's sigmas and its Huber weight held (as the
     Gauss-Newton step that ``lin`` is does)."""
     import gtsam
 

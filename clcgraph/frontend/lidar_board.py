@@ -280,9 +280,8 @@ def _extents(points: np.ndarray, n: np.ndarray) -> tuple[float, float]:
     return float(span.max()), float(span.min())
 
 
-def _bounding_rectangle(points: np.ndarray, n: np.ndarray) -> tuple[float, float]:
-    """(shorter, longer) side of the smallest-area in-plane rectangle around the points (5 deg steps)."""
-    span = _spans(points, n)
+def _bounding_rectangle(span: np.ndarray) -> tuple[float, float]:
+    """(shorter, longer) side of the smallest-area rectangle around points of ``_spans`` ``span``."""
     i = int(np.argmin(span * np.roll(span, 18)))
     return tuple(sorted((float(span[i]), float(span[(i + 18) % 36]))))
 
@@ -423,8 +422,9 @@ def _verdict(pts: np.ndarray, ring: np.ndarray, board: BoardGeometry, step: floa
         return (f"{at}: only {keep.sum()} of its {len(pts)} returns fit a {sx:.2f} x {sy:.2f} m rectangle where "
                 f"the scan shows no board missing"), (n, d, rms), keep, outline
     if beyond > o.max_outside_fraction:
-        w, h = _bounding_rectangle(pts, n)  # what the plane measures, to set against board.size_m
-        return (f"{at}, {w:.2f} x {h:.2f} m ({_extents(pts, n)[0]:.2f} m across), {beyond:.0%} of it outside any "
+        span = _spans(pts, n)
+        w, h = _bounding_rectangle(span)  # what the plane measures, to set against board.size_m
+        return (f"{at}, {w:.2f} x {h:.2f} m ({span.max():.2f} m across), {beyond:.0%} of it outside any "
                 f"{sx:.2f} x {sy:.2f} m rectangle: a wall, car, person or the board touching something"), (n, d, rms), keep, \
             outline
     # coplanar things crossing the board plane (a body, a hand) drift off it away from the crossing
