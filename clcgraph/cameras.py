@@ -11,7 +11,10 @@ dq_dp (...,2,3); dq_di (...,2,Nintrinsics).
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -31,13 +34,34 @@ FROM_CAMERA_INFO = "camera_info"
 
 def _mrcal():
     try:
-        import mrcal
+        with _stdlib_distutils():
+            import mrcal
     except ImportError as e:  # pragma: no cover - depends on the machine
         raise DependencyError(
             f"mrcal is not importable ({e}); install Debian's python3-mrcal and use a venv "
             "made with --system-site-packages (./dev.sh setup does both)"
         ) from None
     return mrcal
+
+
+@contextlib.contextmanager
+def _stdlib_distutils():
+    """Python's own distutils for an import: mrcal's numpysane imports distutils, which setuptools'
+    import hook (its distutils-precedence.pth) serves from setuptools, importing pkg_resources:
+    0.15-0.3 s of every process start. Python 3.11 still has its own; the hook is back after
+    (a later ``import setuptools`` in the same process warns that it replaces that distutils)."""
+    hooks = [f for f in sys.meta_path if type(f).__module__ == "_distutils_hack"]
+    if sys.version_info >= (3, 12) or "distutils" in sys.modules or not hooks:
+        yield
+        return
+    for f in hooks:
+        sys.meta_path.remove(f)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)  # stdlib distutils' own
+            yield
+    finally:
+        sys.meta_path[:0] = hooks
 
 
 def load_camera(topic: str, path: str | Path) -> Sensor:

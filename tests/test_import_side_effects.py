@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -58,3 +59,20 @@ def test_a_bad_config_is_a_clcgraph_error(tmp_path):
     assert e.value.exit_code == 2
     with pytest.raises(ClcgraphError, match="must be a number"):
         Config().replace(solve={"outlier_sigma": "four"})
+
+
+def test_mrcal_is_imported_without_setuptools():
+    """numpysane (under mrcal) imports distutils; served by setuptools' hook, that import pulls in
+    pkg_resources (0.15-0.3 s of each start). cameras loads Python's own, and puts the hook back."""
+    probe = ("import json, sys\n"
+             "from clcgraph import cameras\n"
+             "hooks = [type(f).__module__ for f in sys.meta_path].count('_distutils_hack')\n"
+             "cameras.load_camera('/cam', sys.argv[1])\n"
+             "print(json.dumps({'pkg_resources': 'pkg_resources' in sys.modules, 'setuptools': 'setuptools' in "
+             "sys.modules, 'hooks': [hooks, [type(f).__module__ for f in sys.meta_path].count('_distutils_hack')]}))")
+    model = next(p for p in (Path(__file__).parents[1] / "bench" / "capture").glob("*.cameramodel"))
+    r = subprocess.run([sys.executable, "-c", probe, str(model)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    got = json.loads(r.stdout.splitlines()[-1])
+    assert got["hooks"][0] == got["hooks"][1], got  # the hook (where installed) is back
+    assert not got["pkg_resources"] and not got["setuptools"], got
