@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import sys
+import threading
 import warnings
 from pathlib import Path
 
@@ -50,18 +51,22 @@ def _stdlib_distutils():
     import hook (its distutils-precedence.pth) serves from setuptools, importing pkg_resources:
     0.15-0.3 s of every process start. Python 3.11 still has its own; the hook is back after
     (a later ``import setuptools`` in the same process warns that it replaces that distutils)."""
-    hooks = [f for f in sys.meta_path if type(f).__module__ == "_distutils_hack"]
-    if sys.version_info >= (3, 12) or "distutils" in sys.modules or not hooks:
-        yield
-        return
-    for f in hooks:
-        sys.meta_path.remove(f)
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", DeprecationWarning)  # stdlib distutils' own
+    with _DISTUTILS_LOCK:  # two threads' first imports: one takes the hook out and puts it back
+        hooks = [f for f in sys.meta_path if type(f).__module__ == "_distutils_hack"]
+        if sys.version_info >= (3, 12) or "distutils" in sys.modules or not hooks:
             yield
-    finally:
-        sys.meta_path[:0] = hooks
+            return
+        for f in hooks:
+            sys.meta_path.remove(f)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", DeprecationWarning)  # stdlib distutils' own
+                yield
+        finally:
+            sys.meta_path[:0] = hooks
+
+
+_DISTUTILS_LOCK = threading.Lock()
 
 
 def load_camera(topic: str, path: str | Path) -> Sensor:
