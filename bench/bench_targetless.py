@@ -1,7 +1,7 @@
 """Targetless benchmark: time and peak memory by stage for a simulated drive, and the accuracy.
 
-Run: ``python -m bench.bench_targetless [--duration 60 ...] [--small] [--in-memory]`` (default: the
-10 s and the 60 s drive, issue 16's two goals).
+Run: ``python -m bench.bench_targetless [--duration 60 ...] [--small] [--in-memory] [--runs 3]``
+(default: the 10 s and the 60 s drive, issue 16's two goals).
 
 From a bag (default): issue 16's goal as the user meets it: the drive written to a ROS1 bag,
 then ``clcgraph targetless --bag ... --out ...`` in a child process (reading the bag, mapping,
