@@ -35,12 +35,11 @@ from ..determinism import single_threaded_blas
 from ..errors import DegenerateError, InputError
 from ..timing import StageClock
 from ..types import Problem, Result, Sensor, TargetlessRun
-from . import gicp
 from .calibration_frames import make_calibration_frames, nearest_to_keyframes
 from .keyframe_graph import fuse
 from .mapping import build_map
 from .registration import (all_keyframe_edges, deskew_sources, ensemble, keyframe_edges, prepare_frames,
-                           refine_per_frame, score)
+                           refine_per_frame, squared_distances, truncated_score)
 from .selection import adapt_to_drive, select_frames
 
 log = logging.getLogger(__name__)
@@ -143,13 +142,16 @@ def _calibrate(scans, mp, G0, jobs, *, mapping_topic, calibration_topics, T_base
             notes.append(f"{topic}: NOT CONVERGED: " + "; ".join(est.convergence["warnings"]))
         log.info("%s: graph of %d frames, %d keyframes, %d keyframe edges; noise scales %s", topic, len(meas),
                  len(keyframes), len(edges), {k: f"{v:.3g}" for k, v in est.scales.items()})
-        s_guess, s_final = score(fr, Tg, o), score(fr, est.T, o)
+        # each frame's distances at the guess and the estimate, once: the scores, per frame and
+        # over all, and the report's distance histograms
+        d2_guess, d2_final = squared_distances(fr, Tg), squared_distances(fr, est.T)
+        s_guess, s_final = truncated_score(d2_guess, o), truncated_score(d2_final, o)
         T_final, cov = est.T, est.cov_rt
         if s_guess <= s_final:  # the initial guess stays a candidate
             log.warning("%s: the initial guess scores better than the registration; keeping it", topic)
             notes.append(f"{topic}: initial guess kept (score {s_guess:.3g} <= {s_final:.3g}); its sigmas "
                          "include the difference to the registration estimate")
-            T_final = Tg
+            T_final, d2_final = Tg, d2_guess
             # nothing measured the guess: it is as uncertain as it is far from the estimate (that
             # distance composed in the tangent at the guess, then in rt coordinates there)
             import gtsam
@@ -160,9 +162,10 @@ def _calibrate(scans, mp, G0, jobs, *, mapping_topic, calibration_topics, T_base
         T_final_of[topic], cov_of[topic], candidates[topic] = T_final, cov, cands
         per_frame[topic] = [
             {"keyframe": fd.cf.keyframe_id, "stamp_ns": int(fd.cf.scan.stamp_ns), "pca": fd.cf.score,
-             "score_guess": score([fd], Tg, o), "score_final": score([fd], T_final, o),
-             "rt_frame": geo.rt_from_T(m.T).tolist(), **fd.cf.stats} for fd, m in zip(fr, meas)]
-        pictures["alignment"][topic] = _alignment_pictures(fr, Tg, T_final, o)
+             "score_guess": truncated_score([g], o), "score_final": truncated_score([f], o),
+             "rt_frame": geo.rt_from_T(m.T).tolist(), **fd.cf.stats}
+            for fd, m, g, f in zip(fr, meas, d2_guess, d2_final)]
+        pictures["alignment"][topic] = _alignment_pictures(fr, Tg, T_final, o, d2_guess, d2_final)
     T_base_sensor: dict = {}
     if "ground" in jobs:
         with clock("ground"):  # what is left of it: it ran beside the registration
@@ -208,9 +211,10 @@ def _map_pictures(mp, o) -> dict:
 _VIEW_BOX_M = 10.0
 
 
-def _alignment_pictures(fds, before: np.ndarray, after: np.ndarray, o) -> dict:
+def _alignment_pictures(fds, before: np.ndarray, after: np.ndarray, o, d2_before: list, d2_after: list) -> dict:
     """One frame (the middle one) near the sensor before (guess) and after (final), and the
-    distances of every frame's points (1 in 4) to the dense map before and after."""
+    distances of every frame's points (1 in 4: ``squared_distances``' ``d2_before`` / ``d2_after``)
+    to the dense map before and after."""
     from .mapping import voxel_down
 
     fd = fds[len(fds) // 2]
@@ -222,14 +226,10 @@ def _alignment_pictures(fds, before: np.ndarray, after: np.ndarray, o) -> dict:
     def moved(T, pts):
         return pts @ T[:3, :3].T + T[:3, 3]
 
-    def distances(T):
-        return np.concatenate([np.sqrt(gicp.nearest(f.tree, moved(T, f.source_pts[::4]), threads=f.threads)[0])
-                               for f in fds])
-
     return {"target": near(voxel_down(fd.target_pts, o.calibration_viz_leaf_size / 3)),
             "source_guess": near(moved(before, fd.source_pts)), "source_final": near(moved(after, fd.source_pts)),
             "box_m": _VIEW_BOX_M, "frames": len(fds),
-            "distances_guess": distances(before), "distances_final": distances(after),
+            "distances_guess": np.sqrt(np.concatenate(d2_before)), "distances_final": np.sqrt(np.concatenate(d2_after)),
             "max_corr_m": float(o.calibration_eval_max_corr_distance)}
 
 

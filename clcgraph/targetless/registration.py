@@ -356,14 +356,22 @@ def deskew_sources(frames, T_lidar0_sensor: np.ndarray) -> None:
 
 def score(frames, T: np.ndarray, o, *, sub: int = 4) -> float:
     """Mean truncated squared source-to-target distance over all frames (lower is better)."""
+    return truncated_score(squared_distances(frames, T, sub=sub), o)
+
+
+def squared_distances(frames, T: np.ndarray, *, sub: int = 4) -> list:
+    """Per frame, (N,) squared distance of every ``sub``-th source point, placed by T_lidar0_sensor
+    = T, to its nearest target point."""
+    return [gicp.nearest(fd.tree, fd.source_pts[::sub] @ T[:3, :3].T + T[:3, 3], threads=fd.threads)[0]
+            for fd in frames]
+
+
+def truncated_score(d2s: list, o) -> float:
+    """``score`` of the frames' squared_distances: their mean, each truncated at
+    ``calibration_eval_max_corr_distance`` squared."""
     c2 = o.calibration_eval_max_corr_distance ** 2
-    tot, n = 0.0, 0
-    for fd in frames:
-        p = fd.source_pts[::sub] @ T[:3, :3].T + T[:3, 3]
-        d2 = np.minimum(gicp.nearest(fd.tree, p, threads=fd.threads)[0], c2)
-        tot += d2.sum()
-        n += len(d2)
-    return tot / max(n, 1)
+    n = sum(len(d2) for d2 in d2s)
+    return sum(float(np.minimum(d2, c2).sum()) for d2 in d2s) / max(n, 1)
 
 
 def _run(fd, T0, kind, corr, o, leaf):
