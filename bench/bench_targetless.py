@@ -160,7 +160,7 @@ def run_bag(duration_s: float = 60.0, small: bool = False, seed: int = 0, workdi
     cmd = [sys.executable, "-m", "clcgraph", "-q", "targetless", "--bag", str(bag), "--mapping-topic", top,
            "--calibration-topics", side, "--base-frame", "base_link", "--out", str(out)]
     # the machine is shared: the run of median wall time (stages and all), the largest memory of any
-    runs_done = sorted((_command(cmd, tmp) for _ in range(runs)), key=lambda r: r["wall"])
+    runs_done = sorted((_command(cmd, tmp, out) for _ in range(runs)), key=lambda r: r["wall"])
     med = runs_done[len(runs_done) // 2]
     for k, v in med["stages"]["timings_s"].items():
         rows.append((k, float("nan"), v, v / duration_s, (med["stages"].get("peak_rss_mb") or {}).get(k, float("nan"))))
@@ -179,9 +179,10 @@ def run_bag(duration_s: float = 60.0, small: bool = False, seed: int = 0, workdi
     return rows
 
 
-def _command(cmd: list, tmp: Path) -> dict:
-    """One whole ``clcgraph targetless`` process: wall and CPU seconds, its own peak RSS and that
-    of it with its forked children (MB), its timings.yaml."""
+def _command(cmd: list, tmp: Path, out: Path) -> dict:
+    """One whole ``clcgraph targetless`` process (``cmd``, writing to ``out``; its stderr in ``tmp``):
+    wall and CPU seconds, its own peak RSS and that of it with its forked children (MB), its
+    timings.yaml."""
     import yaml
 
     t = time.perf_counter()
@@ -193,7 +194,6 @@ def _command(cmd: list, tmp: Path) -> dict:
     in_use = sampler.stop()
     if os.waitstatus_to_exitcode(status) != 0:
         raise RuntimeError(f"clcgraph targetless failed: {(tmp / 'stderr.txt').read_text()[-2000:]}")
-    out = Path(cmd[cmd.index("--out") + 1])
     return {"wall": wall, "cpu": ru.ru_utime + ru.ru_stime, "rss": ru.ru_maxrss / 1024.0, "pss": in_use,
             "stages": yaml.safe_load((out / "timings.yaml").read_text())}
 
