@@ -8,6 +8,7 @@ import time
 
 import pytest
 
+from clcgraph import two_processes
 from clcgraph.outputs import drawing
 from clcgraph.outputs.drawing import draw_concurrently
 
@@ -34,7 +35,7 @@ def test_two_processes_draw_what_one_draws_in_order():
 
 @pytest.mark.parametrize("cpus", [1, 2])
 def test_a_failing_job_is_logged_and_gives_nothing(caplog, monkeypatch, cpus):
-    monkeypatch.setattr(drawing, "_cpus", lambda: cpus)
+    monkeypatch.setattr(two_processes, "_cpus", lambda: cpus)
 
     def boom():
         raise RuntimeError("no such data")
@@ -62,7 +63,7 @@ def test_pictures_of_a_dead_child_are_drawn_here(caplog):
 
 
 def test_one_cpu_or_a_daemon_draws_everything_here(monkeypatch):
-    monkeypatch.setattr(drawing, "_cpus", lambda: 1)
+    monkeypatch.setattr(two_processes, "_cpus", lambda: 1)
     pids = []
     out = draw_concurrently([lambda k=k: (pids.append(os.getpid()), [k])[1] for k in range(3)])
     assert out == [[0], [1], [2]] and pids == [os.getpid()] * 3
@@ -100,7 +101,7 @@ def test_report_writer_writes_the_report_write_report_writes(tmp_path):
 def test_a_stuck_child_is_stopped_and_its_pictures_drawn_here(monkeypatch, caplog):
     import multiprocessing
 
-    monkeypatch.setattr(drawing, "_PATIENCE_S", 1.0)
+    monkeypatch.setattr(two_processes, "_PATIENCE_S", 1.0)
     parent = os.getpid()
 
     def stuck_in_child():  # as on a lock another thread held at the fork

@@ -32,9 +32,9 @@ SYNOPSIS
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -42,6 +42,7 @@ import numpy as np
 from ..errors import DataError
 from ..geometry import azimuth, circular_mean, wrap_angle
 from ..planes import fit_plane, ransac_plane
+from ..two_processes import TwoProcesses
 from ..types import BoardGeometry, LidarBoardObservation, LidarScan, Rejected
 from .board_edges import edge_rays
 from .board_outline import fit_outline, scan_rays
@@ -694,7 +695,8 @@ def segment_many(scans, options, lidar_options, board: BoardGeometry, *, sensor:
                  snapshots=None, jobs: int | None = None, progress=None, debug: list | None = None,
                  ring_offsets: dict | None = None) -> list:
     """segment_board over a session of one LIDAR (static scene removed when suppress_static),
-    in ``jobs`` threads. ``progress``: optional wrapper of the result iteration (a progress bar);
+    by this process and a forked one (``jobs`` 1: this one alone). ``progress``: optional wrapper
+    of an iteration over the scans (a progress bar);
     ``debug``: one Debug per scan to fill; ``ring_offsets``: filled with {ring: range offset (m)}
     taken out of the scans (``ring_range_offsets``), if any was."""
     scans = list(scans)
@@ -704,23 +706,39 @@ def segment_many(scans, options, lidar_options, board: BoardGeometry, *, sensor:
     _check_sensor_frame(scans)
     npoints, static = session_masks(scans, lidar_options)
 
-    def one(k):
+    def one(k):  # (result, its Debug or None): a Debug filled in a forked process is sent back with it
+        d = None if debug is None else Debug()
         return segment_board(scans[k], options, lidar_options, board, sensor=sensor, snapshot=snapshots[k],
-                             exclude=static[k], npoints_per_rotation=npoints,
-                             debug=None if debug is None else debug[k])
+                             exclude=static[k], npoints_per_rotation=npoints, debug=d), d
 
     jobs = jobs or min(2, os.cpu_count() or 1)
 
     def all_scans(progress):
+        ticks = iter(progress(range(len(scans)), len(scans))) if progress else iter(())
+        shown = 0
+
+        def advance(taken):
+            nonlocal shown
+            for _ in range(taken - shown):
+                next(ticks, None)
+            shown = max(shown, taken)
+
+        work = [functools.partial(one, k) for k in range(len(scans))]
         if jobs <= 1 or len(scans) < 4:
-            it = map(one, range(len(scans)))
-            return list(progress(it, len(scans)) if progress else it)
-        # threads, not processes: numpy and scipy release the GIL in the heavy parts, and worker
-        # processes would either fork a threaded process (deadlocks) or re-import the caller's
-        # script (forkserver/spawn: a fleet script without a __main__ guard would run again)
-        with ThreadPoolExecutor(max_workers=jobs) as ex:
-            it = ex.map(one, range(len(scans)))
-            return list(progress(it, len(scans)) if progress else it)
+            found = []
+            for w in work:
+                found.append(w())
+                advance(len(found))
+        else:
+            # two processes, not threads: a scan's segmentation is many small numpy steps, between
+            # which a thread holds the GIL (two threads kept 1.1 of 2 cores busy)
+            with TwoProcesses(work, what=f"{scans[0].topic}: segmentation") as both:
+                found = both.results(advance)
+        for _ in ticks:  # the bar ends
+            pass
+        if debug is not None:
+            debug[:] = [d for _, d in found]
+        return [r for r, _ in found]
 
     found = all_scans(progress)
     offsets = ring_range_offsets(found, scans)

@@ -1,0 +1,54 @@
+"""two_processes.py: jobs shared with a forked child give what this process alone gives (the
+report's Drawing on top of it: tests/test_drawing.py)."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import pytest
+
+from clcgraph import two_processes
+from clcgraph.two_processes import TwoProcesses
+
+
+def _slow(k, pids=None):
+    time.sleep(0.05)
+    if pids is not None:
+        pids.append(os.getpid())
+    return {"k": k, "data": bytes([k % 256]) * 50_000}  # larger than a pipe's buffer
+
+
+def test_results_in_the_jobs_order_from_both_processes():
+    pids = []
+    with TwoProcesses([lambda k=k: _slow(k, pids) for k in range(12)]) as work:
+        out = work.results()
+    assert out == [_slow(k) for k in range(12)]
+    assert 0 < len(pids) < 12  # the child did the others (its list is its own)
+
+
+def test_a_job_that_raises_in_the_child_raises_here():
+    parent = os.getpid()
+    ran_here = []
+
+    def fails_in_child():
+        if os.getpid() != parent:
+            raise ValueError("bad scan")
+        ran_here.append(True)
+        raise ValueError("bad scan")
+
+    with pytest.raises(ValueError, match="bad scan"):
+        with TwoProcesses([fails_in_child, lambda: 1]) as work:
+            time.sleep(0.5)  # the child takes both jobs meanwhile
+            work.results()
+    assert ran_here == [True]  # run again here: its exception, traceback and all, is raised here
+
+
+def test_progress_counts_every_job_taken(monkeypatch):
+    for cpus in (1, 2):
+        monkeypatch.setattr(two_processes, "_cpus", lambda: cpus)
+        seen = []
+        with TwoProcesses([lambda k=k: _slow(k) for k in range(8)]) as work:
+            out = work.results(seen.append)
+        assert [o["k"] for o in out] == list(range(8))
+        assert seen == sorted(seen) and seen[-1] <= 8 and (cpus == 2 or seen == list(range(1, 9)))
