@@ -34,10 +34,12 @@ SYNOPSIS
 
 from __future__ import annotations
 
+import functools
 import logging
 
 import numpy as np
 
+from ..two_processes import TwoProcesses
 from . import graph as G
 
 log = logging.getLogger(__name__)
@@ -491,11 +493,14 @@ def estimate_components(problem, lin: Linearization, sig: np.ndarray, effects: d
     if select:
         w0, _, m2l0 = _vce(lin, {g: (1.0 if g[0] == "white" else at_floor[g]) for g in base}, set(), base, floor)
         stats0, _ = lin.solve_and_trace(w0)
-        for g in at_floor:
-            # d(-2 log L)/d(log sigma_g^2) = r_g - q_g: if q_g <= r_g (its chi^2 per redundancy is at
-            # most 1), a larger sigma only lowers the likelihood from the floor on: nothing to find
-            n, q, tr = stats0[g]
-            lr[g] = m2l0 - _profile(lin, w0, g, base, floor) if q > n - tr else 0.0
+        # d(-2 log L)/d(log sigma_g^2) = r_g - q_g: if q_g <= r_g (its chi^2 per redundancy is at
+        # most 1), a larger sigma only lowers the likelihood from the floor on: nothing to find
+        profiled = [g for g in at_floor if stats0[g][1] > stats0[g][0] - stats0[g][2]]
+        # each profile on its own (by two processes: the solve has the second core to itself here)
+        with TwoProcesses([functools.partial(_profile, lin, w0, g, base, floor) for g in profiled],
+                          what="the noise components' likelihood profiles") as both:
+            m2l = dict(zip(profiled, both.results()))
+        lr = {g: m2l0 - m2l[g] if g in m2l else 0.0 for g in at_floor}
         free = {g for g in at_floor if lr[g] >= _LR_CRITICAL}
         log.debug("variance components' likelihood-ratio statistics (kept at >= %g): %s", _LR_CRITICAL,
                   {group_name(problem, g): round(x, 2) for g, x in lr.items()})
