@@ -11,7 +11,8 @@ linearly (exponent ~1); each goal's row prints the measured time, the goal and t
 A second table splits each solve into its stages (calibrate's ``stats["time_s"]``, wall s of the
 best run): seed, the LMs, the noise/outlier rounds, the noise components (REML), the board checks
 (backend/board_check.py), Marginals, the jackknife (with the consider terms' known columns), the
-consider terms, the consistency checks and the units' error sensitivities (for `compare`).
+consider terms, the consistency checks and the units' error sensitivities (for `compare`: worked out
+by a second process during the checks, so the time waited for them after the checks).
 """
 
 from __future__ import annotations

@@ -36,6 +36,7 @@ import numpy as np
 
 from ..errors import DegenerateError, SolveError
 from ..geometry import R_from_r, drt_dxi, pose3_from_rt, rt_from_pose3, tangent_covariance_from_rt
+from ..two_processes import TwoProcesses
 from ..types import Problem, Rejected, Result
 from . import board_check, consider, consistency
 from . import graph as G
@@ -624,76 +625,79 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
         return rebuild
 
     rebuild = rebuilder(sig, effect_sig)
+    # what `compare` needs, the units' error sensitivities, by a second process meanwhile (the checks
+    # below do not need them; a refusal stops it)
+    with TwoProcesses([lambda: _unit_errors(problem, rebuild, values, (g, lin), rt_sensor, options)],
+                      what="the units' error sensitivities") as unit_work:
+        # a board described otherwise than the sensors see it is named as such, before the checks below
+        # blame the capture for its effects
+        t = time.perf_counter()
+        # the squares first: a pattern printed scaled moves every board along its view, which the
+        # board check (which has no scale unknown) would read partly as an offset
+        board_check.check_scale(problem, board_check.scale_seen(problem, active, rt_sensor), options)
+        if options.lidar_edges:
+            board_check.check_board(problem, board_check.board_seen(problem, g, lin))
+        times["board_checks"] = time.perf_counter() - t
+        t = time.perf_counter()
+        cov = _covariance(problem, g, values, rt_sensor, options)
+        times["covariance"] = time.perf_counter() - t
+        t = time.perf_counter()
 
-    # a board described otherwise than the sensors see it is named as such, before the checks below
-    # blame the capture for its effects
-    t = time.perf_counter()
-    # the squares first: a pattern printed scaled moves every board along its view, which the
-    # board check (which has no scale unknown) would read partly as an offset
-    board_check.check_scale(problem, board_check.scale_seen(problem, active, rt_sensor), options)
-    if options.lidar_edges:
-        board_check.check_board(problem, board_check.board_seen(problem, g, lin))
-    times["board_checks"] = time.perf_counter() - t
-    t = time.perf_counter()
-    cov = _covariance(problem, g, values, rt_sensor, options)
-    times["covariance"] = time.perf_counter() - t
-    t = time.perf_counter()
+        # the consider terms' errors as columns of the final linearization: the jackknife's expected
+        # ratio and the consistency checks count them in
+        known = consider.known_columns(problem, lin, g, rebuild, options)
+        # the jackknife judges the board-to-board part: it cannot see the common part of errors fixed for the capture
+        with_known = lin.with_known(*known) if known else None
+        # the components re-estimated without each snapshot where some D is kept: the white sigmas
+        # alone rest on thousands of points, one board changes them by nothing
+        jk = jackknife(problem, lin, rt_sensor, cov, known=with_known,
+                       components=(sig, effects, with_known or lin) if N.any_kept(effects) else None)
+        if options.jackknife_floor:  # where the jackknife rejects the model, its spread
+            cov = raise_where_rejected(cov, jk)
+        times["jackknife"] = time.perf_counter() - t
+        t = time.perf_counter()
 
-    # the consider terms' errors as columns of the final linearization: the jackknife's expected
-    # ratio and the consistency checks count them in
-    known = consider.known_columns(problem, lin, g, rebuild, options)
-    # the jackknife judges the board-to-board part: it cannot see the common part of errors fixed for the capture
-    with_known = lin.with_known(*known) if known else None
-    # the components re-estimated without each snapshot where some D is kept: the white sigmas
-    # alone rest on thousands of points, one board changes them by nothing
-    jk = jackknife(problem, lin, rt_sensor, cov, known=with_known,
-                   components=(sig, effects, with_known or lin) if N.any_kept(effects) else None)
-    if options.jackknife_floor:  # where the jackknife rejects the model, its spread
-        cov = raise_where_rejected(cov, jk)
-    times["jackknife"] = time.perf_counter() - t
-    t = time.perf_counter()
-
-    terms = consider.consider_terms(problem, rebuild, values, options, nominal=(g, lin))
-    cov, uncertainty_terms = consider.add_terms(problem, rt_sensor, cov, terms)
-    times["consider"] = time.perf_counter() - t
-    _refuse_non_finite(problem, cov)
-    _refuse_imprecise(problem, rt_sensor, cov, uncertainty_terms, options)
-    final = stages[-1]
-    step = _final_step_sigma(problem, final.pop("_last_step"), values, rt_sensor, cov)
-    for r in stages:
-        r.pop("_last_step", None)
-    if not final["converged"]:
-        if not step <= MAX_UNCONVERGED_STEP_SIGMA:
-            raise SolveError(f"the final solve did not converge ({final['reason']}) and its last step moved the "
-                             f"sensor poses by {step:.2g} sigma: the result cannot be trusted; raise solve.max_iterations "
-                             f"(now {options.max_iterations})")
-        warnings.append(f"the final solve did not converge, but its last step moved the sensor poses by only "
-                        f"{step:.2g} sigma (<= {MAX_UNCONVERGED_STEP_SIGMA:g}): the result stands")
-    convergence = {"converged": not warnings, "final_step_sigma": step, "rounds": rounds,
-                   "stages": [public(r) for r in stages], "warnings": warnings}
-    t = time.perf_counter()
-    # the checks assume only the components shown at p = 1e-3: one kept at 0.01 widens the sigmas,
-    # but a refusal needs the stronger evidence (noise.LR_ASSUMED)
-    weak = {grp: x for grp, x in lr.items() if x < N.LR_ASSUMED}
-    g_c, known_c = g, known
-    if weak:
-        try:  # estimated as the noise rounds estimated the model's: the consider terms' errors in the data
-            sig_c, effects_c = N.without_components(problem, with_known or lin, sig, effects, set(weak))
-        except np.linalg.LinAlgError as e:
-            raise _singular(e, "without those under the checks' level") from None
-        rebuild_c = rebuilder(sig_c, N.effect_sigmas(problem, effects_c))
-        g_c = rebuild_c(problem)
-        lin_c = lin.reweighted(N.group_weights(lin.groups, sig, effects, sig_c, effects_c))  # the same values
-        known_c = consider.known_columns(problem, lin_c, g_c, rebuild_c, options)
-    verdict = consistency.verify(problem, g_c, values, alpha=options.consistency_alpha,
-                                 refuse=options.refuse_inconsistent, known=known_c)
-    verdict["components_not_assumed"] = {N.group_name(problem, grp): round(float(x), 2)
-                                         for grp, x in sorted(weak.items())}
-    verdict["components_assumed_from"] = {"lr_statistic": N.LR_ASSUMED, "p": N.LR_ASSUMED_P}
-    times["consistency"] = time.perf_counter() - t
-    t = time.perf_counter()  # after the verdict: a refused capture needs none
-    unit_errors = _unit_errors(problem, rebuild, values, (g, lin), rt_sensor, options)
-    times["unit_error_sensitivities"] = time.perf_counter() - t
+        terms = consider.consider_terms(problem, rebuild, values, options, nominal=(g, lin))
+        cov, uncertainty_terms = consider.add_terms(problem, rt_sensor, cov, terms)
+        times["consider"] = time.perf_counter() - t
+        _refuse_non_finite(problem, cov)
+        _refuse_imprecise(problem, rt_sensor, cov, uncertainty_terms, options)
+        final = stages[-1]
+        step = _final_step_sigma(problem, final.pop("_last_step"), values, rt_sensor, cov)
+        for r in stages:
+            r.pop("_last_step", None)
+        if not final["converged"]:
+            if not step <= MAX_UNCONVERGED_STEP_SIGMA:
+                raise SolveError(f"the final solve did not converge ({final['reason']}) and its last step moved the "
+                                 f"sensor poses by {step:.2g} sigma: the result cannot be trusted; raise "
+                                 f"solve.max_iterations (now {options.max_iterations})")
+            warnings.append(f"the final solve did not converge, but its last step moved the sensor poses by only "
+                            f"{step:.2g} sigma (<= {MAX_UNCONVERGED_STEP_SIGMA:g}): the result stands")
+        convergence = {"converged": not warnings, "final_step_sigma": step, "rounds": rounds,
+                       "stages": [public(r) for r in stages], "warnings": warnings}
+        t = time.perf_counter()
+        # the checks assume only the components shown at p = 1e-3: one kept at 0.01 widens the sigmas,
+        # but a refusal needs the stronger evidence (noise.LR_ASSUMED)
+        weak = {grp: x for grp, x in lr.items() if x < N.LR_ASSUMED}
+        g_c, known_c = g, known
+        if weak:
+            try:  # estimated as the noise rounds estimated the model's: the consider terms' errors in the data
+                sig_c, effects_c = N.without_components(problem, with_known or lin, sig, effects, set(weak))
+            except np.linalg.LinAlgError as e:
+                raise _singular(e, "without those under the checks' level") from None
+            rebuild_c = rebuilder(sig_c, N.effect_sigmas(problem, effects_c))
+            g_c = rebuild_c(problem)
+            lin_c = lin.reweighted(N.group_weights(lin.groups, sig, effects, sig_c, effects_c))  # the same values
+            known_c = consider.known_columns(problem, lin_c, g_c, rebuild_c, options)
+        verdict = consistency.verify(problem, g_c, values, alpha=options.consistency_alpha,
+                                     refuse=options.refuse_inconsistent, known=known_c)
+        verdict["components_not_assumed"] = {N.group_name(problem, grp): round(float(x), 2)
+                                             for grp, x in sorted(weak.items())}
+        verdict["components_assumed_from"] = {"lr_statistic": N.LR_ASSUMED, "p": N.LR_ASSUMED_P}
+        times["consistency"] = time.perf_counter() - t
+        t = time.perf_counter()  # the wait for them
+        unit_errors = unit_work.results()[0]
+        times["unit_error_sensitivities"] = time.perf_counter() - t
     if warnings:  # one line on stderr, once the result stands (a refusal is its own one line); every
         # stage's record is in calibration.yaml and the report
         log.warning("solve: not converged everywhere: %s", "; ".join(warnings))
