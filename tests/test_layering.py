@@ -42,6 +42,7 @@ RULES: dict[str, tuple[str, ...]] = {
                      "clcgraph.targetless"),
     "clcgraph.progress": ("clcgraph",),
     "clcgraph.timing": ("clcgraph",),
+    "clcgraph.two_processes": ("clcgraph",),
     "clcgraph.determinism": ("clcgraph",),
 }
 # types, geometry, config import nothing of ours; errors (which imports nothing) is allowed.
