@@ -13,6 +13,6 @@
 Heavy imports happen inside each ``run``, so ``clcgraph --help`` is instant.
 """
 
-from .main import build_parser, main
+from .main import build_parser, main, run
 
-__all__ = ["build_parser", "main"]
+__all__ = ["build_parser", "main", "run"]

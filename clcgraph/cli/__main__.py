@@ -1,8 +1,6 @@
 """`python -m clcgraph.cli ...`: the same entry point as the `clcgraph` command."""
 
-import sys
-
-from .main import main
+from .main import run
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run()
