@@ -4,6 +4,8 @@ Images are rendered here by an area-sampled pinhole renderer (pixel centres at
 integer coordinates, mrcal's convention), so corner truth is exact.
 """
 
+import os
+
 import cv2
 import numpy as np
 import pytest
@@ -303,3 +305,22 @@ def test_a_grid_with_a_row_along_the_patterns_edge_is_rejected(clean):
         assert side_without_corners(px, grid, 10, 11) in ("top row", "bottom row")
         r = _validate(grid, px, 10, 11, DetectionOptions(), "none")
         assert not isinstance(r, np.ndarray) and r.reason.startswith(PATTERN_ENDS), r
+
+
+def test_mrgingham_images_go_to_the_users_tmpdir_when_set(clean, monkeypatch, tmp_path):
+    """TMPDIR set: the scratch images go there (and leave nothing behind), not to /dev/shm."""
+    from clcgraph.frontend import camera_board
+
+    seen = []
+    real = camera_board.tempfile.TemporaryDirectory
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("dir"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(camera_board.tempfile, "TemporaryDirectory", spy)
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    out = detect_corners([Image("cam", 0, clean[0][0], "mono8")], DetectionOptions(detector="mrgingham"), BOARD)
+    assert isinstance(out[0], np.ndarray) and seen == [str(tmp_path)] and not list(tmp_path.iterdir())
+    monkeypatch.delenv("TMPDIR")
+    assert camera_board._scratch_dir() == ("/dev/shm" if os.access("/dev/shm", os.W_OK) else None)

@@ -80,7 +80,8 @@ def test_fleet_flags_the_knocked_camera_passes_the_recalibration_and_isolates_th
 
 
 @pytest.mark.slow
-def test_fleet_is_bit_identical_on_a_process_pool_with_a_killed_worker_and_on_dask(serial, fleet_data, tmp_path):
+def test_fleet_is_bit_identical_on_a_process_pool_with_a_killed_worker_and_on_dask(serial, fleet_data, tmp_path,
+                                                                                   monkeypatch):
     """The knocked and the broken vehicle again: the pool's first worker is SIGKILLed a second
     into its vehicle (retried once), then a real Dask LocalCluster of 2 worker processes."""
     distributed = pytest.importorskip("distributed")
@@ -88,6 +89,9 @@ def test_fleet_is_bit_identical_on_a_process_pool_with_a_killed_worker_and_on_da
     (tmp_path / "fleet.yaml").write_text(manifest_text(fleet_data, vehicles=("knocked", "truncated")))
     want = [r for r in _found(serial_summary) if r["id"] in ("knocked", "truncated")]
 
+    # the killed worker's temporary files cannot be removed: they go where the test's do
+    (tmp_path / "scratch").mkdir()
+    monkeypatch.setenv("TMPDIR", str(tmp_path / "scratch"))
     pool = calibrate_fleet(tmp_path / "fleet.yaml", tmp_path / "pool", kill_once_pool(tmp_path / "killed"))
     assert (tmp_path / "killed").exists()  # a worker was killed
     assert max(r["attempts"] for r in pool["vehicles"]) == 2
