@@ -30,7 +30,7 @@ from typing import Callable, Sequence
 log = logging.getLogger(__name__)
 
 # How long this process waits for the child once its own share is done: this much, plus this
-# factor times the time its own share took (on a loaded machine both processes are slow alike).
+# factor times the time the child has had so far (on a loaded machine both processes are slow alike).
 _PATIENCE_S = 30.0
 _PATIENCE_FACTOR = 4.0
 
@@ -92,6 +92,7 @@ class TwoProcesses:
             self.child = ctx.Process(target=_child, args=(self.jobs, self.order, self.counter, send),
                                      daemon=True, name="clcgraph-worker")
             self.child.start()
+            self.started = time.perf_counter()
             send.close()
 
     def __enter__(self) -> "TwoProcesses":
@@ -124,7 +125,6 @@ class TwoProcesses:
                     progress(len(out))
             return out
         done = {}
-        t0 = time.perf_counter()
         try:
             while (n := _take(self.counter)) < len(self.jobs):
                 k = self.order[n]
@@ -134,9 +134,10 @@ class TwoProcesses:
         except BaseException:
             self.close(wait=False)
             raise
-        # the child's last job takes about as long as one of ours: far longer means it is stuck (a
-        # lock another thread held when it was forked), and its jobs are done here instead
-        patience = _PATIENCE_S + _PATIENCE_FACTOR * (time.perf_counter() - t0)
+        # the child's last job takes about as long as one of ours, its remaining work no longer than
+        # what it did so far: far longer means it is stuck (a lock another thread held when it was
+        # forked), and its jobs are done here instead
+        patience = _PATIENCE_S + _PATIENCE_FACTOR * (time.perf_counter() - self.started)
         try:
             if self.receive.poll(patience):
                 done.update(self.receive.recv())

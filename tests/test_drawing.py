@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import time
 
 import pytest
@@ -113,5 +114,5 @@ def test_a_stuck_child_is_stopped_and_its_pictures_drawn_here(monkeypatch, caplo
     with caplog.at_level(logging.WARNING):
         out = draw_concurrently([stuck_in_child, _job(1)], first=lambda: time.sleep(0.5))
     assert out == [[("s.png", "", b"s")], _job(1)()]
-    assert "sent nothing in 1 s" in caplog.text
+    assert re.search(r"sent nothing in \d+ s", caplog.text)
     assert time.perf_counter() - t0 < 20 and not multiprocessing.active_children()

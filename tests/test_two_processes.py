@@ -3,6 +3,7 @@ report's Drawing on top of it: tests/test_drawing.py)."""
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 
@@ -52,3 +53,14 @@ def test_progress_counts_every_job_taken(monkeypatch):
             out = work.results(seen.append)
         assert [o["k"] for o in out] == list(range(8))
         assert seen == sorted(seen) and seen[-1] <= 8 and (cpus == 2 or seen == list(range(1, 9)))
+
+
+def test_a_long_job_the_child_started_early_is_waited_for(monkeypatch, caplog):
+    """The child's one job outlasts the fixed patience, but not what it has had so far (this
+    process worked meanwhile): it is waited for, not done again here."""
+    monkeypatch.setattr(two_processes, "_PATIENCE_S", 0.5)
+    with caplog.at_level(logging.WARNING):
+        with TwoProcesses([lambda: time.sleep(2.0) or os.getpid()]) as work:
+            time.sleep(1.0)  # this process's other work
+            (pid,) = work.results()
+    assert pid != os.getpid() and not caplog.text
