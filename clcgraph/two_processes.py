@@ -49,9 +49,29 @@ def _take(counter) -> int:
     return k
 
 
-def _child(jobs, order, counter, conn) -> None:
+def _die_with(parent: int) -> None:
+    """This process killed when ``parent`` dies (Linux; elsewhere nothing): a parent killed by
+    SIGKILL (a pool's lost worker, the OOM killer) cannot stop its child, which would live on
+    holding the parent's inherited pipes and locks (a process pool then waits for it forever)."""
+    import ctypes
     import signal
 
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:  # died before the prctl
+        os._exit(1)
+
+
+def _child(jobs, order, counter, conn, other_end, parent: int) -> None:
+    import signal
+
+    _die_with(parent)
+    # the parent's end of the pipe, inherited: held open here, a send to a parent gone would block
+    # once the pipe is full instead of failing
+    other_end.close()
     # Ctrl-C and SIGTERM are the parent's to handle (it kills this child): no second message or traceback
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
@@ -89,8 +109,8 @@ class TwoProcesses:
             ctx = multiprocessing.get_context("fork")
             self.counter = ctx.Value("i", 0)
             self.receive, send = ctx.Pipe(duplex=False)
-            self.child = ctx.Process(target=_child, args=(self.jobs, self.order, self.counter, send),
-                                     daemon=True, name="clcgraph-worker")
+            self.child = ctx.Process(target=_child, args=(self.jobs, self.order, self.counter, send, self.receive,
+                                                          os.getpid()), daemon=True, name="clcgraph-worker")
             self.child.start()
             self.started = time.perf_counter()
             send.close()

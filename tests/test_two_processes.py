@@ -64,3 +64,37 @@ def test_a_long_job_the_child_started_early_is_waited_for(monkeypatch, caplog):
             time.sleep(1.0)  # this process's other work
             (pid,) = work.results()
     assert pid != os.getpid() and not caplog.text
+
+
+def test_a_child_does_not_outlive_a_killed_parent(tmp_path):
+    """A parent killed by SIGKILL (a pool's lost worker) takes its child with it: an orphan held the
+    parent's inherited pipes, and the process pool that lost the worker waited for it forever."""
+    import signal
+    import subprocess
+    import sys
+
+    script = tmp_path / "parent.py"
+    script.write_text(
+        "import os, signal, sys, time\n"
+        "from clcgraph.two_processes import TwoProcesses\n"
+        "work = TwoProcesses([lambda: time.sleep(60) or b'x' * 1_000_000])\n"
+        "open(sys.argv[1], 'w').write(str(work.child.pid))\n"
+        "time.sleep(0.5)\n"
+        "os.kill(os.getpid(), signal.SIGKILL)\n")
+    # no pipes to wait on: an orphan would hold them open
+    p = subprocess.run([sys.executable, str(script), str(tmp_path / "pid")], stdout=subprocess.DEVNULL,
+                       stderr=subprocess.DEVNULL, timeout=60)
+    assert p.returncode == -signal.SIGKILL
+    child = int((tmp_path / "pid").read_text())
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        try:
+            os.kill(child, 0)
+        except ProcessLookupError:
+            return
+        with open(f"/proc/{child}/stat") as f:  # a zombie waiting for init to reap it is gone too
+            if f.read().split(")")[-1].split()[0] == "Z":
+                return
+        time.sleep(0.1)
+    os.kill(child, signal.SIGKILL)
+    raise AssertionError("the child outlived its killed parent")
