@@ -315,12 +315,18 @@ def test_mrgingham_images_go_to_the_users_tmpdir_when_set(clean, monkeypatch, tm
     real = camera_board.tempfile.TemporaryDirectory
 
     def spy(*args, **kwargs):
-        seen.append(kwargs.get("dir"))
-        return real(*args, **kwargs)
+        d = real(*args, **kwargs)
+        seen.append(os.path.dirname(d.name))
+        return d
 
     monkeypatch.setattr(camera_board.tempfile, "TemporaryDirectory", spy)
+    monkeypatch.setattr(camera_board.tempfile, "tempdir", None)  # tempfile's choice made again, from TMPDIR
     monkeypatch.setenv("TMPDIR", str(tmp_path))
     out = detect_corners([Image("cam", 0, clean[0][0], "mono8")], DetectionOptions(detector="mrgingham"), BOARD)
     assert isinstance(out[0], np.ndarray) and seen == [str(tmp_path)] and not list(tmp_path.iterdir())
+    monkeypatch.setenv("TMPDIR", str(tmp_path / "missing"))  # unusable: tempfile's fallback, no failure
+    monkeypatch.setattr(camera_board.tempfile, "tempdir", None)
+    assert isinstance(detect_corners([Image("cam", 0, clean[0][0], "mono8")], DetectionOptions(detector="mrgingham"),
+                                     BOARD)[0], np.ndarray)
     monkeypatch.delenv("TMPDIR")
     assert camera_board._scratch_dir() == ("/dev/shm" if os.access("/dev/shm", os.W_OK) else None)

@@ -373,9 +373,10 @@ def choose_detector(options, board: BoardGeometry) -> str:
 
 def _scratch_dir() -> str | None:
     """Where the images for the mrgingham command go: the user's TMPDIR when set (their place for
-    temporary files), else memory-backed /dev/shm when there is one, else the system's default."""
+    temporary files; None: tempfile's choice, which skips a TMPDIR it cannot write to), else
+    memory-backed /dev/shm when there is one, else the system's default."""
     if os.environ.get("TMPDIR"):
-        return os.environ["TMPDIR"]
+        return None
     return "/dev/shm" if os.access("/dev/shm", os.W_OK) else None
 
 
