@@ -91,11 +91,12 @@ def _child(jobs, order, counter, conn, other_end, parent: int) -> None:
 class TwoProcesses:
     """Jobs done by this process and a forked child together, the child starting at once (see the
     module). ``order``: the jobs' indices in the order they are taken (the longest first: the two
-    processes then finish together); ``what``: the work, for the warnings. Leaving the block without
-    ``results()`` (an error) stops the child."""
+    processes then finish together); ``what``: the work, for the warnings; ``fork``: False, every job
+    runs here (too little work to share). Leaving the block without ``results()`` (an error) stops
+    the child."""
 
     def __init__(self, jobs: Sequence[Callable[[], object]], *, order: Sequence[int] | None = None,
-                 what: str = "the work"):
+                 what: str = "the work", fork: bool = True):
         import multiprocessing
 
         self.jobs = list(jobs)
@@ -104,7 +105,7 @@ class TwoProcesses:
         if sorted(self.order) != list(range(len(self.jobs))):
             raise ValueError(f"order {self.order} is not a permutation of the {len(self.jobs)} jobs")
         self.child = None
-        if self.jobs and _cpus() > 1 and "fork" in multiprocessing.get_all_start_methods() \
+        if fork and self.jobs and _cpus() > 1 and "fork" in multiprocessing.get_all_start_methods() \
                 and not multiprocessing.current_process().daemon:
             ctx = multiprocessing.get_context("fork")
             self.counter = ctx.Value("i", 0)

@@ -34,7 +34,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
-import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -711,8 +710,6 @@ def segment_many(scans, options, lidar_options, board: BoardGeometry, *, sensor:
         return segment_board(scans[k], options, lidar_options, board, sensor=sensor, snapshot=snapshots[k],
                              exclude=static[k], npoints_per_rotation=npoints, debug=d), d
 
-    jobs = jobs or min(2, os.cpu_count() or 1)
-
     def all_scans(progress):
         ticks = iter(progress(range(len(scans)), len(scans))) if progress else iter(())
         shown = 0
@@ -723,17 +720,11 @@ def segment_many(scans, options, lidar_options, board: BoardGeometry, *, sensor:
                 next(ticks, None)
             shown = max(shown, taken)
 
-        work = [functools.partial(one, k) for k in range(len(scans))]
-        if jobs <= 1 or len(scans) < 4:
-            found = []
-            for w in work:
-                found.append(w())
-                advance(len(found))
-        else:
-            # two processes, not threads: a scan's segmentation is many small numpy steps, between
-            # which a thread holds the GIL (two threads kept 1.1 of 2 cores busy)
-            with TwoProcesses(work, what=f"{scans[0].topic}: segmentation") as both:
-                found = both.results(advance)
+        # two processes, not threads: a scan's segmentation is many small numpy steps, between
+        # which a thread holds the GIL (two threads kept 1.1 of 2 cores busy)
+        with TwoProcesses([functools.partial(one, k) for k in range(len(scans))],
+                          what=f"{scans[0].topic}: segmentation", fork=jobs != 1 and len(scans) >= 4) as both:
+            found = both.results(advance)
         for _ in ticks:  # the bar ends
             pass
         if debug is not None:
