@@ -495,7 +495,7 @@ def estimate_components(problem, lin: Linearization, sig: np.ndarray, effects: d
         stats0, _ = lin.solve_and_trace(w0)
         # d(-2 log L)/d(log sigma_g^2) = r_g - q_g: if q_g <= r_g (its chi^2 per redundancy is at
         # most 1), a larger sigma only lowers the likelihood from the floor on: nothing to find
-        profiled = [g for g in at_floor if stats0[g][1] > stats0[g][0] - stats0[g][2]]
+        profiled = [g for g, (n, q, tr) in ((g, stats0[g]) for g in at_floor) if q > n - tr]
         # each profile on its own (by two processes: the solve has the second core to itself here)
         with TwoProcesses([functools.partial(_profile, lin, w0, g, base, floor) for g in profiled],
                           what="the noise components' likelihood profiles") as both:
