@@ -23,12 +23,55 @@ GROUPS = (calibrate, bags, results, simulate, fleet)
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="clcgraph", description="Calibrate the extrinsics of a rig of LIDARs and cameras.")
     verbosity_args(parser, top=True)
+    parser.add_argument("--version", action=_Version, help="print the versions of clcgraph and what it runs on, and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for group in GROUPS:
         for add in group.COMMANDS:
             add(sub)
     return parser
+
+
+# (name, distribution) of what a calibration's numbers depend on, for --version
+_DEPENDENCIES = (("gtsam", "gtsam"), ("mrcal", "mrcal"), ("numpy", "numpy"), ("scipy", "scipy"),
+                 ("opencv", "opencv-python-headless"), ("open3d", "open3d-cpu"), ("small_gicp", "small_gicp"),
+                 ("rosbags", "rosbags"))
+
+
+def versions() -> str:
+    """clcgraph's version and its dependencies' (what a bug report needs): from the installed
+    packages' metadata; mrcal, a Debian package without Python metadata, from dpkg."""
+    import importlib.metadata
+    import platform
+    import subprocess
+
+    from .. import __version__
+
+    def version(dist):
+        try:
+            return importlib.metadata.version(dist)
+        except importlib.metadata.PackageNotFoundError:
+            pass
+        try:
+            out = subprocess.run(["dpkg-query", "-W", "-f", "${Version}", f"python3-{dist}"], capture_output=True,
+                                 text=True, timeout=10)
+            return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else "not found"
+        except (OSError, subprocess.SubprocessError):
+            return "not found"
+
+    deps = ", ".join(f"{name} {version(dist)}" for name, dist in _DEPENDENCIES)
+    return f"clcgraph {__version__} (Python {platform.python_version()}; {deps})"
+
+
+class _Version(argparse.Action):
+    """--version: ``versions()`` on stdout, exit 0 (argparse's own would format the text at parser build)."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(versions())
+        parser.exit()
 
 
 class _Terminated(BaseException):

@@ -30,3 +30,16 @@ def test_exit_codes_are_mains_and_argparses(args, code, tmp_path):
     r = _command(*args, *([tmp_path / "out"] if args[-1] == "--out" else []))
     assert r.returncode == code, r.stderr
     assert "Traceback" not in r.stderr
+
+
+def test_version_names_clcgraph_and_what_it_runs_on():
+    import importlib.metadata
+
+    from clcgraph import __version__
+
+    r = _command("--version")
+    assert r.returncode == 0 and "Traceback" not in r.stderr
+    line = r.stdout.strip()
+    assert line.startswith(f"clcgraph {__version__} (Python ")
+    assert f"gtsam {importlib.metadata.version('gtsam')}" in line and f"numpy {importlib.metadata.version('numpy')}" in line
+    assert "mrcal " in line and "mrcal not found" not in line  # Debian's package, no Python metadata: dpkg's
