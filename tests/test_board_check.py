@@ -52,6 +52,23 @@ def test_a_board_measured_wrong_is_refused_naming_the_size_the_outlines_show(sim
     calibrate(problem, SolveOptions())  # the board as it is passes
 
 
+def test_the_scale_fits_take_the_seeds_board_poses_as_their_own(simulated):
+    """The seed's PnP of each camera observation (made before any relabelling of its corners)
+    gives the scale fits the PnP of the solve's corners gives: the pattern's centre, the one point
+    the fits use, is where every ordering of the grid puts it."""
+    from clcgraph.backend.seed import seed
+
+    problem, truth = simulated
+    s = seed(problem, SolveOptions())
+    active = G.Active.all(s.problem, s.dropped)
+    mine = board_check.scale_seen(s.problem, active, truth.rt_lidar0_sensor)
+    seeds = board_check.scale_seen(s.problem, active, truth.rt_lidar0_sensor, s.rt_camera_board)
+    assert mine and set(seeds) == set(mine) and len(s.rt_camera_board) >= 8
+    for i, fit in mine.items():
+        assert seeds[i].boards == fit.boards
+        assert np.allclose([seeds[i].slope, seeds[i].se], [fit.slope, fit.se], rtol=1e-9, atol=0)
+
+
 @pytest.mark.parametrize("square_m, words", [(0.098, r"[12]\.\d % nearer"), (0.1005, r"0\.\d % farther")])
 def test_squares_declared_off_are_refused_naming_the_camera_and_the_squares_seen(simulated, square_m, words):
     """A camera puts every board (1 - 0.1 / square_m) nearer (farther): against the LIDARs'

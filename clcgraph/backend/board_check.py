@@ -84,12 +84,13 @@ class ScaleFit:
     far_m: float
 
 
-def scale_seen(problem, active, rt_sensor: np.ndarray) -> dict:
+def scale_seen(problem, active, rt_sensor: np.ndarray, rt_camera_board: dict | None = None) -> dict:
     """{camera index: ScaleFit} over its active observations of boards an active LIDAR observation
     shows too: a point per board (its distance by the corners against the mean of the LIDARs'),
     its standard error the larger of the fit's and the leave-one-board-out jackknife's (one board's
     corners off, as a dim camera's farthest board can be, moves the slope by more than the scatter
-    of the others shows)."""
+    of the others shows). ``rt_camera_board``: {(camera, snapshot): the board pose by PnP of its
+    corners} where made already (the seed's); the others' are made here."""
     T = [T_from_rt(np.asarray(rt, float)) for rt in rt_sensor]
     centre = problem.board.corners().mean(axis=0)
     planes: dict = {}
@@ -100,7 +101,9 @@ def scale_seen(problem, active, rt_sensor: np.ndarray) -> dict:
     for o, m in zip(problem.camera_observations, active.camera):
         if m is None or o.snapshot not in planes:
             continue
-        rt = board_pose_from_corners(o.corners_px, problem.sensors[o.sensor], problem.board, np.inf)
+        rt = (rt_camera_board or {}).get((o.sensor, o.snapshot))
+        if rt is None:
+            rt = board_pose_from_corners(o.corners_px, problem.sensors[o.sensor], problem.board, np.inf)
         if isinstance(rt, str):
             continue
         c = T_from_rt(rt)[:3] @ np.r_[centre, 1.0]  # the pattern's centre, camera frame

@@ -56,6 +56,10 @@ class Seed(NamedTuple):
     rejected: tuple  # Rejected(stage="seed") records
     dropped: frozenset  # (sensor, snapshot) of the observations the seed rejected
     problem: Problem  # the input, with camera corners relabelled where the seed turned them
+    # {(camera, snapshot): rt_camera_board} by PnP of the corners as detected, of each camera
+    # observation the seed did not reject (board_check.scale_seen: the pattern's centre, which
+    # a relabelling of the corners leaves where it is)
+    rt_camera_board: dict
 
 
 class _Obs(NamedTuple):
@@ -389,4 +393,5 @@ def seed(problem: Problem, options) -> Seed:
         cams = tuple(dataclasses.replace(o, corners_px=np.asarray(o.corners_px)[reorder[(o.sensor, o.snapshot)]])
                      if (o.sensor, o.snapshot) in reorder else o for o in problem.camera_observations)
         problem = dataclasses.replace(problem, camera_observations=cams)
-    return Seed(rts, boards, tuple(rejected), frozenset(dropped), problem)
+    pnp = {(o.sensor, o.snapshot): o.rt_sensor_board for o in obs if o.rt_sensor_board is not None}
+    return Seed(rts, boards, tuple(rejected), frozenset(dropped), problem, pnp)

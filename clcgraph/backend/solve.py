@@ -634,7 +634,7 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
         t = time.perf_counter()
         # the squares first: a pattern printed scaled moves every board along its view, which the
         # board check (which has no scale unknown) would read partly as an offset
-        board_check.check_scale(problem, board_check.scale_seen(problem, active, rt_sensor), options)
+        board_check.check_scale(problem, board_check.scale_seen(problem, active, rt_sensor, s.rt_camera_board), options)
         if options.lidar_edges:
             board_check.check_board(problem, board_check.board_seen(problem, g, lin))
         times["board_checks"] = time.perf_counter() - t
