@@ -158,6 +158,12 @@ CAPTURES = [
             rig={"lidars": [dict(TOP, heavy_tail_fraction=0.02, dark_range_bias_m=0.015, mixed_pixel_m=0.1),
                             dict(BUMPER, heavy_tail_fraction=0.02, dark_range_bias_m=0.02, mixed_pixel_m=0.1)],
                  "cameras": [CAM_FRONT]}, simulate={"n_poses": 16}),
+    Capture("dark-squares-lost", "a board whose dark squares mostly return nothing (8 in 10 of their returns lost: "
+            "a black print that absorbs the laser, or a laminated one that mirrors it away), weak and 1.5 cm long "
+            "where they do return",
+            rig={"lidars": [dict(TOP, dark_range_bias_m=0.015, dark_dropout=0.8),
+                            dict(BUMPER, dark_range_bias_m=0.015, dark_dropout=0.8)],
+                 "cameras": [CAM_FRONT]}, simulate={"n_poses": 16}),
     Capture("indoor-hall", "indoors: a hall closed all round, walls 6-9 m away up to a ceiling 3.4-4 m high (every "
             "LIDAR ray returns: no dropouts either), boards within 5 m",
             rig={"lidars": [dict(TOP, dropout=0.0), dict(BUMPER, dropout=0.0)], "cameras": [CAM_FRONT]},

@@ -606,6 +606,11 @@ def segment_board(scan: LidarScan, options, lidar_options, board: BoardGeometry,
                                  indices=idx, ring=ring, edge_rays=edges)
 
 
+# Fewest returns of either intensity group for dark_square_correction: the offset between their
+# medians is tested against its standard error, which needs a few returns to mean anything.
+_MIN_INTENSITY_GROUP = 10
+
+
 def dark_square_correction(pts: np.ndarray, intensity: np.ndarray) -> tuple[np.ndarray, float]:
     """(points, range offset in m or 0.0): a chessboard's dark squares return weak and, in real
     LIDARs, long (range walk: 1-2 cm). When the board's returns fall into two intensity groups
@@ -613,8 +618,10 @@ def dark_square_correction(pts: np.ndarray, intensity: np.ndarray) -> tuple[np.n
     errors), the weak returns are moved back along their rays by that offset: the bright squares
     and the white border return like the targets a LIDAR's ranges are calibrated on.
 
-    Groups: the two means of the intensities (1-D 2-means), each >= 10 % of the returns and
-    apart by more than 4x their pooled spread; otherwise nothing is changed."""
+    Groups: the two means of the intensities (1-D 2-means), each of >= 10 returns and apart by
+    more than 4x their pooled spread; otherwise nothing is changed. No share of the returns is
+    asked of the weak group: where most of the dark squares return nothing (a black print that
+    absorbs the laser, a laminated one that mirrors it away) the few that do are still long."""
     if len(pts) < 20 or not np.all(np.isfinite(intensity)):
         return pts, 0.0
     lo, hi = np.percentile(intensity, [5, 95])
@@ -629,9 +636,9 @@ def dark_square_correction(pts: np.ndarray, intensity: np.ndarray) -> tuple[np.n
         if new == thr:
             break
         thr = new
-    share = weak.mean()
     spread = np.sqrt((intensity[weak].var() * weak.sum() + intensity[~weak].var() * (~weak).sum()) / len(pts))
-    if not (0.1 <= share <= 0.9) or intensity[~weak].mean() - intensity[weak].mean() <= 4 * spread:
+    if min(weak.sum(), (~weak).sum()) < _MIN_INTENSITY_GROUP or \
+            intensity[~weak].mean() - intensity[weak].mean() <= 4 * spread:
         return pts, 0.0
     n, d, _ = fit_plane(pts[~weak])
     r = row_norms(pts)

@@ -56,6 +56,9 @@ class LidarModel:
     # returns from the board's dark squares are this much long (low reflectivity: their
     # intensity is then low too, 20 against the board's 180),
     dark_range_bias_m: float = 0.0
+    # this share of the returns from the board's dark squares never comes back (a black print
+    # that absorbs the laser, or a laminated one that mirrors it away at an angle),
+    dark_dropout: float = 0.0
     # a ring's board return next to a miss of the board is up to this much long (part of the
     # beam's footprint hit the background: a mixed pixel).
     mixed_pixel_m: float = 0.0
@@ -131,6 +134,8 @@ def simulate_scan(model: LidarModel, T_world_lidar: np.ndarray, scene, rng, *, s
     bias = model.ring_errors()[0][ring] if model.ring_range_bias_m else 0.0
     on_board = gid == getattr(scene, "board_id", -2)
     extra, dark = _per_return_errors(model, scene, rays, r, on_board, rng)
+    if model.dark_dropout:
+        valid &= ~(dark & (rng.uniform(size=r.shape) < model.dark_dropout))
     r = np.where(valid, r + bias + extra + rng.normal(0.0, model.range_noise_m, r.shape), 0.0)
     pts = d.reshape(-1, 3) * r[:, None]
     time_s = np.tile(np.arange(cols) / cols * model.rotation_period_s, rings)
@@ -161,15 +166,16 @@ def _per_return_errors(model: LidarModel, scene, rays: np.ndarray, r: np.ndarray
                        rng) -> tuple[np.ndarray | float, np.ndarray | bool]:
     """((rings*columns,) range errors of ``model``'s per-return options (0.0 when all are off):
     heavy-tailed noise, dark squares returning long, mixed pixels at the board's edge; the mask
-    of returns from the board's dark squares (False unless dark_range_bias_m))."""
+    of returns from the board's dark squares (False unless dark_range_bias_m or dark_dropout))."""
     dark = np.zeros(r.shape, bool)
-    if not (model.heavy_tail_fraction or model.dark_range_bias_m or model.mixed_pixel_m):
+    if not (model.heavy_tail_fraction or model.dark_range_bias_m or model.dark_dropout or model.mixed_pixel_m):
         return 0.0, dark
     e = np.zeros(r.shape)
     if model.heavy_tail_fraction:
         wild = rng.uniform(size=r.shape) < model.heavy_tail_fraction
         e[wild] += rng.normal(0.0, model.heavy_tail_scale * model.range_noise_m, int(wild.sum()))
-    if model.dark_range_bias_m and on_board.any() and getattr(scene, "T_world_board", None) is not None:
+    if (model.dark_range_bias_m or model.dark_dropout) and on_board.any() and \
+            getattr(scene, "T_world_board", None) is not None:
         from .camera import BLACK, board_shade
 
         p_world = rays[on_board, :3] + rays[on_board, 3:] * r[on_board, None]

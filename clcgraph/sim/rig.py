@@ -15,6 +15,7 @@
         errors_seed: 3                   # optional: which unit (draws the per-ring errors)
         heavy_tail_fraction: 0.02        # optional: share of returns with heavy_tail_scale (10) x the noise
         dark_range_bias_m: 0.015         # optional: the board's dark squares return weak and this long
+        dark_dropout: 0.5                # optional: this share of the dark squares' returns is lost
         mixed_pixel_m: 0.1               # optional: a ring's board-edge return up to this long
         dual_returns: false              # optional: two returns of every ray (velodyne: after each firing's; ouster: organised, each column then its second returns')
         clockwise: true                  # optional: the head spins clockwise seen from above (false: the other way)
@@ -132,7 +133,7 @@ def _pose(d, where, path) -> np.ndarray:
 # a LIDAR's keys that override its model's fields (LidarModel), and the others
 _LIDAR_MODEL_KEYS = ("layout", "range_noise_m", "dropout", "max_range_m", "npoints_per_rotation", "ring_range_bias_m",
                      "ring_elevation_error_deg", "errors_seed", "heavy_tail_fraction", "heavy_tail_scale",
-                     "dark_range_bias_m", "mixed_pixel_m", "dual_returns", "clockwise")
+                     "dark_range_bias_m", "dark_dropout", "mixed_pixel_m", "dual_returns", "clockwise")
 _LIDAR_KEYS = {"topic", "model", "elevations_deg", "frame_id", "xyz", "rpy_deg", *_LIDAR_MODEL_KEYS}
 _CAMERA_KEYS = {"topic", "model", "encoding", "compressed", "camera_info", "frame_id", "xyz", "rpy_deg", "gain",
                 "pixel_noise", "blur_px"}
