@@ -164,6 +164,11 @@ CAPTURES = [
             rig={"lidars": [dict(TOP, dark_range_bias_m=0.015, dark_dropout=0.8),
                             dict(BUMPER, dark_range_bias_m=0.015, dark_dropout=0.8)],
                  "cameras": [CAM_FRONT]}, simulate={"n_poses": 16}),
+    Capture("pcl-xyz-dark-squares", "both LIDARs recorded after a PCL filter node as pcl::PointXYZ (no intensity, "
+            "ring or time), their boards' dark squares returning 1.5 cm long: nothing in the clouds tells the squares "
+            "apart", rig={"lidars": [dict(TOP, layout="pcl_xyz", dark_range_bias_m=0.015),
+                                     dict(BUMPER, layout="pcl_xyz", dark_range_bias_m=0.015)],
+                          "cameras": [CAM_FRONT]}, simulate={"n_poses": 16}),
     Capture("indoor-hall", "indoors: a hall closed all round, walls 6-9 m away up to a ceiling 3.4-4 m high (every "
             "LIDAR ray returns: no dropouts either), boards within 5 m",
             rig={"lidars": [dict(TOP, dropout=0.0), dict(BUMPER, dropout=0.0)], "cameras": [CAM_FRONT]},

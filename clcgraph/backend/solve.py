@@ -38,7 +38,7 @@ from ..errors import DegenerateError, SolveError
 from ..geometry import R_from_r, drt_dxi, pose3_from_rt, rt_from_pose3, tangent_covariance_from_rt
 from ..two_processes import TwoProcesses
 from ..types import Problem, Rejected, Result
-from . import board_check, consider, consistency
+from . import board_check, consider, consistency, dark_squares
 from . import graph as G
 from . import noise as N
 from .convergence import MAX_UNCONVERGED_STEP_SIGMA, optimize_lm, public, step_sigma
@@ -526,6 +526,14 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
                                                 nominal, "range + camera")
     stages.append(rec)
     iters["plane"], iters["range"] = stages[0]["iterations"], stages[1]["iterations"]
+    # the boards' dark squares ranging long where segmentation could not take it out (no
+    # intensities): measured on these board poses, taken out; the rounds below solve again
+    dark = dark_squares.measure(problem, rt_sensor, rt_board)
+    if any(f.significant for f in dark.values()):
+        problem = dark_squares.corrected(problem, dark, rt_sensor, rt_board)
+        log.info("the boards' dark squares range long: %s; taken out", ", ".join(
+            f"{problem.sensors[i].topic} {1e3 * f.offset_m:.1f} mm (+-{1e3 * f.se_m:.1f})"
+            for i, f in dark.items() if f.significant))
     times["lm"] = time.perf_counter() - t
     t = time.perf_counter()
     iters["rounds"] = 0
@@ -706,7 +714,9 @@ def _calibrate_once(problem: Problem, options, *, on_estimate: Callable[[Result]
     stats = {"stage": "solve", "iterations": iters, "convergence": convergence, "time_s": times, "regularization_share": float(prior / max(total, 1e-300)),
              "n_outlier_points": int(sum(int((~m).sum()) for m in active.lidar if m is not None)),
              "n_rejected_observations": sum(1 for r in rejected if r.stage in ("outlier", "seed")),
-             "consistency": verdict, "uncertainty_terms": uncertainty_terms, "unit_errors": unit_errors}
+             "consistency": verdict, "uncertainty_terms": uncertainty_terms, "unit_errors": unit_errors,
+             "dark_squares": {problem.sensors[i].topic: {"offset_mm": 1e3 * f.offset_m, "se_mm": 1e3 * f.se_m,
+                                                         "taken_out": f.significant} for i, f in dark.items()}}
     log.info("solve: %d rounds, sigma LIDAR %.4f m, camera %.3f px, %.2f s", iters["rounds"], noise["lidar_m"],
              noise["camera_px"], times["total"])
     return Result(problem=problem, rt_lidar0_sensor=rt_sensor, covariance_rt=cov, rt_lidar0_board=rt_board,

@@ -147,6 +147,9 @@ def _target_sections(result: Result) -> dict:
         # between BLAS thread counts, and the same inputs must give the same bytes)
         "consistency": _plain(result.stats.get("consistency"), digits=6),
         "uncertainty_check": uncertainty_check_dict(result),
+        # per LIDAR: its boards' dark squares' range beyond the light ones' on the solved poses, and
+        # whether it was taken out (backend/dark_squares.py: clouds without intensities keep it)
+        "dark_squares": _plain(result.stats.get("dark_squares") or {}, digits=6),
         **unit_errors_dict(result),
     }
 

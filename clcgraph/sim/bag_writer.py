@@ -26,6 +26,8 @@ order across topics, as in real recordings. Field layouts mimic the real drivers
 - ``layout="pcl_xyzi"``: a PCL filter node's output (pcl::PointXYZI): unorganised and dense
   (invalid points dropped), x y z @0,4,8, pad, intensity @16 (float32), point_step 32: no ring,
   no time.
+- ``layout="pcl_xyz"``: the same as pcl::PointXYZ (a voxel filter's, say): x y z @0,4,8, pad,
+  point_step 16: no intensity either.
 """
 
 from __future__ import annotations
@@ -72,6 +74,8 @@ LAYOUTS = {
         [("x", 0, _FLOAT32), ("y", 4, _FLOAT32), ("z", 8, _FLOAT32), ("intensity", 16, _FLOAT32)],
         32,
     ),
+    # pcl::PointXYZ: no intensity either
+    "pcl_xyz": ([("x", 0, _FLOAT32), ("y", 4, _FLOAT32), ("z", 8, _FLOAT32)], 16),
 }
 _NP = {_INT8: "i1", _UINT8: "u1", _INT16: "i2", _UINT16: "u2", _INT32: "i4",
        _UINT32: "u4", _FLOAT32: "f4", _FLOAT64: "f8"}
@@ -218,7 +222,7 @@ class BagWriter:
         layout "velodyne": unorganised unless ``organised`` (then, like "ouster", it needs
         ``scan.shape``); "ouster": organised, needs ``scan.shape`` =
         (rings, columns) with points row-major; "hesai": as velodyne, times absolute (float64 s);
-        "pcl_xyzi": x, y, z, intensity of the valid points. Invalid points (``~scan.valid``) keep
+        "pcl_xyzi" ("pcl_xyz"): x, y, z (, intensity) of the valid points. Invalid points (``~scan.valid``) keep
         NaN in the velodyne layout and (0,0,0) in the ouster layout, so the reader's valid
         mask equals ``scan.valid``. Coordinates and times are stored as float32 (ouster
         time as uint32 ns). Missing ring / time / intensity are written as zeros.
@@ -226,7 +230,7 @@ class BagWriter:
         if layout not in LAYOUTS:
             raise InputError(f"pointcloud layout {layout!r} unknown; use {', '.join(LAYOUTS)}")
         fields, point_step = LAYOUTS[layout]
-        if layout == "pcl_xyzi":  # dense: a filter drops the invalid points (and the cloud's layout)
+        if layout.startswith("pcl_"):  # dense: a filter drops the invalid points (and the cloud's layout)
             keep = np.asarray(scan.valid, bool)
             scan = dataclasses.replace(scan, points=np.asarray(scan.points)[keep], valid=keep[keep], shape=None,
                                        ring=None, intensity=None if scan.intensity is None else
@@ -266,7 +270,8 @@ class BagWriter:
         if "timestamp" in arr.dtype.names:
             arr["timestamp"] = scan.stamp_ns // 1_000_000_000 + (scan.stamp_ns % 1_000_000_000 * 1e-9 + np.asarray(time_s))
         arr["x"], arr["y"], arr["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
-        arr["intensity"] = intensity
+        if "intensity" in arr.dtype.names:
+            arr["intensity"] = intensity
         if "ring" in arr.dtype.names:
             arr["ring"] = np.asarray(ring).astype(np.uint16)
 

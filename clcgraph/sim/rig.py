@@ -5,7 +5,7 @@
         model: vlp16                 # preset (vlp16, hdl32, os1-64, os1-128, vlp32c, pandar40p) ...
         # elevations_deg: [...]      # ... or an explicit ring table
         # npoints_per_rotation: 1800
-        layout: velodyne             # velodyne (unorganised) | ouster (organised, padded) | hesai (absolute float64 times, ring 0 the top beam) | pcl_xyzi (a PCL filter's: no ring)
+        layout: velodyne             # velodyne (unorganised) | ouster (organised, padded) | hesai (absolute float64 times, ring 0 the top beam) | pcl_xyzi (a PCL filter's: no ring) | pcl_xyz (no intensity either)
         frame_id: lidar_front
         xyz: [1.2, 0.0, 1.8]         # pose in base_link: position (m) ...
         rpy_deg: [0, 0, 0]           # ... and roll, pitch, yaw (deg) of the front-left-up frame
@@ -166,7 +166,7 @@ def load_rig(path) -> Rig:
         over = {k2: L[k2] for k2 in _LIDAR_MODEL_KEYS if k2 in L}
         if over.get("layout", model.layout) not in LAYOUTS:
             raise InputError(f"{path}: {where}.layout must be one of {', '.join(LAYOUTS)}")
-        if over.get("dual_returns") and over.get("layout", model.layout) == "pcl_xyzi":
+        if over.get("dual_returns") and over.get("layout", model.layout).startswith("pcl_"):
             raise InputError(f"{path}: {where}.dual_returns needs a driver's layout (velodyne, ouster or hesai)")
         model = replace(model, **over)
         lidars.append(RigLidar(topic, str(L.get("frame_id", topic.strip("/").replace("/", "_"))), model,
