@@ -125,20 +125,25 @@ def test_a_ros2_bag_compressed_whole_reads_from_its_folder_or_its_storage_file(w
     assert [(m.topic, m.stamp_ns) for m in bag.read_messages([storage], TOPICS)] == by_folder
 
 
-def test_a_pcl_filters_xyzi_cloud_reads_without_rings_and_they_come_from_elevation(tmp_path):
-    """pcl::PointXYZI as a filter node republishes a driver's cloud: dense (invalid points dropped),
-    no ring or time field. The reader takes it as it is; the rings come from the elevations."""
+@pytest.mark.parametrize("layout, fields", [("pcl_xyzi", ["x", "y", "z", "intensity"]), ("pcl_xyz", ["x", "y", "z"])])
+def test_a_pcl_filters_cloud_reads_without_rings_and_they_come_from_elevation(tmp_path, layout, fields):
+    """pcl::PointXYZI (pcl::PointXYZ) as a filter node republishes a driver's cloud: dense (invalid
+    points dropped), no ring or time field (nor intensity). The reader takes it as it is; the rings
+    come from the elevations."""
     from clcgraph.frontend.lidar_preprocess import ring_of
 
     scan = _scan(np.random.default_rng(3), T0, "/xyzi")
     with BagWriter(tmp_path / "x.bag", format="ros1") as w:
-        w.write_pointcloud("/xyzi", scan, frame_id="lidar0", layout="pcl_xyzi")
+        w.write_pointcloud("/xyzi", scan, frame_id="lidar0", layout=layout)
     raw = bag.first_raw_message(tmp_path / "x.bag", "/xyzi")
-    assert [f.name for f in raw.fields] == ["x", "y", "z", "intensity"] and raw.height == 1 and raw.is_dense
+    assert [f.name for f in raw.fields] == fields and raw.height == 1 and raw.is_dense
     got = bag.first_messages(tmp_path / "x.bag", ["/xyzi"])["/xyzi"]
     assert got.ring is None and got.time_s is None and got.shape is None and got.valid.all()
     np.testing.assert_array_equal(got.points, scan.points[scan.valid])
-    np.testing.assert_array_equal(got.intensity, scan.intensity[scan.valid])
+    if "intensity" in fields:
+        np.testing.assert_array_equal(got.intensity, scan.intensity[scan.valid])
+    else:
+        assert got.intensity is None
     np.testing.assert_array_equal(ring_of(got), scan.ring[scan.valid])
 
 
