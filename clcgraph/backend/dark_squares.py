@@ -27,6 +27,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..geometry import T_from_rt
+from ..planes import fit_plane
 from ..types import Problem
 from . import graph as G
 
@@ -95,7 +96,7 @@ def _robust(r: np.ndarray) -> np.ndarray:
 
 def corrected(problem: Problem, found: dict[int, Offset], rt_sensor: np.ndarray, rt_board: np.ndarray) -> Problem:
     """``problem`` with each significant offset of ``found`` taken out: the returns on the longer
-    squares (near their sides too) moved back along their rays by it."""
+    squares (near their sides too) moved back along their rays by it, and the plane refitted."""
     lidar = []
     for o in problem.lidar_observations:
         f = found.get(o.sensor)
@@ -107,6 +108,8 @@ def corrected(problem: Problem, found: dict[int, Offset], rt_sensor: np.ndarray,
         p = np.asarray(o.points, float).copy()
         r = np.linalg.norm(p[move], axis=1)
         p[move] *= ((r - f.offset_m) / r)[:, None]
-        lidar.append(dataclasses.replace(o, points=p))
+        n, d, rms = fit_plane(p)  # the observation's plane as segmentation gives it: n toward the sensor
+        plane = np.r_[-n, -d] if d > 0 else np.r_[n, d]
+        lidar.append(dataclasses.replace(o, points=p, plane=plane, rms_m=rms))
     return dataclasses.replace(problem, lidar_observations=tuple(lidar))
 
