@@ -112,4 +112,3 @@ def corrected(problem: Problem, found: dict[int, Offset], rt_sensor: np.ndarray,
         plane = np.r_[-n, -d] if d > 0 else np.r_[n, d]
         lidar.append(dataclasses.replace(o, points=p, plane=plane, rms_m=rms))
     return dataclasses.replace(problem, lidar_observations=tuple(lidar))
-

@@ -23,7 +23,8 @@ GROUPS = (calibrate, bags, results, simulate, fleet)
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="clcgraph", description="Calibrate the extrinsics of a rig of LIDARs and cameras.")
     verbosity_args(parser, top=True)
-    parser.add_argument("--version", action=_Version, help="print the versions of clcgraph and what it runs on, and exit")
+    parser.add_argument("--version", action=_Version,
+                        help="print the versions of clcgraph and what it runs on, and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for group in GROUPS:

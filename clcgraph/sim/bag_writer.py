@@ -222,8 +222,8 @@ class BagWriter:
         layout "velodyne": unorganised unless ``organised`` (then, like "ouster", it needs
         ``scan.shape``); "ouster": organised, needs ``scan.shape`` =
         (rings, columns) with points row-major; "hesai": as velodyne, times absolute (float64 s);
-        "pcl_xyzi" ("pcl_xyz"): x, y, z (, intensity) of the valid points. Invalid points (``~scan.valid``) keep
-        NaN in the velodyne layout and (0,0,0) in the ouster layout, so the reader's valid
+        "pcl_xyzi" ("pcl_xyz"): x, y, z (, intensity) of the valid points. Invalid points
+        (``~scan.valid``) keep NaN in the velodyne layout and (0,0,0) in the ouster layout, so the reader's valid
         mask equals ``scan.valid``. Coordinates and times are stored as float32 (ouster
         time as uint32 ns). Missing ring / time / intensity are written as zeros.
         """
