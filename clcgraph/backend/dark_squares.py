@@ -26,7 +26,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..geometry import T_from_rt
+from ..geometry import T_from_rt, pose3_from_rt
 from ..planes import fit_plane
 from ..types import Problem
 from . import graph as G
@@ -65,9 +65,10 @@ def _squares(problem: Problem, o, T_sensor: np.ndarray, rt_board: np.ndarray):
 
 def measure(problem: Problem, rt_sensor: np.ndarray, rt_board: np.ndarray) -> dict[int, Offset]:
     """{LIDAR index: Offset} of the LIDARs with >= _MIN_RETURNS counted on each colour."""
-    lidar, _ = G.residuals(problem, rt_sensor, rt_board)
+    poses = [None if i == problem.reference else pose3_from_rt(rt_sensor[i]) for i in range(len(problem.sensors))]
     groups: dict[int, list] = {}
-    for o, r in zip(problem.lidar_observations, lidar):
+    for j, o in enumerate(problem.lidar_observations):
+        r = G.residual_of(problem, "lidar", j, poses, rt_board)
         if r is None:
             continue
         parity, near, on = _squares(problem, o, T_from_rt(rt_sensor[o.sensor]), rt_board[o.snapshot])
