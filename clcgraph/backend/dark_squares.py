@@ -41,7 +41,6 @@ class Offset(NamedTuple):
     offset_m: float  # the longer colour's mean range beyond the other's (>= 0)
     se_m: float  # its standard error
     longer: int  # the parity (col + row) % 2 of the longer squares
-    returns: tuple[int, int]  # counted on each colour (parity 0, 1)
 
     @property
     def significant(self) -> bool:
@@ -83,7 +82,7 @@ def measure(problem: Problem, rt_sensor: np.ndarray, rt_board: np.ndarray) -> di
             continue
         d = float(a.mean() - b.mean())
         se = float(np.sqrt(a.var(ddof=1) / len(a) + b.var(ddof=1) / len(b)))
-        out[i] = Offset(abs(d), se, 0 if d > 0 else 1, (len(a), len(b)))
+        out[i] = Offset(abs(d), se, 0 if d > 0 else 1)
     return out
 
 
