@@ -58,7 +58,10 @@ def main(argv: list[str] | None = None) -> int:
         p.error("no command given (after --)")
     before = os.times()
     t0 = time.perf_counter()
-    proc = subprocess.Popen(command, stderr=subprocess.PIPE, text=True, errors="replace")
+    try:
+        proc = subprocess.Popen(command, stderr=subprocess.PIPE, text=True, errors="replace")
+    except OSError as e:  # no such program, not executable: one line, as argparse's errors
+        p.error(f"cannot run {command[0]}: {e.strerror}")
     lock = threading.Lock()
 
     def show(line: str) -> None:

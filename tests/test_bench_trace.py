@@ -9,6 +9,8 @@ import subprocess
 import sys
 import time
 
+import pytest
+
 from bench import trace
 
 BUSY = "import time\nt = time.process_time()\nwhile time.process_time() - t < {s}: pass\n"
@@ -41,3 +43,10 @@ def test_the_totals_are_the_commands(capsys):
     assert code == 3
     cpu = float(out.split("CPU ")[1].split(" s")[0])
     assert 0.3 <= cpu <= 1.0, out
+
+
+def test_a_command_that_cannot_run_is_one_line(capsys):
+    with pytest.raises(SystemExit) as e:
+        trace.main(["--", "/no/such/program"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "cannot run /no/such/program" in err and "Traceback" not in err
